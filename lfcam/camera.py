@@ -1,0 +1,475 @@
+"""Camera description: one frozen dataclass per physical part, and the TOML profile loader.
+
+Conventions (CONTRACT §1): lengths in millimetres, optical axis z, origin at the main-lens
+centre (mid-thickness), +z toward the sensor. The profile schema is CONTRACT §2; keys this
+module adds where the contract is silent are documented in ``docs/profiles.md``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from lfcam.errors import ProfileError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib
+
+GRIDS = ("rect", "hex")
+BAYER_PATTERNS = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
+FOCAL_LENGTH_RTOL = 1e-4  # CONTRACT §2: a stated focal length must agree to 0.01 %
+
+
+@dataclass(frozen=True)
+class MainLens:
+    """Symmetric biconvex thick lens with the aperture stop at the front rim.
+
+    Parameters
+    ----------
+    radius_mm : float
+        Radius of curvature R of both surfaces.
+    thickness_mm : float
+        Centre thickness T.
+    refractive_index : float
+        Refractive index n of the glass.
+    pupil_diameter_mm : float
+        Clear aperture D at the front surface (the aperture stop).
+    """
+
+    radius_mm: float
+    thickness_mm: float
+    refractive_index: float
+    pupil_diameter_mm: float
+
+    @property
+    def focal_length_mm(self) -> float:
+        """Effective focal length from the thick-lens lensmaker's equation."""
+        r, t, n = self.radius_mm, self.thickness_mm, self.refractive_index
+        power = (n - 1.0) * (2.0 / r - (n - 1.0) * t / (n * r * r))
+        return 1.0 / power
+
+    @property
+    def principal_depth_mm(self) -> float:
+        """Distance from each vertex inward to its principal plane (symmetric lens)."""
+        r, t, n = self.radius_mm, self.thickness_mm, self.refractive_index
+        return self.focal_length_mm * (n - 1.0) * t / (n * r)
+
+    @property
+    def front_vertex_z_mm(self) -> float:
+        """z of the front vertex."""
+        return -0.5 * self.thickness_mm
+
+    @property
+    def back_vertex_z_mm(self) -> float:
+        """z of the back vertex."""
+        return 0.5 * self.thickness_mm
+
+    @property
+    def front_principal_z_mm(self) -> float:
+        """z of the object-side principal plane H1."""
+        return self.front_vertex_z_mm + self.principal_depth_mm
+
+    @property
+    def back_principal_z_mm(self) -> float:
+        """z of the image-side principal plane H2."""
+        return self.back_vertex_z_mm - self.principal_depth_mm
+
+    @property
+    def rim_sag_mm(self) -> float:
+        """Axial depth of the front rim (height D/2) behind the front vertex."""
+        r, h = self.radius_mm, 0.5 * self.pupil_diameter_mm
+        return h * h / (r + math.sqrt(r * r - h * h))
+
+    @property
+    def rim_z_mm(self) -> float:
+        """z of the plane through the front rim (where the aperture stop sits)."""
+        return self.front_vertex_z_mm + self.rim_sag_mm
+
+    @property
+    def edge_radius_mm(self) -> float:
+        """Height at which the two spherical surfaces meet (the lens's physical edge)."""
+        r, t = self.radius_mm, self.thickness_mm
+        return math.sqrt(max(r * r - (r - 0.5 * t) ** 2, 0.0))
+
+    @property
+    def exit_pupil_z_mm(self) -> float:
+        """Paraxial z of the exit pupil: the stop (rim plane) imaged by the back surface."""
+        n, r = self.refractive_index, self.radius_mm
+        s = self.back_vertex_z_mm - self.rim_z_mm  # stop to back vertex, inside glass
+        inv = (n - 1.0) / r - n / s
+        return self.back_vertex_z_mm + 1.0 / inv
+
+    @property
+    def f_number(self) -> float:
+        """Working f-number at infinity focus, f / D."""
+        return self.focal_length_mm / self.pupil_diameter_mm
+
+
+@dataclass(frozen=True)
+class MicrolensArray:
+    """Microlens array (thin ideal lenslets).
+
+    Parameters
+    ----------
+    focal_length_mm : float
+        Lenslet focal length f_x; the sensor lies f_x behind the MLA.
+    pitch_mm : float
+        Lenslet pitch D_m (centre to centre, along a grid row).
+    grid : str
+        ``"rect"`` or ``"hex"`` (hex: rows offset by half a pitch, row spacing pitch·√3/2).
+    distance_mm : float or None
+        d_in, main-lens centre to MLA. ``None`` when it comes from ``focus_mm`` or calibration.
+    focus_mm : float or None
+        Object distance (from the front vertex) in focus on the MLA; ``inf`` allowed.
+    rotation_rad : float
+        Rotation of the grid rows against the sensor x axis.
+    offset_mm : tuple of float
+        (x, y) of one lenslet centre relative to the optical axis, on the MLA plane.
+    fill_factor : float
+        Fraction of the pitch that is clear aperture (1 = lenslets touch).
+    """
+
+    focal_length_mm: float
+    pitch_mm: float
+    grid: str = "rect"
+    distance_mm: float | None = None
+    focus_mm: float | None = None
+    rotation_rad: float = 0.0
+    offset_mm: tuple[float, float] = (0.0, 0.0)
+    fill_factor: float = 1.0
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Image sensor.
+
+    Parameters
+    ----------
+    pixel_pitch_mm : float
+        Pixel pitch (square pixels).
+    width_px, height_px : int
+        Sensor size in pixels.
+    bit_depth : int
+        Bits per stored sample.
+    bayer : str
+        Colour filter pattern or ``"none"``.
+    black_level, white_level : int
+        Raw value of no light and of saturation.
+    axis_px : tuple of float or None
+        (x_px, y_px) where the optical axis meets the sensor; ``None`` = sensor centre.
+    """
+
+    pixel_pitch_mm: float
+    width_px: int
+    height_px: int
+    bit_depth: int = 16
+    bayer: str = "none"
+    black_level: int = 0
+    white_level: int = 65535
+    axis_px: tuple[float, float] | None = None
+
+    @property
+    def axis_xy_px(self) -> tuple[float, float]:
+        """(x_px, y_px) of the optical axis on the sensor."""
+        if self.axis_px is not None:
+            return self.axis_px
+        return (0.5 * (self.width_px - 1), 0.5 * (self.height_px - 1))
+
+
+@dataclass(frozen=True)
+class CameraProfile:
+    """A complete plenoptic 1.0 camera: main lens, MLA and sensor."""
+
+    name: str
+    main_lens: MainLens
+    mla: MicrolensArray
+    sensor: Sensor
+    source: str = field(default="", compare=False)
+
+    @property
+    def d_in_mm(self) -> float:
+        """MLA distance d_in: stated, else derived from ``focus_mm`` through the principal planes.
+
+        Raises
+        ------
+        ProfileError
+            If the profile states neither ``mla.distance_mm`` nor ``mla.focus_mm``.
+        """
+        if self.mla.distance_mm is not None:
+            return self.mla.distance_mm
+        if self.mla.focus_mm is not None:
+            from lfcam.optics.paraxial import d_in_for_focus
+
+            return d_in_for_focus(self.main_lens, self.mla.focus_mm)
+        raise ProfileError(
+            f"profile {self.name!r}: mla.distance_mm (d_in) is unknown: set mla.distance_mm or "
+            "mla.focus_mm, or calibrate it from a reference-plane capture"
+        )
+
+    @property
+    def sensor_z_mm(self) -> float:
+        """z of the sensor plane, d_in + f_x."""
+        return self.d_in_mm + self.mla.focal_length_mm
+
+    def with_d_in(self, d_in_mm: float) -> CameraProfile:
+        """Return a copy with the MLA distance set (and ``focus_mm`` cleared)."""
+        _check_positive("mla.distance_mm", d_in_mm)
+        return replace(self, mla=replace(self.mla, distance_mm=float(d_in_mm), focus_mm=None))
+
+    def with_focus(self, focus_mm: float) -> CameraProfile:
+        """Return a copy focused at ``focus_mm`` (object distance from the front vertex)."""
+        from lfcam.optics.paraxial import d_in_for_focus
+
+        return self.with_d_in(d_in_for_focus(self.main_lens, focus_mm))
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _check_positive(key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProfileError(f"{key}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ProfileError(f"{key}: must be finite, got {value!r}")
+    if v <= 0.0:
+        raise ProfileError(f"{key}: must be positive, got {value!r}")
+    return v
+
+
+def _number(key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProfileError(f"{key}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ProfileError(f"{key}: must be finite, got {value!r}")
+    return v
+
+
+def _integer(key: str, value: Any, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ProfileError(f"{key}: expected an integer, got {value!r}")
+    if not lo <= value <= hi:
+        raise ProfileError(f"{key}: must be in [{lo}, {hi}], got {value}")
+    return int(value)
+
+
+def _table(data: dict, key: str) -> dict:
+    if key not in data:
+        raise ProfileError(f"missing table [{key}]")
+    if not isinstance(data[key], dict):
+        raise ProfileError(f"[{key}] must be a table")
+    return data[key]
+
+
+def _required(table: dict, section: str, key: str) -> Any:
+    if key not in table:
+        raise ProfileError(f"missing key {section}.{key}")
+    return table[key]
+
+
+def _pair(key: str, value: Any) -> tuple[float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ProfileError(f"{key}: expected [x, y], got {value!r}")
+    return (_number(f"{key}[0]", value[0]), _number(f"{key}[1]", value[1]))
+
+
+def _known_keys(table: dict, section: str, allowed: set[str]) -> None:
+    extra = sorted(set(table) - allowed)
+    if extra:
+        raise ProfileError(f"unknown key {section}.{extra[0]} (allowed: {', '.join(sorted(allowed))})")
+
+
+def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
+    """Validate a parsed profile mapping and build a :class:`CameraProfile`.
+
+    Parameters
+    ----------
+    data : dict
+        Parsed TOML (CONTRACT §2).
+    source : str
+        Where it came from, for messages.
+
+    Returns
+    -------
+    CameraProfile
+
+    Raises
+    ------
+    ProfileError
+        Naming the offending key for every missing, mistyped, non-finite, negative or
+        inconsistent value.
+    """
+    if not isinstance(data, dict):
+        raise ProfileError("profile must be a TOML table")
+    name = data.get("name", Path(source).stem if source else "unnamed")
+    if not isinstance(name, str):
+        raise ProfileError(f"name: expected a string, got {name!r}")
+
+    ml = _table(data, "main_lens")
+    _known_keys(
+        ml,
+        "main_lens",
+        {"radius_mm", "thickness_mm", "refractive_index", "pupil_diameter_mm", "focal_length_mm"},
+    )
+    lens = MainLens(
+        radius_mm=_check_positive("main_lens.radius_mm", _required(ml, "main_lens", "radius_mm")),
+        thickness_mm=_check_positive(
+            "main_lens.thickness_mm", _required(ml, "main_lens", "thickness_mm")
+        ),
+        refractive_index=_check_positive(
+            "main_lens.refractive_index", _required(ml, "main_lens", "refractive_index")
+        ),
+        pupil_diameter_mm=_check_positive(
+            "main_lens.pupil_diameter_mm", _required(ml, "main_lens", "pupil_diameter_mm")
+        ),
+    )
+    if lens.refractive_index <= 1.0:
+        raise ProfileError(
+            f"main_lens.refractive_index: must exceed 1, got {lens.refractive_index}"
+        )
+    if lens.pupil_diameter_mm >= 2.0 * lens.radius_mm:
+        raise ProfileError(
+            f"main_lens.pupil_diameter_mm: D = {lens.pupil_diameter_mm} must be smaller than "
+            f"2R = {2 * lens.radius_mm}"
+        )
+    if lens.thickness_mm >= 2.0 * lens.radius_mm:
+        raise ProfileError("main_lens.thickness_mm: T must be smaller than 2R")
+    if 0.5 * lens.pupil_diameter_mm >= lens.edge_radius_mm:
+        raise ProfileError(
+            f"main_lens.pupil_diameter_mm: D/2 = {0.5 * lens.pupil_diameter_mm} reaches the lens "
+            f"edge ({lens.edge_radius_mm:.4g} mm, where the surfaces meet); increase "
+            "main_lens.thickness_mm or reduce the pupil"
+        )
+    if lens.focal_length_mm <= 0.0:
+        raise ProfileError("main_lens: R, T, n give a non-positive focal length")
+    if "focal_length_mm" in ml:
+        stated = _check_positive("main_lens.focal_length_mm", ml["focal_length_mm"])
+        derived = lens.focal_length_mm
+        if abs(stated - derived) > FOCAL_LENGTH_RTOL * derived:
+            raise ProfileError(
+                f"main_lens.focal_length_mm: stated {stated} mm disagrees with {derived:.4f} mm "
+                "derived from R, T, n by more than 0.01 %"
+            )
+
+    mt = _table(data, "mla")
+    _known_keys(
+        mt,
+        "mla",
+        {
+            "focal_length_mm", "pitch_mm", "grid", "distance_mm", "focus_mm",
+            "rotation_rad", "offset_mm", "fill_factor",
+        },
+    )
+    grid = mt.get("grid", "rect")
+    if grid not in GRIDS:
+        raise ProfileError(f"mla.grid: must be one of {GRIDS}, got {grid!r}")
+    distance = mt.get("distance_mm")
+    focus = mt.get("focus_mm")
+    if focus is not None:
+        if isinstance(focus, str) and focus.lower() in ("inf", "infinity"):
+            focus = math.inf
+        elif isinstance(focus, (int, float)) and not isinstance(focus, bool) and focus == math.inf:
+            focus = math.inf
+        else:
+            focus = _check_positive("mla.focus_mm", focus)
+    fill = _check_positive("mla.fill_factor", mt.get("fill_factor", 1.0))
+    if fill > 1.0:
+        raise ProfileError(f"mla.fill_factor: must be in (0, 1], got {fill}")
+    mla = MicrolensArray(
+        focal_length_mm=_check_positive(
+            "mla.focal_length_mm", _required(mt, "mla", "focal_length_mm")
+        ),
+        pitch_mm=_check_positive("mla.pitch_mm", _required(mt, "mla", "pitch_mm")),
+        grid=grid,
+        distance_mm=None if distance is None else _check_positive("mla.distance_mm", distance),
+        focus_mm=focus,
+        rotation_rad=_number("mla.rotation_rad", mt.get("rotation_rad", 0.0)),
+        offset_mm=_pair("mla.offset_mm", mt.get("offset_mm", [0.0, 0.0])),
+        fill_factor=fill,
+    )
+
+    st = _table(data, "sensor")
+    _known_keys(
+        st,
+        "sensor",
+        {
+            "pixel_pitch_mm", "width_px", "height_px", "bit_depth", "bayer",
+            "black_level", "white_level", "axis_px",
+        },
+    )
+    bit_depth = _integer("sensor.bit_depth", st.get("bit_depth", 16), 1, 32)
+    bayer = st.get("bayer", "none")
+    if bayer not in BAYER_PATTERNS:
+        raise ProfileError(f"sensor.bayer: must be one of {BAYER_PATTERNS}, got {bayer!r}")
+    max_value = 2**bit_depth - 1
+    black = _integer("sensor.black_level", st.get("black_level", 0), 0, max_value)
+    white = _integer("sensor.white_level", st.get("white_level", max_value), 1, max_value)
+    if white <= black:
+        raise ProfileError(f"sensor.white_level ({white}) must exceed sensor.black_level ({black})")
+    axis = st.get("axis_px")
+    sensor = Sensor(
+        pixel_pitch_mm=_check_positive(
+            "sensor.pixel_pitch_mm", _required(st, "sensor", "pixel_pitch_mm")
+        ),
+        width_px=_integer("sensor.width_px", _required(st, "sensor", "width_px"), 1, 100_000),
+        height_px=_integer("sensor.height_px", _required(st, "sensor", "height_px"), 1, 100_000),
+        bit_depth=bit_depth,
+        bayer=bayer,
+        black_level=black,
+        white_level=white,
+        axis_px=None if axis is None else _pair("sensor.axis_px", axis),
+    )
+    profile = CameraProfile(name=name, main_lens=lens, mla=mla, sensor=sensor, source=source)
+    if distance is not None and focus is not None:
+        from lfcam.optics.paraxial import d_in_for_focus
+
+        derived = d_in_for_focus(lens, focus)
+        if abs(derived - float(distance)) > 1e-3:
+            raise ProfileError(
+                f"mla.distance_mm ({distance}) and mla.focus_mm ({focus}) disagree: focus "
+                f"{focus} mm needs d_in = {derived:.4f} mm; give only one of them"
+            )
+    elif focus is not None:
+        profile.d_in_mm  # noqa: B018 - validates that the focus is reachable
+    return profile
+
+
+def shipped_profile_dir() -> Path:
+    """Folder of the profiles shipped with lfcam (``calibration/`` in a checkout)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "_calibration", here.parent / "calibration"):
+        if candidate.is_dir():
+            return candidate
+    return here.parent / "calibration"
+
+
+def load_profile(name_or_path: str | Path) -> CameraProfile:
+    """Load a camera profile by shipped name (``system1``, ``system2``) or by TOML path.
+
+    Raises
+    ------
+    ProfileError
+        If the file is missing, not valid TOML, or fails validation.
+    """
+    text = str(name_or_path)
+    path = Path(text)
+    if not path.suffix and not path.exists():
+        path = shipped_profile_dir() / f"{text}.toml"
+        if not path.is_file():
+            names = sorted(p.stem for p in shipped_profile_dir().glob("*.toml"))
+            raise ProfileError(f"no profile named {text!r} (shipped: {', '.join(names)})")
+    if not path.is_file():
+        raise ProfileError(f"profile file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ProfileError(f"{path}: not UTF-8 text ({exc.reason})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{path}: invalid TOML: {exc}") from None
+    return profile_from_dict(data, source=str(path))
