@@ -282,7 +282,8 @@ def _pair(key: str, value: Any) -> tuple[float, float]:
 def _known_keys(table: dict, section: str, allowed: set[str]) -> None:
     extra = sorted(set(table) - allowed)
     if extra:
-        raise ProfileError(f"unknown key {section}.{extra[0]} (allowed: {', '.join(sorted(allowed))})")
+        known = ", ".join(sorted(allowed))
+        raise ProfileError(f"unknown key {section}.{extra[0]} (allowed: {known})")
 
 
 def profile_from_dict(data: dict, source: str = "") -> CameraProfile:

@@ -11,6 +11,7 @@ from lfcam.errors import LfcamError
 
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
+    "lfcam.cli.optics",
     "lfcam.cli.demo",
 ]
 
@@ -47,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"lfcam {args.command}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
-              file=sys.stderr)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"lfcam {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
 
 
