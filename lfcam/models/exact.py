@@ -29,7 +29,7 @@ from lfcam.optics.trace import meridional_rim_heights
 TABLE_SIZE = 8193
 MAX_ANGLE_RAD = np.deg2rad(75.0)
 CHUNK = 1 << 15
-SECANT_STEPS = 3
+SECANT_STEPS = 1
 RESIDUAL_TOL_MM = 1e-11  # final |y(t) − y| accepted as converged (rounding is ~1e-14 mm)
 
 

@@ -46,8 +46,9 @@ def rim_angles(profile: CameraProfile, d_in_mm: float | None, v_mm: np.ndarray) 
     disc = bq * bq - one_m2 * (c * c + a * a - r * r)
     p = (bq + np.sqrt(disc)) / one_m2
     q = a - m * p
-    omega = np.arctan(np.abs(q - v_mm) / (l_s - p)) + np.arcsin(np.abs(q) / r)  # eq. 15
-    psi = theta + np.arcsin(np.abs(q) / r) - np.arcsin(np.sin(omega) / n)  # eq. 16
+    normal = np.arcsin(np.abs(q) / r)  # eq. 7, shared by eqs. 15 and 16
+    omega = np.arctan(np.abs(q - v_mm) / (l_s - p)) + normal  # eq. 15
+    psi = theta + normal - np.arcsin(np.sin(omega) / n)  # eq. 16
     phi = np.arcsin(n * np.sin(psi)) - theta  # eq. 17
     return np.tan(phi)
 
