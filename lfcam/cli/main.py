@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # e.g. `lfcam demo | head`: the reader left, nothing to report
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print(f"lfcam {args.command}: interrupted", file=sys.stderr)
         return 130
