@@ -35,6 +35,7 @@ from lfcam.errors import (
     InputFileError,
     MetadataError,
     NoRawFrameError,
+    RawDataError,
     TruncatedFileError,
 )
 from lfcam.io import lytro_meta as lm
@@ -152,8 +153,11 @@ class LfpContainer:
                 "this is a processed Lytro picture — use the original .lfr/.raw capture"
             )
         fmt = lm.raw_format(fr.metadata, f"{self.path}: frame metadata")
-        img = unpack(self.section_bytes(fr.image_ref), fmt.width_px, fmt.height_px,
-                     fmt.bits_per_pixel, fmt.endianness)
+        try:
+            img = unpack(self.section_bytes(fr.image_ref), fmt.width_px, fmt.height_px,
+                         fmt.bits_per_pixel, fmt.endianness)
+        except RawDataError as exc:
+            raise RawDataError(f"{self.path}: raw frame {fr.image_ref}: {exc}") from None
         if fmt.right_shift:
             img >>= fmt.right_shift
         return img

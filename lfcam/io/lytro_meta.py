@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from lfcam.camera import BAYER_PATTERNS, MicrolensArray, Sensor
-from lfcam.errors import MetadataError
+from lfcam.errors import MetadataError, RawDataError
 from lfcam.io.packing import check_dimensions
 
 CFA_CHANNELS = ("r", "gr", "gb", "b")
@@ -212,7 +212,10 @@ def raw_format(meta: Any, where: str = "frame metadata") -> LytroRawFormat:
     height = require(meta, "image.height", int, where)
     bits = require(meta, f"{base}.pixelPacking.bitsPerPixel", int, where)
     endian = require(meta, f"{base}.pixelPacking.endianness", str, where)
-    w, h, b = check_dimensions(width, height, bits)
+    try:
+        w, h, b = check_dimensions(width, height, bits)
+    except RawDataError as exc:
+        raise RawDataError(f"{where}: {exc}") from None
     tile = get_path(meta, f"{base}.mosaic.tile")
     upper = get_path(meta, f"{base}.mosaic.upperLeftPixel")
     if tile is None:
