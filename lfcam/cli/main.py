@@ -13,6 +13,7 @@ from lfcam.errors import LfcamError
 COMMAND_MODULES = [
     "lfcam.cli.optics",
     "lfcam.cli.demo",
+    "lfcam.cli.info",
 ]
 
 
