@@ -32,3 +32,7 @@ class FormatError(InputFileError):
 
 class CalibrationError(LfcamError):
     """A calibration could not be computed or a calibration file is invalid."""
+
+
+class SceneError(LfcamError):
+    """A simulation scene description is missing a key, has an invalid value or is too large."""
