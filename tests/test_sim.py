@@ -188,7 +188,7 @@ def test_white_interior_pixel_value_is_analytic():
 
 
 def test_uniform_plane_renders_like_the_white_scene():
-    p = small("system2", 96)
+    p = small("system1", 96)  # no micro-image overlap: the brightest pixels are fully lit
     r = Renderer(p)
     white = r.render(scene_from_dict({"objects": [{"type": "white"}]})).signal
     plane = r.render(scene_from_dict({"objects": [{"type": "plane", "distance_mm": 800,
@@ -196,7 +196,7 @@ def test_uniform_plane_renders_like_the_white_scene():
                                       "samples_per_pixel": 64})).signal
     # fully lit pixels: every traced ray reaches the plane with radiance 1
     lit = white > 0.8 * white.max()
-    assert lit.sum() > 1000
+    assert lit.sum() > 300
     assert np.median(np.abs(plane[lit] / white[lit] - 1)) < 1e-9
     # boundary pixels are Monte Carlo in both renders: compare the totals
     assert abs(plane.sum() / white.sum() - 1) < 0.003
