@@ -1,0 +1,428 @@
+"""Light-field measurement of a point-like source: triangulation through the exact lens.
+
+A point source lights a cluster of lenslets; under each lenslet its light forms a compact spot
+whose offset from the lenslet centre is ``f_x`` times the mean slope of the rays that crossed
+that lenslet (ideal thin lenslets). Traced *backward* through the exact main lens, each
+(lenslet centre, mean slope) pair is a line in object space that passes, to second order in
+the lenslet size, through the source. The source is the intensity-weighted least-squares point
+closest to all those lines — a 3×3 linear solve, no model error, no iterations.
+
+Spots near the seam of two micro-images (fast systems overlap by ~10 %, FIELD-NOTES 3) are
+ambiguous between two lenslets; they are assigned with the smoothness of the slope field:
+a robust affine model ``offset = a + B·C`` of spot offset against lenslet centre is fitted on
+unambiguous spots, then every spot goes to the candidate lenslet that model explains best.
+The signed rim-ray heights (y1, y2) then follow from the exact forward trace of the source.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lfcam.camera import CameraProfile
+from lfcam.optics.trace import trace_backward_fast, trace_source_fast
+
+MIN_SPOTS = 6
+PARTIAL_FRACTION = 0.5  # lenslets dimmer than this × the median are edge (partially lit) ones
+PUPIL_SAMPLES = 160  # per side of the stratified pupil grid of the forward model (~20 k rays)
+MAX_ITERATIONS = 8
+
+
+@dataclass(frozen=True)
+class PointFit:
+    """Result of triangulating one point-like region."""
+
+    source_mm: np.ndarray  # (3,) x, y, z of the source (z < 0, in front of the lens)
+    covariance_mm2: np.ndarray  # (3, 3)
+    spots: int  # spots used
+    rms_miss_mm: float  # weighted RMS distance of the lines from the source
+    ok: bool
+    reason: str = ""
+
+    @property
+    def distance_mm(self) -> float:
+        """Source plane → front vertex (CONTRACT §1) — needs the lens; see :func:`to_distance`."""
+        raise AttributeError("use to_distance(profile, fit)")
+
+
+def to_distance(profile: CameraProfile, fit: PointFit) -> tuple[float, float, float]:
+    """(distance_mm, offset_mm, sigma_distance_mm) of a fit."""
+    z_front = profile.main_lens.front_vertex_z_mm
+    distance = z_front - fit.source_mm[2]
+    offset = float(np.hypot(fit.source_mm[0], fit.source_mm[1]))
+    return float(distance), offset, float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
+
+
+def find_spots(image: np.ndarray, mask: np.ndarray, threshold: float):
+    """Connected bright spots inside ``mask``: (centroid_px (M, 2), energy (M,))."""
+    lit = ((image > threshold) & mask).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
+    if n <= 1:
+        return np.zeros((0, 2)), np.zeros(0)
+    lab = labels.ravel()
+    keep = lab > 0
+    val = image.ravel()[keep].astype(np.float64)
+    idx = np.flatnonzero(keep)
+    yy, xx = np.divmod(idx, image.shape[1])
+    lk = lab[keep]
+    e = np.bincount(lk, val, minlength=n)[1:]
+    cx = np.bincount(lk, val * xx, minlength=n)[1:] / e
+    cy = np.bincount(lk, val * yy, minlength=n)[1:] / e
+    return np.column_stack([cx, cy]), e
+
+
+def _affine_fit(c: np.ndarray, off: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted least squares ``off ≈ [1, cx, cy] @ M`` (M: 3×2)."""
+    a = np.column_stack([np.ones(len(c)), c])
+    sw = np.sqrt(w)[:, None]
+    m, *_ = np.linalg.lstsq(a * sw, off * sw, rcond=None)
+    return m
+
+
+def assign_spots(
+    spots_mm: np.ndarray, weights: np.ndarray, lens_centres_mm: np.ndarray, pitch_mm: float,
+    magnification: float,
+) -> np.ndarray:
+    """Lenslet index of every spot (see module docstring); −1 where none fits.
+
+    Parameters
+    ----------
+    spots_mm : (M, 2) spot centroids on the sensor, mm from the axis.
+    weights : (M,) spot energies.
+    lens_centres_mm : (N, 2) lenslet centres on the MLA plane.
+    pitch_mm : lenslet pitch.
+    magnification : micro-image centre = lenslet centre × magnification (chief ray).
+    """
+    tree = cKDTree(lens_centres_mm * magnification)
+    dist, cand = tree.query(spots_mm, k=min(4, len(lens_centres_mm)))
+    cand = np.atleast_2d(cand)
+    dist = np.atleast_2d(dist)
+    first = cand[:, 0]
+    # unambiguous: clearly nearer one micro-image centre than the next
+    clear = (dist[:, 1] - dist[:, 0]) > 0.25 * pitch_mm * magnification if dist.shape[1] > 1 \
+        else np.ones(len(first), bool)
+    if clear.sum() < 3:
+        return first
+    centres = lens_centres_mm[first]
+    model = _affine_fit(centres[clear], spots_mm[clear] - centres[clear], weights[clear])
+    best = first.copy()
+    best_err = np.full(len(first), np.inf)
+    for k in range(cand.shape[1]):
+        c = lens_centres_mm[cand[:, k]]
+        pred = np.column_stack([np.ones(len(c)), c]) @ model
+        err = np.hypot(*(spots_mm - c - pred).T)
+        better = err < best_err
+        best[better], best_err[better] = cand[better, k], err[better]
+    best[best_err > 0.5 * pitch_mm] = -1
+    return best
+
+
+def triangulate_lines(points: np.ndarray, dirs: np.ndarray, w: np.ndarray):
+    """Weighted least-squares point nearest to lines (point, unit direction); (S, cov, rms)."""
+    proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    a = np.einsum("n,nij->ij", w, proj)
+    b = np.einsum("n,nij,nj->i", w, proj, points)
+    s = np.linalg.solve(a, b)
+    resid = np.einsum("nij,nj->ni", proj, s[None] - points)
+    r2 = (resid**2).sum(1)
+    dof = max(2 * len(w) - 3, 1)
+    sigma2 = float((w * r2).sum() / w.sum()) * len(w) / dof
+    # lines are independent measurements: cov = σ² (Σ w P)⁻¹ (Σ w² P) (Σ w P)⁻¹ / (Σ w)… → use
+    # the standard weighted normal-equation form with weights normalised to mean 1
+    wn = w / w.mean()
+    an = np.einsum("n,nij->ij", wn, proj)
+    cov = sigma2 * np.linalg.inv(an)
+    return s, cov, float(np.sqrt(sigma2))
+
+
+def _lenslet_lines(lens, d_in_mm, fx, centres_mm, energy, landing_mm):
+    """Backward-traced object-space line of each well-lit lenslet: (points, dirs, weights)."""
+    full = energy >= PARTIAL_FRACTION * np.median(energy)
+    c = centres_mm[full]
+    slope = (landing_mm[full] - c) / fx
+    tr = trace_backward_fast(lens, c[:, 0], c[:, 1], d_in_mm, slope[:, 0], slope[:, 1])
+    ok = tr.ok
+    pts = np.column_stack([tr.x, tr.y, tr.z])[ok]
+    dirs = np.column_stack([tr.dx, tr.dy, tr.dz])[ok]
+    return pts, dirs, energy[full][ok]
+
+
+def _statistic(lens, d_in_mm, fx, centres_mm, energy, landing_mm):
+    """The triangulated point of a set of lenslet measurements (the fit's summary statistic)."""
+    pts, dirs, w = _lenslet_lines(lens, d_in_mm, fx, centres_mm, energy, landing_mm)
+    if len(w) < MIN_SPOTS:
+        return None
+    return triangulate_lines(pts, dirs, w)
+
+
+def _pupil_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stratified points of the unit disc (cell centres of an n×n grid inside the disc)."""
+    g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    u, v = np.meshgrid(g, g)
+    inside = u * u + v * v <= 1.0
+    return u[inside], v[inside]
+
+
+def simulate_lenslets(profile, d_in_mm, source_mm, tree: cKDTree, centres_mm, pattern):
+    """Per-lenslet energy and mean landing point of a point source (exact trace, ideal lenslets).
+
+    This is what the camera records of the source (the micro-image energy and centroid of each
+    lenslet), up to pixel integration, which does not move centroids.
+    """
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    half = 0.5 * lens.pupil_diameter_mm
+    rx, ry = pattern[0] * half, pattern[1] * half
+    tr = trace_source_fast(lens, tuple(source_mm), rx, ry, d_in_mm)
+    ok = tr.ok
+    x, y = tr.x[ok], tr.y[ok]
+    sx, sy = tr.dx[ok] / tr.dz[ok], tr.dy[ok] / tr.dz[ok]
+    # solid angle of each rim-plane cell seen from the source ∝ cos³θ / L²
+    along = lens.rim_z_mm - source_mm[2]
+    rho2 = (rx[ok] - source_mm[0]) ** 2 + (ry[ok] - source_mm[1]) ** 2 + along**2
+    w = (along / np.sqrt(rho2)) ** 3
+    _, k = tree.query(np.column_stack([x, y]))
+    n = len(centres_mm)
+    e = np.bincount(k, w, minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lx = centres_mm[:, 0] + fx * np.bincount(k, w * sx, minlength=n) / e
+        ly = centres_mm[:, 1] + fx * np.bincount(k, w * sy, minlength=n) / e
+    return e, np.column_stack([lx, ly])
+
+
+def fit_point(
+    profile: CameraProfile,
+    d_in_mm: float,
+    spots_px: np.ndarray,
+    energy: np.ndarray,
+    lens_centres_mm: np.ndarray,
+) -> PointFit:
+    """Locate a point source from its spots (see module docstring).
+
+    The triangulation of the measured lenslet lines is a biased summary of the source when the
+    slope field folds inside a lenslet (F/2 spherical aberration beyond focus). The fit removes
+    the bias by indirect inference: it simulates the same summary from a candidate source with
+    the exact forward model and moves the candidate by the difference,
+    ``S ← S + (T_measured − T_simulated(S))``, until the step is below 1e-6 of the distance.
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    d_in_mm : float
+        Calibrated MLA distance.
+    spots_px : (M, 2) spot centroids in sensor pixels (x, y).
+    energy : (M,) spot energies.
+    lens_centres_mm : (N, 2) lenslet centres on the MLA plane.
+    """
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    if len(spots_px) < MIN_SPOTS:
+        return PointFit(nan3, nan33, len(spots_px), np.nan, False, "near-focus")
+    spots_mm = np.column_stack([(spots_px[:, 0] - ax) * pp, (spots_px[:, 1] - ay) * pp])
+    mag = 1.0 + fx / (d_in_mm - lens.exit_pupil_z_mm)
+    k = assign_spots(spots_mm, energy, lens_centres_mm, profile.mla.pitch_mm, mag)
+    good = k >= 0
+    n = len(lens_centres_mm)
+    e_meas = np.bincount(k[good], energy[good], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        land = np.column_stack([
+            np.bincount(k[good], energy[good] * spots_mm[good, 0], minlength=n) / e_meas,
+            np.bincount(k[good], energy[good] * spots_mm[good, 1], minlength=n) / e_meas,
+        ])
+    lit = np.flatnonzero(e_meas > 0)
+    measured = _statistic(lens, d_in_mm, fx, lens_centres_mm[lit], e_meas[lit], land[lit])
+    if measured is None:
+        return PointFit(nan3, nan33, int(len(lit)), np.nan, False, "near-focus")
+    t_meas, cov, rms = measured
+    if not (np.isfinite(t_meas).all() and t_meas[2] < lens.front_vertex_z_mm):
+        return PointFit(t_meas, cov, int(len(lit)), rms, False, "no-solution")
+    # neighbourhood of the lit lenslets for the forward model's binning
+    tree_all = cKDTree(lens_centres_mm)
+    near = np.unique(np.concatenate(tree_all.query_ball_point(
+        lens_centres_mm[lit], 3.0 * profile.mla.pitch_mm)))
+    centres = lens_centres_mm[near]
+    tree = cKDTree(centres)
+    pattern = _pupil_pattern(PUPIL_SAMPLES)
+    source = t_meas.copy()
+    for _ in range(MAX_ITERATIONS):
+        e_sim, land_sim = simulate_lenslets(profile, d_in_mm, source, tree, centres, pattern)
+        lit_sim = e_sim > 0
+        sim = _statistic(lens, d_in_mm, fx, centres[lit_sim], e_sim[lit_sim], land_sim[lit_sim])
+        if sim is None:
+            return PointFit(source, cov, int(len(lit)), rms, False, "near-focus")
+        step = t_meas - sim[0]
+        source = source + step
+        if not (np.isfinite(source).all() and source[2] < lens.front_vertex_z_mm):
+            return PointFit(source, cov, int(len(lit)), rms, False, "no-solution")
+        if abs(step[2]) < 1e-6 * abs(source[2]):
+            break
+    return PointFit(source, cov, int(len(lit)), rms, True)
+
+
+# ----------------------------------------------------------------------------- image matching
+
+IMAGE_PUPIL_SAMPLES = 180  # per side (~25 k rays per model evaluation)
+MATCH_BLUR_PX = 0.8  # both model and data are smoothed alike before comparison
+
+
+@dataclass(frozen=True)
+class ImageFit:
+    """Source found by matching the exact forward model to the pixels of a region."""
+
+    source_mm: np.ndarray  # (3,)
+    misfit: float  # relative residual |data − a·model| / |data|
+    sigma_distance_mm: float  # from the curvature of the misfit along the distance
+    evaluations: int
+    ok: bool
+    reason: str = ""
+
+
+class _Patch:
+    """Forward model of one region: renders a candidate source into the region's pixels."""
+
+    def __init__(self, profile, d_in_mm, image, box, lens_centres_mm):
+        x0, y0, x1, y1 = box
+        self.profile, self.d_in = profile, d_in_mm
+        self.box = box
+        self.shape = (y1 - y0, x1 - x0)
+        # the model splats rays bilinearly (a tent, variance 1/6 px²) where the sensor
+        # integrates over the pixel (a box, 1/12 px²): blur the data by the difference
+        self.data = cv2.GaussianBlur(np.asarray(image[y0:y1, x0:x1], np.float64), (0, 0),
+                                     float(np.sqrt(MATCH_BLUR_PX**2 + 1.0 / 12.0)))
+        self.norm = float(np.sqrt((self.data**2).sum()))
+        self.tree = cKDTree(lens_centres_mm)
+        self.centres = lens_centres_mm
+        self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
+        self.evaluations = 0
+
+    def render(self, source_mm):
+        """Model image of a unit-intensity source (blurred like the data)."""
+        p = self.profile
+        lens = p.main_lens
+        half = 0.5 * lens.pupil_diameter_mm
+        tr = trace_source_fast(lens, tuple(source_mm), self.pattern[0] * half,
+                               self.pattern[1] * half, self.d_in)
+        ok = tr.ok
+        x, y = tr.x[ok], tr.y[ok]
+        _, k = self.tree.query(np.column_stack([x, y]))
+        c = self.centres[k]
+        fx = p.mla.focal_length_mm
+        pp = p.sensor.pixel_pitch_mm
+        ax, ay = p.sensor.axis_xy_px
+        px = (c[:, 0] + fx * tr.dx[ok] / tr.dz[ok]) / pp + ax - self.box[0]
+        py = (c[:, 1] + fx * tr.dy[ok] / tr.dz[ok]) / pp + ay - self.box[1]
+        h, w = self.shape
+        ix, iy = np.floor(px).astype(np.int64), np.floor(py).astype(np.int64)
+        fxr, fyr = px - ix, py - iy
+        img = np.zeros(h * w)
+        for dx, dy, wt in ((0, 0, (1 - fxr) * (1 - fyr)), (1, 0, fxr * (1 - fyr)),
+                           (0, 1, (1 - fxr) * fyr), (1, 1, fxr * fyr)):
+            jx, jy = ix + dx, iy + dy
+            inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
+            img += np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
+        return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
+
+    def residual(self, source_mm) -> np.ndarray:
+        """Data minus the best-scaled model (scale in closed form), over ‖data‖."""
+        self.evaluations += 1
+        m = self.render(source_mm)
+        mm = float((m * m).sum())
+        a = float((m * self.data).sum()) / mm if mm > 0 else 0.0
+        return ((self.data - a * m) / self.norm).ravel()
+
+    def misfit(self, source_mm) -> float:
+        """Relative residual norm after the best intensity scale."""
+        r = self.residual(source_mm)
+        return float(np.sqrt((r * r).sum()))
+
+
+def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm):
+    """Lateral source position whose chief ray (through the stop centre) meets the MLA at
+    ``target_xy_mm`` — the paraxial-free starting point of the image fit at a trial distance."""
+    lens = profile.main_lens
+    z_src = lens.front_vertex_z_mm - distance_mm
+    probe = 1.0
+    tr = trace_source_fast(lens, (probe, 0.0, z_src), np.zeros(1), np.zeros(1), d_in_mm)
+    gain = tr.x[0] / probe  # MLA height per unit source height (chief ray, linear to 1st order)
+    if not (np.isfinite(gain) and gain != 0):
+        return np.zeros(2)
+    return np.asarray(target_xy_mm, dtype=np.float64) / gain
+
+
+def fit_point_image(
+    profile: CameraProfile,
+    d_in_mm: float,
+    image: np.ndarray,
+    box: tuple[int, int, int, int],
+    lens_centres_mm: np.ndarray,
+    start_mm: np.ndarray | None = None,
+) -> ImageFit:
+    """Match the exact forward model of a point source to the pixels inside ``box``.
+
+    Without a start, a coarse scan over distance (lateral position from the chief ray through
+    the light's centroid) picks the basin; Nelder–Mead then refines (log distance, x, y).
+    """
+    lens = profile.main_lens
+    patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
+    if patch.norm <= 0:
+        return ImageFit(np.full(3, np.nan), 1.0, np.nan, 0, False, "empty")
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    h, w = patch.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    tot = patch.data.sum()
+    cen_mm = np.array([((xx * patch.data).sum() / tot + box[0] - ax) * pp,
+                       ((yy * patch.data).sum() / tot + box[1] - ay) * pp])
+    mag = 1.0 + profile.mla.focal_length_mm / (d_in_mm - lens.exit_pupil_z_mm)
+    target = cen_mm / mag
+    z_front = lens.front_vertex_z_mm
+
+    def source_of(params):
+        return np.array([params[1], params[2], z_front - np.exp(params[0])])
+
+    def cost(params):
+        return patch.misfit(source_of(params))
+
+    f = lens.focal_length_mm
+    if start_mm is not None and np.isfinite(start_mm).all() and start_mm[2] < z_front - 1.05 * f:
+        candidates = [np.array([np.log(z_front - start_mm[2]), start_mm[0], start_mm[1]])]
+    else:
+        candidates = []
+    scan = np.geomspace(1.1 * f, 2e4, 40)
+    scored = []
+    for d in scan:
+        xy = chief_ray_offset(profile, d_in_mm, d, target)
+        params = np.array([np.log(d), xy[0], xy[1]])
+        scored.append((cost(params), params))
+    scored.sort(key=lambda t: t[0])
+    candidates += [p for _, p in scored[:2]]
+    from scipy.optimize import least_squares
+
+    best = None
+    for x0 in candidates:
+        res = least_squares(lambda q: patch.residual(source_of(q)), x0, method="lm",
+                            x_scale=np.array([0.01, 0.1, 0.1]), diff_step=1e-4, max_nfev=60)
+        fval = float(np.sqrt((res.fun**2).sum()))
+        if best is None or fval < best[0]:
+            best = (fval, res)
+    f0, res = best
+    best = res
+    best.fun = f0
+    # curvature along log-distance → σ of the distance (residual-scaled)
+    h_ = 2e-3
+    f0 = best.fun
+    fp = cost(best.x + [h_, 0, 0])
+    fm = cost(best.x - [h_, 0, 0])
+    curv = (fp - 2 * f0 + fm) / h_**2
+    dist = float(np.exp(best.x[0]))
+    npix = max(int((patch.data > 0.05 * patch.data.max()).sum()), 1)
+    # misfit is an RMS over the patch: its noise per unit is ~ f0/√npix
+    sigma_log = np.sqrt(2 * f0 / np.sqrt(npix) / curv) if curv > 0 else np.inf
+    return ImageFit(source_of(best.x), float(f0), dist * float(sigma_log), patch.evaluations,
+                    bool(np.isfinite(f0)))
