@@ -67,3 +67,10 @@ class NoRawFrameError(InputFileError):
 
 class WhiteImageNotFoundError(InputFileError):
     """No white (modulation) image in a calibration folder fits the capture."""
+
+
+# ----------------------------------------------------------------------------- renderer (lfcam.sim)
+
+
+class SceneError(LfcamError):
+    """A simulation scene description is missing a key, has an invalid value or is too large."""

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import SEED_DISTANCES_MM, SEED_OFFSETS_MM, seed_error_pct
+from seed_grid import SEED_DISTANCES_MM, SEED_OFFSETS_MM, seed_error_pct
 
 from lfcam import load_profile
 from lfcam.errors import ModelError

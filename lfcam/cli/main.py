@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "lfcam.cli.optics",
     "lfcam.cli.demo",
     "lfcam.cli.info",
+    "lfcam.cli.simulate",
     "lfcam.cli.decode",
 ]
 
