@@ -12,8 +12,9 @@ Indexing (see ``docs/decoding.md``):
 Every sample is read at its sub-pixel position with bilinear interpolation (``cv2.remap``),
 one view at a time (the raw is the only full-size buffer). Devignetting divides by the white
 image resampled at the same positions; ``weight`` is the white image's relative value there
-(0 where it is below ``white_threshold``, where the sample leaves the raw, or outside the
-lens disk when no white image is given).
+(1 without a white image), and 0 where it is below ``white_threshold``, where the sample leaves
+the raw, and for views outside the lens disk (radius pitch/2 − ½ px: they would see the
+neighbouring micro-image; those views are skipped entirely).
 """
 
 from __future__ import annotations
@@ -159,7 +160,7 @@ def decode(raw: np.ndarray, grid: GridSpec, white: np.ndarray | None = None,
             raise InputFileError(f"white image {white.shape} and raw {raw32.shape} differ in size")
         white32 = np.ascontiguousarray(white, dtype=np.float32)
         wmax = float(np.max(white32))
-        if not math.isfinite(wmax) or wmax <= 0:
+        if not math.isfinite(wmax) or wmax <= 0 or not np.all(np.isfinite(white32)):
             raise InputFileError("white image is black or not finite")
     lens = grid.lens_centres((h, w))
     t_count, s_count = lens.x.shape
@@ -174,50 +175,53 @@ def decode(raw: np.ndarray, grid: GridSpec, white: np.ndarray | None = None,
     radius = 0.5 * grid.pitch_px - 0.5
     data = np.zeros((n, n, t_count, s_count), np.float32)
     weight = np.zeros_like(data)
+    odd_rows = None
+    if grid.grid == "hex" and hex_to_rect:
+        odd_rows = np.flatnonzero((np.arange(t_count) + lens.first_t) % 2 == 1)
+    inv_wmax = np.float32(1.0 / wmax) if white is not None else None
     for v in range(n):
         for u in range(n):
             du, dv = u - centre, v - centre
+            if math.hypot(du, dv) > radius:
+                continue  # outside the lens disk: it sees the neighbour's micro-image
             map_x = cx + np.float32(cos_r * du - sin_r * dv)
             map_y = cy + np.float32(sin_r * du + cos_r * dv)
-            inside = (map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)
+            wt = ((map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)).view(np.uint8)
+            wt = wt.astype(np.float32)
             val = cv2.remap(raw32, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             if white is None:
-                wt = inside.astype(np.float32) * np.float32(math.hypot(du, dv) <= radius)
-                data[v, u] = val * wt
+                np.multiply(val, wt, out=data[v, u])
             else:
                 wv = cv2.remap(white32, map_x, map_y, cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_REPLICATE)
-                rel = wv / np.float32(wmax)
-                ok = inside & (rel >= white_threshold)
-                wt = np.where(ok, np.clip(rel, 0.0, 1.0), 0.0).astype(np.float32)
-                data[v, u] = np.where(ok, val / np.where(ok, wv, 1.0), 0.0)
+                _, rel = cv2.threshold(wv * inv_wmax, white_threshold, 0, cv2.THRESH_TOZERO)
+                np.minimum(rel, 1.0, out=rel)
+                wt *= rel
+                np.divide(val, wv, out=data[v, u], where=wt > 0)
             weight[v, u] = wt
+            if odd_rows is not None and odd_rows.size:
+                _hex_rows_to_rect(data[v, u], weight[v, u], odd_rows)
     spacing = (float(grid.pitch_px), float(grid.row_spacing_px))
-    if grid.grid == "hex" and hex_to_rect:
-        _hex_rows_to_rect(data, weight, lens.first_t)
     return LightField(data=data, weight=weight, grid=grid, spacing_px=spacing,
                       first_t=lens.first_t, first_s=lens.first_s)
 
 
-def _hex_rows_to_rect(data: np.ndarray, weight: np.ndarray, first_t: int) -> None:
-    """In place: resample odd lattice rows half a pitch left, onto the even rows' columns.
+def _hex_rows_to_rect(data: np.ndarray, weight: np.ndarray, odd: np.ndarray) -> None:
+    """In place, one view (T, S): resample odd lattice rows onto the even rows' columns.
 
     Odd row sample ``s`` sits at x = (s + ½)·pitch; the rect value at x = s·pitch is the
     weighted mean of odd samples ``s − 1`` and ``s`` (linear interpolation, weights carried).
     """
-    odd = np.flatnonzero((np.arange(data.shape[2]) + first_t) % 2 == 1)
-    if odd.size == 0:
-        return
-    d = data[:, :, odd, :] * weight[:, :, odd, :]
-    wt = weight[:, :, odd, :]
+    wt = weight[odd]
+    d = data[odd] * wt
     d_new = 0.5 * d
     w_new = 0.5 * wt
-    d_new[..., 1:] += 0.5 * d[..., :-1]
-    w_new[..., 1:] += 0.5 * wt[..., :-1]
-    w_new[..., 0] = 0.0  # no left neighbour: the first rect sample of an odd row is unknown
+    d_new[:, 1:] += 0.5 * d[:, :-1]
+    w_new[:, 1:] += 0.5 * wt[:, :-1]
+    w_new[:, 0] = 0.0  # no left neighbour: the first rect sample of an odd row is unknown
     good = w_new > 0
-    data[:, :, odd, :] = np.where(good, d_new / np.where(good, w_new, 1.0), 0.0)
-    weight[:, :, odd, :] = w_new
+    data[odd] = np.where(good, d_new / np.where(good, w_new, 1.0), 0.0)
+    weight[odd] = w_new
 
 
 def view(lf: LightField, v: int, u: int) -> np.ndarray:

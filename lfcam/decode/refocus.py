@@ -103,27 +103,27 @@ def focal_stack(lf: LightField, shifts) -> list[Refocused]:
     nv, nu, t_count, s_count = lf.data.shape
     vc, uc = lf.angular_centre
     ky = lf.spacing_px[0] / lf.spacing_px[1]
-    acc = np.zeros((len(shifts), t_count, s_count, 2), np.float32)
-    src = np.empty((t_count, s_count, 2), np.float32)
+    num = np.zeros((len(shifts), t_count, s_count), np.float32)
+    den = np.zeros_like(num)
     size = (s_count, t_count)
+    m = np.eye(2, 3, dtype=np.float64)
     for v in range(nv):
         for u in range(nu):
             w = lf.weight[v, u]
-            if not np.any(w > 0):
+            if not w.any():
                 continue
-            np.multiply(lf.data[v, u], w, out=src[..., 0])
-            src[..., 1] = w
+            lw = lf.data[v, u] * w
             du, dv = u - uc, v - vc
             for k, a in enumerate(shifts):
-                m = np.array([[1.0, 0.0, -a * du], [0.0, 1.0, -a * dv * ky]], np.float64)
-                acc[k] += cv2.warpAffine(src, m, size, flags=WARP_FLAGS,
-                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                m[0, 2], m[1, 2] = -a * du, -a * dv * ky
+                cv2.add(num[k], cv2.warpAffine(lw, m, size, flags=WARP_FLAGS), dst=num[k])
+                cv2.add(den[k], cv2.warpAffine(w, m, size, flags=WARP_FLAGS), dst=den[k])
     out = []
     for k, a in enumerate(shifts):
-        num, den = acc[k, ..., 0], acc[k, ..., 1]
-        good = den > 1e-6
-        img = np.where(good, num / np.where(good, den, 1.0), 0.0).astype(np.float32)
-        out.append(Refocused(image=img, weight=den.copy(), shift=a))
+        good = den[k] > 1e-6
+        img = np.zeros((t_count, s_count), np.float32)
+        np.divide(num[k], den[k], out=img, where=good)
+        out.append(Refocused(image=img, weight=den[k], shift=a))
     return out
 
 
