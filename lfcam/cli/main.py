@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "lfcam.cli.demo",
     "lfcam.cli.info",
     "lfcam.cli.simulate",
+    "lfcam.cli.decode",
 ]
 
 
