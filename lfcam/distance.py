@@ -43,7 +43,7 @@ from lfcam.measure.pointfit import (
     fit_point_image,
 )
 from lfcam.measure.regions import Region, find_regions
-from lfcam.models import POINT_MODELS, auto
+from lfcam.models import auto
 from lfcam.models.base import Status
 from lfcam.optics.trace import forward
 
@@ -78,7 +78,8 @@ def load_calibration(path: str | Path) -> Calibration:
         raise CalibrationError(f"{p}: not a valid JSON calibration ({exc})") from None
     grid = grid_from_dict(data)
     d_in = data.get("d_in_mm") if isinstance(data, dict) else None
-    if d_in is not None and not (isinstance(d_in, (int, float)) and math.isfinite(d_in) and d_in > 0):
+    valid = isinstance(d_in, (int, float)) and math.isfinite(d_in) and d_in > 0
+    if d_in is not None and not valid:
         raise CalibrationError(f"{p}: d_in_mm must be a positive number, got {d_in!r}")
     return Calibration(grid=grid, d_in_mm=None if d_in is None else float(d_in), source=str(p))
 
@@ -329,7 +330,8 @@ def run_distance(
             name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
             diameter = abs(meas.y1_mm - meas.y2_mm)
         else:
-            name, d, off, sig, status, diameter = model, nan, nan, nan, f"unsupported-{reg.kind}", nan
+            name, d, off, sig, diameter = model, nan, nan, nan, nan
+            status = f"unsupported-{reg.kind}"
         results.append(RegionResult(
             region_id=reg.region_id, x_px=reg.centroid_px[0], y_px=reg.centroid_px[1],
             kind=reg.kind, model=name, distance_mm=d, offset_mm=off, diameter_mm=diameter,

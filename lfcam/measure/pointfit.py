@@ -269,6 +269,7 @@ def fit_point(
 
 IMAGE_PUPIL_SAMPLES = 180  # per side (~25 k rays per model evaluation)
 MATCH_BLUR_PX = 0.8  # both model and data are smoothed alike before comparison
+GOOD_MISFIT = 0.08  # a start whose refined misfit is below this needs no distance scan
 
 
 @dataclass(frozen=True)
@@ -390,38 +391,37 @@ def fit_point_image(
         return patch.misfit(source_of(params))
 
     f = lens.focal_length_mm
-    if start_mm is not None and np.isfinite(start_mm).all() and start_mm[2] < z_front - 1.05 * f:
-        candidates = [np.array([np.log(z_front - start_mm[2]), start_mm[0], start_mm[1]])]
-    else:
-        candidates = []
-    scan = np.geomspace(1.1 * f, 2e4, 40)
-    scored = []
-    for d in scan:
-        xy = chief_ray_offset(profile, d_in_mm, d, target)
-        params = np.array([np.log(d), xy[0], xy[1]])
-        scored.append((cost(params), params))
-    scored.sort(key=lambda t: t[0])
-    candidates += [p for _, p in scored[:2]]
     from scipy.optimize import least_squares
 
-    best = None
-    for x0 in candidates:
+    def refine(x0):
         res = least_squares(lambda q: patch.residual(source_of(q)), x0, method="lm",
-                            x_scale=np.array([0.01, 0.1, 0.1]), diff_step=1e-4, max_nfev=60)
-        fval = float(np.sqrt((res.fun**2).sum()))
-        if best is None or fval < best[0]:
-            best = (fval, res)
-    f0, res = best
-    best = res
-    best.fun = f0
+                            x_scale=np.array([0.01, 0.1, 0.1]), diff_step=1e-4, max_nfev=40)
+        return float(np.sqrt((res.fun**2).sum())), res.x
+
+    best = None
+    if start_mm is not None and np.isfinite(start_mm).all() and start_mm[2] < z_front - 1.05 * f:
+        best = refine(np.array([np.log(z_front - start_mm[2]), start_mm[0], start_mm[1]]))
+    if best is None or best[0] > GOOD_MISFIT:
+        # no (good) start: scan the distance, lateral position from the chief ray
+        scored = []
+        for d in np.geomspace(1.1 * f, 2e4, 40):
+            xy = chief_ray_offset(profile, d_in_mm, d, target)
+            params = np.array([np.log(d), xy[0], xy[1]])
+            scored.append((cost(params), params))
+        scored.sort(key=lambda t: t[0])
+        for _, params in scored[:2]:
+            cand = refine(params)
+            if best is None or cand[0] < best[0]:
+                best = cand
+
     # Polish along the line of sight (through the entrance-pupil centre), where the misfit is
     # shallow but smooth on the 0.5 % scale that finite differences cannot resolve: fit a
     # parabola to the misfit at seven scale factors, recentre, repeat with half the span.
-    source = source_of(best.x)
+    source = source_of(best[1])
     pupil = np.array([0.0, 0.0, lens.rim_z_mm])
     span = 0.02
     curvature = np.nan
-    f0 = best.fun
+    f0 = best[0]
     for _ in range(3):
         scales = 1.0 + span * np.linspace(-1.0, 1.0, 7)
         vals = np.array([patch.misfit(pupil + sc * (source - pupil)) for sc in scales])
