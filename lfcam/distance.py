@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
@@ -196,7 +197,7 @@ def measure_diameter(profile, geom: Geometry, image, stats, region: Region,
         return Measurement(nan, nan, nan, nan, nan, nan, "near-focus", geom.d_in_mm)
     pitch = profile.mla.pitch_mm
     cell = pitch * pitch * (math.sqrt(3) / 2 if geom_is_hex(profile) else 1.0)
-    area = float(np.clip(e / plateau, 0, 1).sum()) * cell
+    area = float(_covered_fraction(geom, stats, region).sum()) * cell
     diameter = 2.0 * math.sqrt(area / math.pi)
     c = geom.lens_centres_mm[region.lenslets]
     centre = (c * e[:, None]).sum(0) / e.sum()
@@ -230,6 +231,26 @@ def measure_diameter(profile, geom: Geometry, image, stats, region: Region,
     del meridian
     return Measurement(y1, y2, DIAMETER_SIGMA_PITCH * pitch, nan, nan, nan, "ok",
                        geom.d_in_mm - fx)
+
+
+def _covered_fraction(geom: Geometry, stats, region: Region) -> np.ndarray:
+    """Share of each lenslet's cell inside the footprint: 1 for interior lenslets (every
+    neighbour lit), else its energy over its brightest lit neighbour's (partial edge cells)."""
+    from scipy.spatial import cKDTree
+
+    members = region.lenslets
+    centres = geom.lmap.centres_px
+    tree = cKDTree(centres)
+    lit = np.zeros(len(centres), bool)
+    lit[members] = True
+    frac = np.ones(len(members))
+    for i, nb in enumerate(tree.query_ball_point(centres[members], 1.5 * geom.pitch_px)):
+        nb = [j for j in nb if j != members[i]]
+        if all(lit[j] for j in nb):
+            continue
+        ref = max((stats.energy[j] for j in nb if lit[j]), default=0.0)
+        frac[i] = min(1.0, stats.energy[members[i]] / ref) if ref > 0 else 0.0
+    return frac
 
 
 def geom_is_hex(profile: CameraProfile) -> bool:
@@ -339,7 +360,9 @@ def run_distance(
         ))
         if status == "ok" and np.isfinite(d):
             x0, y0, x1, y1 = reg.box_px
-            m = _region_pixels_mask(reg, geom.lmap)
+            m = _region_pixels_mask(reg, geom.lmap).astype(np.uint8)
+            k = max(3, int(geom.pitch_px) | 1)
+            m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)).astype(bool)
             dmap[y0:y1, x0:x1][m] = d
         if progress:
             progress(i + 1, len(regions))

@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "lfcam.cli.info",
     "lfcam.cli.simulate",
     "lfcam.cli.decode",
+    "lfcam.cli.distance",
 ]
 
 

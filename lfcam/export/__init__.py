@@ -93,9 +93,10 @@ def render_preview(
     h, w = d.shape
     scale = min(1.0, max_side_px / max(h, w))
     finite = np.isfinite(d)
-    lo, hi = (np.nanmin(d), np.nanmax(d)) if finite.any() else (0.0, 1.0)
-    if hi <= lo:
-        hi = lo + 1.0
+    lo, hi = (float(np.nanmin(d)), float(np.nanmax(d))) if finite.any() else (0.0, 1.0)
+    mid = 0.5 * (lo + hi)
+    if hi - lo < 0.1 * abs(mid):  # one distance (or nearly): show it mid-scale, ±5 %
+        lo, hi = mid - 0.05 * abs(mid) - 0.5, mid + 0.05 * abs(mid) + 0.5
     norm = np.zeros_like(d)
     norm[finite] = (d[finite] - lo) / (hi - lo)
     img = cv2.applyColorMap((norm * 255).astype(np.uint8), colormap)
@@ -120,7 +121,7 @@ def render_preview(
         y = int(round((1 - frac) * (ih - 1)))
         value = lo + frac * (hi - lo)
         cv2.line(canvas, (x_bar + bar_w, y), (x_bar + bar_w + 4, y), (0, 0, 0), 1)
-        cv2.putText(canvas, f"{value:.0f} mm", (x_bar + bar_w + 6, min(ih - 3, max(10, y + 4))),
+        cv2.putText(canvas, f"{value:.4g} mm", (x_bar + bar_w + 6, min(ih - 3, max(10, y + 4))),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     return canvas
 

@@ -3,7 +3,8 @@
 A calibration returns where each micro-image's light lands on the sensor (intensity centroid
 of the white image, FIELD-NOTES 2). The distance fits need the lenslet itself: light crossing
 lenslet k with slope σ lands at ``C_k + f_x·σ`` (ideal lenslet), so the white centroid is
-``C_k + f_x·⟨σ⟩_white(C_k)``, where ⟨σ⟩ is the cos⁴-weighted mean slope of the light that
+``C_k + f_x·⟨σ⟩_white(C_k)``, where ⟨σ⟩ is the mean slope, weighted by cos⁴ of the angle at
+which the light of each lenslet point reaches the sensor, of the light that
 reaches the lenslet through the aperture stop. By symmetry ⟨σ⟩ is radial; we tabulate its
 radial component by tracing backward (exact main lens) from sample points of a lenslet cell
 over a grid of slopes, then invert ``r_white = r + f_x·g(r)`` by interpolation.
@@ -36,7 +37,6 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
     g = np.linspace(-reach, reach, SLOPE_GRID)
     sx, sy = np.meshgrid(g, g)
     sx, sy = sx.ravel(), sy.ravel()
-    cos4 = 1.0 / (1.0 + sx * sx + sy * sy) ** 2
     cell = (np.arange(CELL_GRID) + 0.5) / CELL_GRID - 0.5
     cu, cv = np.meshgrid(cell * pitch, cell * pitch)
     out = np.empty_like(radii)
@@ -47,7 +47,11 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
         tsx = np.broadcast_to(sx, px.shape)
         tsy = np.broadcast_to(sy, py.shape)
         tr = trace_backward_fast(lens, px.ravel(), py.ravel(), d_in_mm, tsx.ravel(), tsy.ravel())
-        w = tr.ok.reshape(px.shape).mean(axis=0) * cos4
+        # light from cell point P reaches the sensor point X = C + f_x·σ at the angle of X − P
+        ax_ = sx[None, :] - cu.ravel()[:, None] / fx
+        ay_ = sy[None, :] - cv.ravel()[:, None] / fx
+        cos4_p = 1.0 / (1.0 + ax_ * ax_ + ay_ * ay_) ** 2
+        w = (tr.ok.reshape(px.shape) * cos4_p).mean(axis=0)
         out[i] = r + fx * float((w * sx).sum() / w.sum())
     return radii, out
 

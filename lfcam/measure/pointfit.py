@@ -343,6 +343,34 @@ class _Patch:
         return float(np.sqrt((r * r).sum()))
 
 
+def _centroid_px(img: np.ndarray) -> np.ndarray:
+    tot = img.sum()
+    if tot <= 0:
+        return np.full(2, np.nan)
+    yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
+    return np.array([(xx * img).sum() / tot, (yy * img).sum() / tot])
+
+
+def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front):
+    """Lateral source position at a trial distance whose *modelled* light centroid matches the
+    data's: chief-ray start, then two Newton steps through the exact render (coma and
+    aberrations move the light centroid off the chief ray)."""
+    xy = chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm)
+    want = _centroid_px(patch.data)
+    gain = None
+    for _ in range(2):
+        got = _centroid_px(patch.render(np.array([xy[0], xy[1], z_front - distance_mm])))
+        patch.evaluations += 1
+        if not np.isfinite(got).all():
+            break
+        if gain is None:
+            g = chief_ray_offset(profile, d_in_mm, distance_mm, np.array([1.0, 0.0]))[0]
+            mag = 1.0 + profile.mla.focal_length_mm / (d_in_mm - profile.main_lens.exit_pupil_z_mm)
+            gain = g * profile.sensor.pixel_pitch_mm / mag  # source mm per data pixel
+        xy = xy + (want - got) * gain
+    return xy
+
+
 def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm):
     """Lateral source position whose chief ray (through the stop centre) meets the MLA at
     ``target_xy_mm`` — the paraxial-free starting point of the image fit at a trial distance."""
@@ -393,9 +421,24 @@ def fit_point_image(
     f = lens.focal_length_mm
     from scipy.optimize import least_squares
 
+    def fun(q):
+        return patch.residual(source_of(q))
+
+    def jac(q):
+        # absolute steps matched to the physics (relative steps vanish for lateral ≈ 0 and
+        # would only sample ray-hopping noise): 0.2 % in distance, ~0.1 px of image motion
+        # laterally
+        base = fun(q)
+        steps = np.array([2e-3, 1e-4 * np.exp(q[0]), 1e-4 * np.exp(q[0])])
+        cols = []
+        for i, h in enumerate(steps):
+            dq = np.zeros(3)
+            dq[i] = h
+            cols.append((fun(q + dq) - base) / h)
+        return np.column_stack(cols)
+
     def refine(x0):
-        res = least_squares(lambda q: patch.residual(source_of(q)), x0, method="lm",
-                            x_scale=np.array([0.01, 0.1, 0.1]), diff_step=1e-4, max_nfev=40)
+        res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=25)
         return float(np.sqrt((res.fun**2).sum())), res.x
 
     best = None
@@ -404,21 +447,42 @@ def fit_point_image(
     if best is None or best[0] > GOOD_MISFIT:
         # no (good) start: scan the distance, lateral position from the chief ray
         scored = []
-        for d in np.geomspace(1.1 * f, 2e4, 40):
-            xy = chief_ray_offset(profile, d_in_mm, d, target)
+        for d in np.geomspace(1.1 * f, 2e4, 32):
+            xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front)
             params = np.array([np.log(d), xy[0], xy[1]])
             scored.append((cost(params), params))
         scored.sort(key=lambda t: t[0])
+        # the coarse grid steps ~18 % in distance; the basin is a few % wide: refine around
+        # the two best coarse points before handing over to the local optimiser
+        fine = []
+        for _, params in scored[:2]:
+            for d in np.exp(params[0]) * np.linspace(0.9, 1.1, 9):
+                xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front)
+                q = np.array([np.log(d), xy[0], xy[1]])
+                fine.append((cost(q), q))
+        scored = sorted(fine + scored, key=lambda t: t[0])
         for _, params in scored[:2]:
             cand = refine(params)
             if best is None or cand[0] < best[0]:
                 best = cand
 
+    # Escape side basins along the line of sight (distance and lateral position trade off
+    # there): scan ±15 %, restart the refinement from a better point if one turns up.
+    pupil = np.array([0.0, 0.0, lens.rim_z_mm])
+    source = source_of(best[1])
+    scales = np.linspace(0.85, 1.15, 13)
+    vals = [patch.misfit(pupil + sc * (source - pupil)) for sc in scales]
+    k = int(np.argmin(vals))
+    if vals[k] < best[0] and abs(scales[k] - 1.0) > 1e-9:
+        s2 = pupil + scales[k] * (source - pupil)
+        cand = refine(np.array([np.log(z_front - s2[2]), s2[0], s2[1]]))
+        if cand[0] < best[0]:
+            best = cand
+
     # Polish along the line of sight (through the entrance-pupil centre), where the misfit is
     # shallow but smooth on the 0.5 % scale that finite differences cannot resolve: fit a
     # parabola to the misfit at seven scale factors, recentre, repeat with half the span.
     source = source_of(best[1])
-    pupil = np.array([0.0, 0.0, lens.rim_z_mm])
     span = 0.02
     curvature = np.nan
     f0 = best[0]
