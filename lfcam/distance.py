@@ -37,6 +37,7 @@ from lfcam.errors import CalibrationError, InputFileError, LfcamError
 from lfcam.export import RegionResult, write_distance_png, write_distance_tiff, write_regions_csv
 from lfcam.measure.geometry import lenslet_centres_mm
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
+from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
     assign_spots,
     find_spots,
@@ -49,6 +50,8 @@ from lfcam.models.base import Status
 from lfcam.optics.trace import forward
 
 MODELS = ("auto", "exact", "offaxis", "onaxis", "thin")
+LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
+LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
 METHODS = ("lightfield", "diameter")
 DIAMETER_SIGMA_PITCH = 0.1  # 1-σ error of footprint edges, in lenslet pitches (heuristic)
 
@@ -122,6 +125,9 @@ class Measurement:
     sigma_distance_mm: float
     status: str
     plane_d_in_mm: float  # the d_in at which (y1, y2) are expressed to the models
+    kind: str = "spot"
+    misfit: float = float("nan")
+    endpoints: tuple = ()  # lines: ((y1, y2) of endpoint a, (y1, y2) of endpoint b)
 
 
 def _region_pixels_mask(region: Region, lmap: LensletMap) -> np.ndarray:
@@ -165,6 +171,10 @@ def measure_lightfield(profile, geom: Geometry, image, region: Region, noise: fl
             return Measurement(nan, nan, nan, nan, nan, nan, fi.reason or "no-solution",
                                geom.d_in_mm)
         source, sigma_d = fi.source_mm, fi.sigma_distance_mm
+        if fi.misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
+            line = measure_line(profile, geom, image, region, box, near)
+            if line.status == "ok" and line.misfit < LINE_GAIN * fi.misfit:
+                return line
     distance = profile.main_lens.front_vertex_z_mm - float(source[2])
     offset = float(np.hypot(source[0], source[1]))
     fw = forward(profile, geom.d_in_mm, distance, offset)
@@ -176,7 +186,30 @@ def measure_lightfield(profile, geom: Geometry, image, region: Region, noise: fl
     fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
     dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
-    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm)
+    misfit = float("nan") if fast else float(fi.misfit)
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+                       misfit=misfit)
+
+
+def measure_line(profile, geom: Geometry, image, region: Region, box, near) -> Measurement:
+    """Exact forward-model fit of a line source (``lfcam.measure.linefit``)."""
+    nan = float("nan")
+    lf = fit_line_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near])
+    if not lf.ok:
+        return Measurement(nan, nan, nan, nan, nan, nan, lf.reason or "no-solution",
+                           geom.d_in_mm, kind="line")
+    z_front = profile.main_lens.front_vertex_z_mm
+    distance = z_front - float(lf.start_mm[2])
+    ends = []
+    for pt in (lf.start_mm, lf.end_mm):
+        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
+        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
+    mid = 0.5 * (lf.start_mm + lf.end_mm)
+    y1 = 0.5 * (ends[0][0] + ends[1][0])
+    y2 = 0.5 * (ends[0][1] + ends[1][1])
+    return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
+                       lf.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       misfit=lf.misfit, endpoints=tuple(ends))
 
 
 def _neighbours(geom: Geometry, region: Region) -> np.ndarray:
@@ -258,6 +291,24 @@ def geom_is_hex(profile: CameraProfile) -> bool:
     return profile.mla.grid == "hex"
 
 
+def _apply_line_model(profile, meas: Measurement, model: str):
+    """Lines: ``exact``/``auto`` keep the exact fit; the closed-form choices run the seed's
+    line model (eqs. 18–20) on the endpoints' rim-ray heights."""
+    if model in ("exact", "auto"):
+        return "exact", meas.distance_mm, meas.offset_mm, meas.sigma_distance_mm, "ok"
+    from lfcam.models import line as line_model
+
+    (a1, a2), (b1, b2) = meas.endpoints
+    inv = line_model.invert(profile, meas.plane_d_in_mm, a1, a2, b1, b2)
+    status = Status(int(inv.status)).label
+    d = float(inv.distance_mm)
+    table = auto.error_table(profile, meas.plane_d_in_mm)
+    model_err = float("nan")
+    if status == "ok":
+        model_err = float(table.predict("offaxis", d, meas.offset_mm)) * d
+    return "line", d, abs(float(inv.offset_mm)), model_err, status
+
+
 @dataclass(frozen=True)
 class DistanceRun:
     """Everything a distance run produced."""
@@ -272,6 +323,8 @@ def _apply_model(profile, meas: Measurement, model: str, tolerance_pct: float | 
     nan = float("nan")
     if meas.status != "ok":
         return model, nan, nan, nan, meas.status
+    if meas.kind == "line":
+        return _apply_line_model(profile, meas, model)
     if model == "auto":
         names, inv, sigma = auto.choose(profile, meas.plane_d_in_mm, meas.y1_mm, meas.y2_mm,
                                         meas.sigma_y_mm, meas.sigma_y_mm, tolerance_pct)
@@ -343,19 +396,21 @@ def run_distance(
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     for i, reg in enumerate(regions):
         nan = float("nan")
-        if reg.kind == "spot":
+        if reg.kind in ("spot", "line"):
             if method == "lightfield":
                 meas = measure_lightfield(profile, geom, img, reg, noise, fast)
             else:
                 meas = measure_diameter(profile, geom, img, stats, reg, noise)
             name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
             diameter = abs(meas.y1_mm - meas.y2_mm)
+            kind = meas.kind
         else:
             name, d, off, sig, diameter = model, nan, nan, nan, nan
             status = f"unsupported-{reg.kind}"
+            kind = reg.kind
         results.append(RegionResult(
             region_id=reg.region_id, x_px=reg.centroid_px[0], y_px=reg.centroid_px[1],
-            kind=reg.kind, model=name, distance_mm=d, offset_mm=off, diameter_mm=diameter,
+            kind=kind, model=name, distance_mm=d, offset_mm=off, diameter_mm=diameter,
             uncertainty_mm=sig, status=status, bbox_px=reg.box_px,
         ))
         if status == "ok" and np.isfinite(d):

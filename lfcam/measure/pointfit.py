@@ -302,22 +302,33 @@ class _Patch:
         self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
         self.evaluations = 0
 
-    def render(self, source_mm):
-        """Model image of a unit-intensity source (blurred like the data)."""
+    def render(self, source_mm, pattern=None):
+        """Model image of a unit-intensity source (blurred like the data).
+
+        ``source_mm`` is one point (3,) or several (M, 3) of equal intensity (a line).
+        """
         p = self.profile
         lens = p.main_lens
         half = 0.5 * lens.pupil_diameter_mm
-        tr = trace_source_fast(lens, tuple(source_mm), self.pattern[0] * half,
-                               self.pattern[1] * half, self.d_in)
-        ok = tr.ok
-        x, y = tr.x[ok], tr.y[ok]
+        pattern = self.pattern if pattern is None else pattern
+        points = np.atleast_2d(np.asarray(source_mm, dtype=np.float64))
+        xs, ys, sxs, sys_ = [], [], [], []
+        for pt in points:
+            tr = trace_source_fast(lens, tuple(pt), pattern[0] * half, pattern[1] * half,
+                                   self.d_in)
+            ok = tr.ok
+            xs.append(tr.x[ok])
+            ys.append(tr.y[ok])
+            sxs.append(tr.dx[ok] / tr.dz[ok])
+            sys_.append(tr.dy[ok] / tr.dz[ok])
+        x, y = np.concatenate(xs), np.concatenate(ys)
         _, k = self.tree.query(np.column_stack([x, y]))
         c = self.centres[k]
         fx = p.mla.focal_length_mm
         pp = p.sensor.pixel_pitch_mm
         ax, ay = p.sensor.axis_xy_px
-        px = (c[:, 0] + fx * tr.dx[ok] / tr.dz[ok]) / pp + ax - self.box[0]
-        py = (c[:, 1] + fx * tr.dy[ok] / tr.dz[ok]) / pp + ay - self.box[1]
+        px = (c[:, 0] + fx * np.concatenate(sxs)) / pp + ax - self.box[0]
+        py = (c[:, 1] + fx * np.concatenate(sys_)) / pp + ay - self.box[1]
         h, w = self.shape
         ix, iy = np.floor(px).astype(np.int64), np.floor(py).astype(np.int64)
         fxr, fyr = px - ix, py - iy
@@ -329,17 +340,17 @@ class _Patch:
             img += np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
         return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
 
-    def residual(self, source_mm) -> np.ndarray:
+    def residual(self, source_mm, pattern=None) -> np.ndarray:
         """Data minus the best-scaled model (scale in closed form), over ‖data‖."""
         self.evaluations += 1
-        m = self.render(source_mm)
+        m = self.render(source_mm, pattern)
         mm = float((m * m).sum())
         a = float((m * self.data).sum()) / mm if mm > 0 else 0.0
         return ((self.data - a * m) / self.norm).ravel()
 
-    def misfit(self, source_mm) -> float:
+    def misfit(self, source_mm, pattern=None) -> float:
         """Relative residual norm after the best intensity scale."""
-        r = self.residual(source_mm)
+        r = self.residual(source_mm, pattern)
         return float(np.sqrt((r * r).sum()))
 
 
