@@ -35,7 +35,7 @@ from lfcam.camera import CameraProfile
 from lfcam.decode.grid import GridSpec, grid_from_dict
 from lfcam.errors import CalibrationError, InputFileError, LfcamError
 from lfcam.export import RegionResult, write_distance_png, write_distance_tiff, write_regions_csv
-from lfcam.measure.geometry import lenslet_centres_mm
+from lfcam.measure.geometry import lenslet_centres_mm, regularise_to_lattice
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
@@ -110,7 +110,10 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
         centres = centres[np.isfinite(centres).all(axis=1)]
     d_in = calibration.d_in_mm if calibration.d_in_mm is not None else profile.d_in_mm
     lmap = build_lenslet_map(centres, shape, 0.5 * grid.pitch_px * 1.08)
-    return Geometry(lmap, lenslet_centres_mm(profile, d_in, centres), float(grid.pitch_px), d_in)
+    lens_mm = lenslet_centres_mm(profile, d_in, centres)
+    lens_mm, _ = regularise_to_lattice(lens_mm, profile.mla.pitch_mm, grid.grid,
+                                       grid.rotation_rad)
+    return Geometry(lmap, lens_mm, float(grid.pitch_px), d_in)
 
 
 @dataclass(frozen=True)

@@ -312,16 +312,21 @@ class _Patch:
         half = 0.5 * lens.pupil_diameter_mm
         pattern = self.pattern if pattern is None else pattern
         points = np.atleast_2d(np.asarray(source_mm, dtype=np.float64))
-        xs, ys, sxs, sys_ = [], [], [], []
+        xs, ys, sxs, sys_, ws = [], [], [], [], []
+        rx, ry = pattern[0] * half, pattern[1] * half
         for pt in points:
-            tr = trace_source_fast(lens, tuple(pt), pattern[0] * half, pattern[1] * half,
-                                   self.d_in)
+            tr = trace_source_fast(lens, tuple(pt), rx, ry, self.d_in)
             ok = tr.ok
             xs.append(tr.x[ok])
             ys.append(tr.y[ok])
             sxs.append(tr.dx[ok] / tr.dz[ok])
             sys_.append(tr.dy[ok] / tr.dz[ok])
+            # each rim-plane cell carries the solid angle it subtends at the source, ∝ cos³θ
+            along = lens.rim_z_mm - pt[2]
+            rho2 = (rx[ok] - pt[0]) ** 2 + (ry[ok] - pt[1]) ** 2 + along * along
+            ws.append((along * along / rho2) ** 1.5)
         x, y = np.concatenate(xs), np.concatenate(ys)
+        weight = np.concatenate(ws)
         _, k = self.tree.query(np.column_stack([x, y]))
         c = self.centres[k]
         fx = p.mla.focal_length_mm
@@ -337,7 +342,8 @@ class _Patch:
                            (0, 1, (1 - fxr) * fyr), (1, 1, fxr * fyr)):
             jx, jy = ix + dx, iy + dy
             inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
-            img += np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
+            img += np.bincount(jy[inside] * w + jx[inside], (wt * weight)[inside],
+                               minlength=h * w)
         return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
 
     def residual(self, source_mm, pattern=None) -> np.ndarray:
@@ -492,29 +498,44 @@ def fit_point_image(
 
     # Polish along the line of sight (through the entrance-pupil centre), where the misfit is
     # shallow but smooth on the 0.5 % scale that finite differences cannot resolve: fit a
-    # parabola to the misfit at seven scale factors, recentre, repeat with half the span.
-    source = source_of(best[1])
-    span = 0.02
-    curvature = np.nan
-    f0 = best[0]
-    for _ in range(3):
-        scales = 1.0 + span * np.linspace(-1.0, 1.0, 7)
-        vals = np.array([patch.misfit(pupil + sc * (source - pupil)) for sc in scales])
-        c2, c1, c0 = np.polyfit(scales - 1.0, vals, 2)
-        if c2 <= 0:
-            k = int(np.argmin(vals))
-            source = pupil + scales[k] * (source - pupil)
-            f0 = float(vals[k])
-            continue
-        vertex = float(np.clip(-c1 / (2 * c2), -span, span))
-        source = pupil + (1.0 + vertex) * (source - pupil)
-        f0 = float(c0 - c1 * c1 / (4 * c2))
-        curvature = 2 * c2
-        span *= 0.5
+    # parabola to the misfit at seven scale factors, recentre, repeat with half the span; then
+    # let the local refinement move across the valley again, and polish once more.
+    def polish(source, f0, span=0.02):
+        curvature = np.nan
+        for _ in range(3):
+            scales = 1.0 + span * np.linspace(-1.0, 1.0, 7)
+            vals = np.array([patch.misfit(pupil + sc * (source - pupil)) for sc in scales])
+            c2, c1, c0 = np.polyfit(scales - 1.0, vals, 2)
+            if c2 <= 0:
+                k = int(np.argmin(vals))
+                source, f0 = pupil + scales[k] * (source - pupil), float(vals[k])
+                continue
+            vertex = float(np.clip(-c1 / (2 * c2), -span, span))
+            source = pupil + (1.0 + vertex) * (source - pupil)
+            f0 = float(c0 - c1 * c1 / (4 * c2))
+            curvature = 2 * c2
+            span *= 0.5
+        return source, f0, curvature
+
+    source, f0, curvature = polish(source_of(best[1]), best[0])
+    again = refine(np.array([np.log(z_front - source[2]), source[0], source[1]]))
+    if again[0] < f0:
+        source, f0, curvature = polish(source_of(again[1]), again[0], span=0.01)
     dist = float(z_front - source[2])
     npix = max(int((patch.data > 0.05 * patch.data.max()).sum()), 1)
     # misfit is an RMS over the patch: its noise is ~ f0/√npix per unit of misfit
     sigma_scale = np.sqrt(2 * f0 / np.sqrt(npix) / curvature) if curvature > 0 else np.inf
-    along = float(np.linalg.norm(source - pupil))
-    sigma_d = float(sigma_scale) * along * dist / max(along, 1e-9)
+    sigma_d = float(sigma_scale) * dist
+    # the valley couples distance and lateral position: the full normal matrix of the three
+    # parameters, with the residual's per-pixel variance, gives the marginal σ of the distance
+    q = np.array([np.log(dist), source[0], source[1]])
+    jm = jac(q)
+    r = fun(q)
+    n_eff = max(npix - 3, 1)
+    s2 = float((r * r).sum()) / n_eff
+    try:
+        cov = s2 * np.linalg.inv(jm.T @ jm)
+        sigma_d = max(sigma_d, dist * float(np.sqrt(max(cov[0, 0], 0.0))))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
     return ImageFit(source, float(f0), sigma_d, patch.evaluations, bool(np.isfinite(f0)))
