@@ -49,9 +49,10 @@ def scene_objects() -> list[dict]:
         if kind == "point":
             objs.append({"type": "point", "distance_mm": dist, "position_mm": [x, y]})
         else:
+            # radial (along the meridian), so the seed's line model (eq. 20) applies
             half = 0.5 * LINE_LENGTH_MM
-            objs.append({"type": "line", "distance_mm": dist, "start_mm": [x, y - half],
-                         "end_mm": [x, y + half]})
+            objs.append({"type": "line", "distance_mm": dist, "start_mm": [x - half, y],
+                         "end_mm": [x + half, y]})
     return objs
 
 

@@ -130,6 +130,26 @@ def fit_line_image(
         val = float(np.sqrt((res.fun**2).sum()))
         if best is None or val < best[0]:
             best = (val, res.x)
+    # along the line of sight (every point scaled about the entrance-pupil centre) distance
+    # and lateral size trade off: scan ±15 %, restart from a better point, refine again
+    def scaled(q, sc):
+        """Parameters of the line scaled by ``sc`` about the pupil centre (0, 0, z_rim)."""
+        z = lens.rim_z_mm + sc * ((z_front - np.exp(q[0])) - lens.rim_z_mm)
+        return np.r_[np.log(z_front - z), sc * q[1:]]
+
+    for _ in range(2):
+        f0, q = best
+        vals = [(float(np.sqrt((fun(scaled(q, sc)) ** 2).sum())), sc)
+                for sc in np.linspace(0.85, 1.15, 13)]
+        v, sc = min(vals)
+        if v < f0 and abs(sc - 1.0) > 1e-9:
+            res = least_squares(fun, scaled(q, sc), jac=jac, method="trf", x_scale="jac",
+                                max_nfev=20)
+            val = float(np.sqrt((res.fun**2).sum()))
+            if val < f0:
+                best = (val, res.x)
+                continue
+        break
     f0, q = best
     # σ of the distance from the curvature of the misfit in log-distance (lateral held)
     h = 5e-3
