@@ -268,6 +268,7 @@ def fit_point(
 # ----------------------------------------------------------------------------- image matching
 
 IMAGE_PUPIL_SAMPLES = 180  # per side (~25 k rays per model evaluation)
+SCAN_PUPIL_SAMPLES = 72  # per side for the basin-finding distance scan (~4 k rays)
 MATCH_BLUR_PX = 0.8  # both model and data are smoothed alike before comparison
 GOOD_MISFIT = 0.08  # a start whose refined misfit is below this needs no distance scan
 
@@ -368,7 +369,7 @@ def _centroid_px(img: np.ndarray) -> np.ndarray:
     return np.array([(xx * img).sum() / tot, (yy * img).sum() / tot])
 
 
-def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front):
+def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front, pattern=None):
     """Lateral source position at a trial distance whose *modelled* light centroid matches the
     data's: chief-ray start, then two Newton steps through the exact render (coma and
     aberrations move the light centroid off the chief ray)."""
@@ -376,7 +377,8 @@ def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front)
     want = _centroid_px(patch.data)
     gain = None
     for _ in range(2):
-        got = _centroid_px(patch.render(np.array([xy[0], xy[1], z_front - distance_mm])))
+        got = _centroid_px(patch.render(np.array([xy[0], xy[1], z_front - distance_mm]),
+                                        pattern))
         patch.evaluations += 1
         if not np.isfinite(got).all():
             break
@@ -438,14 +440,18 @@ def fit_point_image(
     f = lens.focal_length_mm
     from scipy.optimize import least_squares
 
+    last: dict = {}
+
     def fun(q):
-        return patch.residual(source_of(q))
+        r = patch.residual(source_of(q))
+        last["q"], last["r"] = np.array(q, dtype=np.float64), r
+        return r
 
     def jac(q):
         # absolute steps matched to the physics (relative steps vanish for lateral ≈ 0 and
         # would only sample ray-hopping noise): 0.2 % in distance, ~0.1 px of image motion
-        # laterally
-        base = fun(q)
+        # laterally; the residual at q itself was just computed by the optimiser
+        base = last["r"] if "q" in last and np.array_equal(last["q"], q) else fun(q)
         steps = np.array([2e-3, 1e-4 * np.exp(q[0]), 1e-4 * np.exp(q[0])])
         cols = []
         for i, h in enumerate(steps):
@@ -455,7 +461,7 @@ def fit_point_image(
         return np.column_stack(cols)
 
     def refine(x0):
-        res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=25)
+        res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=15)
         return float(np.sqrt((res.fun**2).sum())), res.x
 
     best = None
@@ -463,20 +469,26 @@ def fit_point_image(
         best = refine(np.array([np.log(z_front - start_mm[2]), start_mm[0], start_mm[1]]))
     if best is None or best[0] > GOOD_MISFIT:
         # no (good) start: scan the distance, lateral position from the chief ray
+        # the scan only has to find the basin: a coarse pupil sample (~1/6 of the rays) will do
+        coarse = _pupil_pattern(SCAN_PUPIL_SAMPLES)
+
+        def scan_cost(params):
+            return patch.misfit(source_of(params), coarse)
+
         scored = []
         for d in np.geomspace(1.1 * f, 2e4, 32):
-            xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front)
+            xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front, coarse)
             params = np.array([np.log(d), xy[0], xy[1]])
-            scored.append((cost(params), params))
+            scored.append((scan_cost(params), params))
         scored.sort(key=lambda t: t[0])
         # the coarse grid steps ~18 % in distance; the basin is a few % wide: refine around
         # the two best coarse points before handing over to the local optimiser
         fine = []
         for _, params in scored[:2]:
             for d in np.exp(params[0]) * np.linspace(0.9, 1.1, 9):
-                xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front)
+                xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front, coarse)
                 q = np.array([np.log(d), xy[0], xy[1]])
-                fine.append((cost(q), q))
+                fine.append((scan_cost(q), q))
         scored = sorted(fine + scored, key=lambda t: t[0])
         for _, params in scored[:2]:
             cand = refine(params)
