@@ -50,6 +50,7 @@ from lfcam.models.base import Status
 from lfcam.optics.trace import forward
 
 MODELS = ("auto", "exact", "offaxis", "onaxis", "thin")
+TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
 METHODS = ("lightfield", "diameter")
@@ -158,6 +159,10 @@ def measure_lightfield(profile, geom: Geometry, image, region: Region, noise: fl
     spots = spots + np.array([x0, y0])
     fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm)
     nan = float("nan")
+    # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
+    # the per-pixel fit would only re-render a huge patch a hundred times.
+    if not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH:
+        fast = True
     if fast:
         if not fit.ok:
             return Measurement(nan, nan, nan, nan, nan, nan, fit.reason, geom.d_in_mm)

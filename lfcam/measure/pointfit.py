@@ -285,6 +285,67 @@ class ImageFit:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class _LocalLattice:
+    """Exact nearest-lenslet lookup for centres that form an affine lattice."""
+
+    origin: np.ndarray  # (2,)
+    basis: np.ndarray  # (2, 2), columns a1, a2
+    inverse: np.ndarray
+    table: np.ndarray  # (ni, nj) index into the centres, −1 where none
+    i0: int
+    j0: int
+    centres: np.ndarray
+
+    @classmethod
+    def fit(cls, centres: np.ndarray, pitch_mm: float) -> _LocalLattice | None:
+        """Fit the lattice through ``centres``; ``None`` if they are not one (→ k-d tree)."""
+        c = np.asarray(centres, dtype=np.float64)
+        if len(c) < 4:
+            return None
+        ref = c[0]
+        d = c - ref
+        # nominal basis from the nearest neighbours of the reference centre
+        order = np.argsort(np.hypot(d[:, 0], d[:, 1]))[1:]
+        a1 = d[order[0]]
+        a2 = next((d[k] for k in order[1:]
+                   if abs(np.cross(a1, d[k])) > 0.5 * pitch_mm * pitch_mm), None)
+        if a2 is None:
+            return None
+        ij = np.round(np.linalg.solve(np.column_stack([a1, a2]), d.T).T).astype(np.int64)
+        a = np.column_stack([np.ones(len(ij)), ij])
+        coef, *_ = np.linalg.lstsq(a, c, rcond=None)
+        if np.sqrt(((a @ coef - c) ** 2).sum(axis=1).mean()) > 1e-3 * pitch_mm:
+            return None
+        basis = np.column_stack([coef[1], coef[2]])
+        i0, j0 = ij.min(axis=0)
+        table = np.full(tuple(ij.max(axis=0) - ij.min(axis=0) + 1), -1, dtype=np.int64)
+        table[ij[:, 0] - i0, ij[:, 1] - j0] = np.arange(len(c))
+        return cls(coef[0], basis, np.linalg.inv(basis), table, int(i0), int(j0), c)
+
+    def nearest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Index of the lenslet whose Voronoi cell holds each point (−1: not in the set)."""
+        u = self.inverse @ np.vstack([x - self.origin[0], y - self.origin[1]])
+        fu, fv = np.floor(u[0]), np.floor(u[1])
+        best = np.full(x.shape, np.inf)
+        bi = np.zeros(x.shape, dtype=np.int64)
+        bj = np.zeros(x.shape, dtype=np.int64)
+        for di in (0.0, 1.0):
+            for dj in (0.0, 1.0):
+                ci, cj = fu + di, fv + dj
+                px = self.origin[0] + self.basis[0, 0] * ci + self.basis[0, 1] * cj
+                py = self.origin[1] + self.basis[1, 0] * ci + self.basis[1, 1] * cj
+                dist = (x - px) ** 2 + (y - py) ** 2
+                better = dist < best
+                best[better] = dist[better]
+                bi[better], bj[better] = ci[better], cj[better]
+        ti, tj = bi - self.i0, bj - self.j0
+        inside = (ti >= 0) & (ti < self.table.shape[0]) & (tj >= 0) & (tj < self.table.shape[1])
+        out = np.full(x.shape, -1, dtype=np.int64)
+        out[inside] = self.table[ti[inside], tj[inside]]
+        return out
+
+
 class _Patch:
     """Forward model of one region: renders a candidate source into the region's pixels."""
 
@@ -300,6 +361,7 @@ class _Patch:
         self.norm = float(np.sqrt((self.data**2).sum()))
         self.tree = cKDTree(lens_centres_mm)
         self.centres = lens_centres_mm
+        self.lattice = _LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
         self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
         self.evaluations = 0
 
@@ -328,23 +390,30 @@ class _Patch:
             ws.append((along * along / rho2) ** 1.5)
         x, y = np.concatenate(xs), np.concatenate(ys)
         weight = np.concatenate(ws)
-        _, k = self.tree.query(np.column_stack([x, y]))
+        if self.lattice is not None:
+            k = self.lattice.nearest(x, y)
+            known = k >= 0
+            x, y, weight, k = x[known], y[known], weight[known], k[known]
+            sx_all, sy_all = np.concatenate(sxs)[known], np.concatenate(sys_)[known]
+        else:
+            _, k = self.tree.query(np.column_stack([x, y]))
+            sx_all, sy_all = np.concatenate(sxs), np.concatenate(sys_)
         c = self.centres[k]
         fx = p.mla.focal_length_mm
         pp = p.sensor.pixel_pitch_mm
         ax, ay = p.sensor.axis_xy_px
-        px = (c[:, 0] + fx * np.concatenate(sxs)) / pp + ax - self.box[0]
-        py = (c[:, 1] + fx * np.concatenate(sys_)) / pp + ay - self.box[1]
+        px = (c[:, 0] + fx * sx_all) / pp + ax - self.box[0]
+        py = (c[:, 1] + fx * sy_all) / pp + ay - self.box[1]
         h, w = self.shape
         ix, iy = np.floor(px).astype(np.int64), np.floor(py).astype(np.int64)
         fxr, fyr = px - ix, py - iy
-        img = np.zeros(h * w)
-        for dx, dy, wt in ((0, 0, (1 - fxr) * (1 - fyr)), (1, 0, fxr * (1 - fyr)),
-                           (0, 1, (1 - fxr) * fyr), (1, 1, fxr * fyr)):
-            jx, jy = ix + dx, iy + dy
-            inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
-            img += np.bincount(jy[inside] * w + jx[inside], (wt * weight)[inside],
-                               minlength=h * w)
+        # bilinear splat: the four corner contributions in one bincount
+        jx = np.concatenate([ix, ix + 1, ix, ix + 1])
+        jy = np.concatenate([iy, iy, iy + 1, iy + 1])
+        wt = np.concatenate([(1 - fxr) * (1 - fyr), fxr * (1 - fyr), (1 - fxr) * fyr,
+                             fxr * fyr]) * np.tile(weight, 4)
+        inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
+        img = np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
         return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
 
     def residual(self, source_mm, pattern=None) -> np.ndarray:
