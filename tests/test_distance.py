@@ -70,7 +70,8 @@ def test_cli_writes_contract_outputs(tmp_path):
          str(DATA / "calib_system2.json"), "--model", "exact", "-o", str(tmp_path / "o")],
         capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    rows = list(csv.DictReader((tmp_path / "o" / "regions.csv").open()))
+    with (tmp_path / "o" / "regions.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["region_id", "x_px", "y_px", "kind", "model", "distance_mm",
                              "offset_mm", "diameter_mm", "uncertainty_mm", "status"]
     assert float(rows[0]["distance_mm"]) == pytest.approx(2000.0, rel=0.005)

@@ -309,7 +309,7 @@ class _LocalLattice:
         order = np.argsort(np.hypot(d[:, 0], d[:, 1]))[1:]
         a1 = d[order[0]]
         a2 = next((d[k] for k in order[1:]
-                   if abs(np.cross(a1, d[k])) > 0.5 * pitch_mm * pitch_mm), None)
+                   if abs(a1[0] * d[k][1] - a1[1] * d[k][0]) > 0.5 * pitch_mm * pitch_mm), None)
         if a2 is None:
             return None
         ij = np.round(np.linalg.solve(np.column_stack([a1, a2]), d.T).T).astype(np.int64)
