@@ -6,13 +6,12 @@ import argparse
 import csv
 import json
 import math
-import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from lfcam.atomic import atomic_write_text  # noqa: F401 - re-exported for the CLI modules
 from lfcam.camera import CameraProfile, load_profile
 from lfcam.errors import InputFileError
 
@@ -36,20 +35,6 @@ def profile_from_args(args: argparse.Namespace) -> CameraProfile:
     elif getattr(args, "focus", None) is not None:
         profile = profile.with_focus(args.focus)
     return profile
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_csv_columns(path: str | Path, columns: Sequence[str]) -> dict[str, np.ndarray]:

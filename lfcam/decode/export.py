@@ -4,32 +4,17 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import tifffile
 
+from lfcam.atomic import atomic_write_bytes  # noqa: F401 - part of this module's API
 from lfcam.decode.lightfield import LightField
 from lfcam.errors import InputFileError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
-
-
-def atomic_write_bytes(path: str | Path, payload: bytes) -> None:
-    """Write ``payload`` to ``path`` through a temporary file in the same folder."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

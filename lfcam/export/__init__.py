@@ -6,8 +6,6 @@ reader or an interrupted batch never sees half a file.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +14,7 @@ import cv2
 import numpy as np
 import tifffile
 
+from lfcam.atomic import atomic_write, atomic_write_bytes
 from lfcam.cli.common import write_csv
 
 REGION_COLUMNS = (
@@ -45,18 +44,6 @@ class RegionResult:
         return tuple(getattr(self, c) for c in REGION_COLUMNS)
 
 
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_regions_csv(path: str | Path, regions: Sequence[RegionResult]) -> None:
     """Write ``regions.csv`` (one row a region; empty cells for NaN)."""
     write_csv(path, REGION_COLUMNS, (r.row() for r in regions))
@@ -64,18 +51,10 @@ def write_regions_csv(path: str | Path, regions: Sequence[RegionResult]) -> None
 
 def write_distance_tiff(path: str | Path, distance_mm: np.ndarray) -> None:
     """Write the distance map as a float32 TIFF in millimetres (NaN where no estimate)."""
-    path = Path(path)
     arr = np.asarray(distance_mm, dtype=np.float32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        tifffile.imwrite(tmp, arr, photometric="minisblack",
-                         metadata={"unit": "mm", "description": "lfcam distance map"})
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda tmp: tifffile.imwrite(
+        tmp, arr, photometric="minisblack",
+        metadata={"unit": "mm", "description": "lfcam distance map"}))
 
 
 def render_preview(
@@ -132,7 +111,7 @@ def write_distance_png(path: str | Path, distance_mm: np.ndarray,
     ok, buf = cv2.imencode(".png", render_preview(distance_mm, regions))
     if not ok:  # pragma: no cover - cv2 failure
         raise OSError("PNG encoding failed")
-    _atomic_bytes(Path(path), buf.tobytes())
+    atomic_write_bytes(path, buf.tobytes())
 
 
 def distance_map(shape: tuple[int, int], regions: Sequence[RegionResult],

@@ -19,9 +19,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 import struct
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from lfcam.atomic import atomic_write_bytes
 from lfcam.errors import (
     ChecksumError,
     ContainerError,
@@ -468,16 +467,5 @@ def write_lfp(
     _, master_blob = _section(LFM_MAGIC, json.dumps(master, indent=1).encode("utf-8"))
     header = LFP_MAGIC + struct.pack(">II", 1, 0)
     out = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=out.suffix, dir=out.parent or ".")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header)
-            f.write(master_blob)
-            for b in blobs:
-                f.write(b)
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(out, [header, master_blob, *blobs])
     return out

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
+from lfcam.atomic import atomic_write
 from lfcam.camera import CameraProfile, profile_from_dict
 from lfcam.errors import LfcamError, SceneError
 from lfcam.optics.mla import MlaGrid
@@ -217,33 +216,19 @@ def simulate(profile: CameraProfile, scene: Scene) -> tuple[np.ndarray, CameraPr
     return raw, profile, build_truth(profile, scene, renderer, res, scale)
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o666 & ~umask)
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_png(path: Path, raw: np.ndarray, profile: CameraProfile) -> None:
     import cv2
 
     def w(p: Path) -> None:
         if not cv2.imwrite(str(p), raw, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
             raise LfcamError(f"could not write {p}")
-    _atomic_write(path, w)
+    atomic_write(path, w)
 
 
 def _write_tiff(path: Path, raw: np.ndarray, profile: CameraProfile) -> None:
     import tifffile
 
-    _atomic_write(path, lambda p: tifffile.imwrite(p, raw, compression="zlib"))
+    atomic_write(path, lambda p: tifffile.imwrite(p, raw, compression="zlib"))
 
 
 WRITERS: dict[str, Callable[[Path, np.ndarray, CameraProfile], None]] = {
@@ -271,9 +256,9 @@ def write_capture(out: str | Path, raw: np.ndarray, profile: CameraProfile, trut
         raise SceneError(f"output folder does not exist: {img.parent}")
     WRITERS[img.suffix.lower()](img, raw, profile)
     text = profile_to_toml(profile)
-    _atomic_write(prof, lambda p: p.write_text(text, encoding="utf-8"))
+    atomic_write(prof, lambda p: p.write_text(text, encoding="utf-8"))
     body = json.dumps(_finite(truth), indent=1, allow_nan=False, default=_json_default)
-    _atomic_write(tru, lambda p: p.write_text(body + "\n", encoding="utf-8"))
+    atomic_write(tru, lambda p: p.write_text(body + "\n", encoding="utf-8"))
     return img, prof, tru
 
 
