@@ -273,7 +273,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
     panels = [("system1", "point", "(a) point source, system 1"),
               ("system2", "point", "(b) point source, system 2"),
               ("system1", "line", "(c) 10 mm line, system 1")]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), sharey=False)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.6), sharey=False)
     ours = [("lightfield", "exact", "ours: lightfield + exact", "C0", "o-"),
             ("lightfield-fast", "exact", "ours: lightfield-fast + exact", "C2", "s-"),
             ("diameter", "offaxis", "seed model on our diameter measurement", "C1", "^-"),
@@ -305,10 +305,13 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
         ax.set_title(title)
         ax.set_xlabel("Ad (mm)")
         ax.set_ylabel("ERROR (%) — eq. 21, mean over Δh")
-        ax.set_yscale("symlog", linthresh=0.1)
+        ax.set_yscale("log")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=6.5)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8,
+               title="(c): the seed's line table has one 'proposed' column (no Δh)",
+               title_fontsize=8)
+    fig.tight_layout(rect=(0, 0.16, 1, 1))
     _save(fig, img_dir / "error_vs_distance.png")
     plt.close(fig)
 
