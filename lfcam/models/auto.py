@@ -68,22 +68,26 @@ class ErrorTable:
         if model == "exact":
             return np.zeros(np.shape(distance_mm))
         table = self.relative_error[model]
-        ld = np.clip(np.log(np.asarray(distance_mm, dtype=np.float64)),
-                     self.log_distance[0], self.log_distance[-1])
-        off = np.clip(np.abs(np.asarray(offset_mm, dtype=np.float64)),
-                      self.offsets_mm[0], self.offsets_mm[-1])
+        dist = np.asarray(distance_mm, dtype=np.float64)
+        offs = np.abs(np.asarray(offset_mm, dtype=np.float64))
+        unknown = ~(np.isfinite(dist) & (dist > 0) & np.isfinite(offs))
+        dist = np.where(unknown, np.exp(self.log_distance[0]), dist)
+        offs = np.where(unknown, 0.0, offs)
+        ld = np.clip(np.log(dist), self.log_distance[0], self.log_distance[-1])
+        off = np.clip(offs, self.offsets_mm[0], self.offsets_mm[-1])
         fi = np.interp(ld, self.log_distance, np.arange(self.log_distance.size))
         fj = np.interp(off, self.offsets_mm, np.arange(self.offsets_mm.size))
         i0 = np.clip(np.floor(fi).astype(int), 0, self.log_distance.size - 2)
         j0 = np.clip(np.floor(fj).astype(int), 0, self.offsets_mm.size - 2)
         wi, wj = fi - i0, fj - j0
-        # worst of the four corners: conservative, and inf-safe
+        # bilinear, never below the best corner; inf if any corner has no answer
         corners = np.stack([table[j0, i0], table[j0, i0 + 1], table[j0 + 1, i0],
                             table[j0 + 1, i0 + 1]])
         with np.errstate(invalid="ignore"):
             blend = ((1 - wj) * ((1 - wi) * corners[0] + wi * corners[1])
                      + wj * ((1 - wi) * corners[2] + wi * corners[3]))
-        return np.where(np.isfinite(corners).all(axis=0), np.maximum(blend, corners.min(0)), np.inf)
+        known = np.isfinite(corners).all(axis=0) & ~unknown
+        return np.where(known, np.maximum(blend, corners.min(0)), np.inf)
 
 
 @lru_cache(maxsize=16)
