@@ -217,3 +217,14 @@ def test_cli_exit_codes(folder, tmp_path, capsys):
     assert main(["batch", str(folder), "--calibration", str(tmp_path / "nope.json"), "-o",
                  str(tmp_path / "c")]) == 1
     assert "calibration" in capsys.readouterr().err
+
+
+def test_progress_line_counts(capsys):
+    from lfcam.batch import _Progress
+
+    bar = _Progress(3, enabled=True)
+    bar.update(True)
+    bar.update(False)
+    bar.close()
+    last = capsys.readouterr().err.rstrip("\n").split("\r")[-1]
+    assert "done 1  failed 1  remaining 1" in last and last.endswith("/min")
