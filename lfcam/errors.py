@@ -74,3 +74,7 @@ class WhiteImageNotFoundError(InputFileError):
 
 class SceneError(LfcamError):
     """A simulation scene description is missing a key, has an invalid value or is too large."""
+
+
+class BatchError(LfcamError):
+    """Bad ``lfcam batch`` arguments: input folder, output folder, Dask scheduler."""

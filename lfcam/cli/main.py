@@ -17,6 +17,7 @@ COMMAND_MODULES = [
     "lfcam.cli.simulate",
     "lfcam.cli.decode",
     "lfcam.cli.distance",
+    "lfcam.cli.batch",
 ]
 
 
