@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 
 from lfcam.camera import CameraProfile
 from lfcam.measure.pointfit import (
+    PhysicalJacobian,
     _centroid_px,
     _match_centroid,
     _Patch,
@@ -92,8 +93,8 @@ def fit_line_image(
         xy = a[None, :] + t[:, None] * (b - a)[None, :]
         return np.column_stack([xy, np.full(LINE_POINTS, z_front - np.exp(q[0]))])
 
-    def fun(q):
-        return patch.residual(points(q), pattern)
+    model = PhysicalJacobian(lambda q: patch.residual(points(q), pattern))
+    fun, jac = model.fun, model.jac
 
     def start_at(d):
         centre = _match_centroid(patch, profile, d_in_mm, d, target, z_front)
@@ -113,16 +114,6 @@ def fit_line_image(
             q = start_at(d)
             fine.append((float(np.sqrt((fun(q) ** 2).sum())), q))
     scored = sorted(fine + scored, key=lambda s: s[0])
-
-    def jac(q):
-        base = fun(q)
-        steps = np.r_[2e-3, np.full(4, 1e-4 * np.exp(q[0]))]
-        cols = []
-        for i, h in enumerate(steps):
-            dq = np.zeros(5)
-            dq[i] = h
-            cols.append((fun(q + dq) - base) / h)
-        return np.column_stack(cols)
 
     best = None
     for _, q0 in scored[:2]:

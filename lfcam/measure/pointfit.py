@@ -16,6 +16,7 @@ The signed rim-ray heights (y1, y2) then follow from the exact forward trace of 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -472,6 +473,42 @@ def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm):
     return np.asarray(target_xy_mm, dtype=np.float64) / gain
 
 
+class PhysicalJacobian:
+    """Residual function with a forward-difference Jacobian in physically sized steps.
+
+    Parameters are ``(log distance, lateral mm …)``. Steps are 0.2 % in distance and
+    ``1e-4 × distance`` laterally (~0.1 px of image motion): relative steps would vanish for
+    lateral positions near 0 and only sample the ray-hopping noise of the render. The residual
+    at the point the optimiser just evaluated is reused for the Jacobian's base.
+    """
+
+    def __init__(self, residual: Callable[[np.ndarray], np.ndarray]):
+        self._residual = residual
+        self._last_q: np.ndarray | None = None
+        self._last_r: np.ndarray | None = None
+
+    def fun(self, q: np.ndarray) -> np.ndarray:
+        """Residual at ``q`` (remembered for :meth:`jac`)."""
+        r = self._residual(q)
+        self._last_q, self._last_r = np.array(q, dtype=np.float64), r
+        return r
+
+    def jac(self, q: np.ndarray) -> np.ndarray:
+        """Forward-difference Jacobian at ``q``."""
+        if self._last_q is not None and np.array_equal(self._last_q, q):
+            base = self._last_r
+        else:
+            base = self.fun(q)
+        steps = np.full(len(q), 1e-4 * np.exp(q[0]))
+        steps[0] = 2e-3
+        cols = []
+        for i, h in enumerate(steps):
+            dq = np.zeros(len(q))
+            dq[i] = h
+            cols.append((self._residual(q + dq) - base) / h)
+        return np.column_stack(cols)
+
+
 def fit_point_image(
     profile: CameraProfile,
     d_in_mm: float,
@@ -509,25 +546,8 @@ def fit_point_image(
     f = lens.focal_length_mm
     from scipy.optimize import least_squares
 
-    last: dict = {}
-
-    def fun(q):
-        r = patch.residual(source_of(q))
-        last["q"], last["r"] = np.array(q, dtype=np.float64), r
-        return r
-
-    def jac(q):
-        # absolute steps matched to the physics (relative steps vanish for lateral ≈ 0 and
-        # would only sample ray-hopping noise): 0.2 % in distance, ~0.1 px of image motion
-        # laterally; the residual at q itself was just computed by the optimiser
-        base = last["r"] if "q" in last and np.array_equal(last["q"], q) else fun(q)
-        steps = np.array([2e-3, 1e-4 * np.exp(q[0]), 1e-4 * np.exp(q[0])])
-        cols = []
-        for i, h in enumerate(steps):
-            dq = np.zeros(3)
-            dq[i] = h
-            cols.append((fun(q + dq) - base) / h)
-        return np.column_stack(cols)
+    model = PhysicalJacobian(lambda q: patch.residual(source_of(q)))
+    fun, jac = model.fun, model.jac
 
     def refine(x0):
         res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=15)

@@ -301,6 +301,34 @@ def _refract_xyz(dx, dy, dz, nx, ny, nz, eta):
     return eta * dx + g * nx, eta * dy + g * ny, eta * dz + g * nz, tir
 
 
+def _sphere_entry(px, py, pz, dx, dy, dz, zc: float, r: float):
+    """Near intersection of rays ``p + s·d`` entering a sphere (centre (0, 0, zc)) from outside.
+
+    Uses the cancellation-free form ``s = cc/(−b + √disc)``, so sources 10⁶ mm away keep
+    sub-nanometre entry points. Returns ``(x, y, z, hit)``.
+    """
+    oz = pz - zc
+    b = dx * px + dy * py + dz * oz
+    cc = px * px + py * py + oz * oz - r * r
+    disc = b * b - cc
+    hit = (disc >= 0.0) & (b < 0.0)
+    s = cc / (-b + np.sqrt(np.maximum(disc, 0.0)))
+    return px + s * dx, py + s * dy, pz + s * dz, hit
+
+
+def _sphere_exit(px, py, pz, dx, dy, dz, zc: float, r: float):
+    """Far intersection of rays ``p + s·d`` leaving a sphere (centre (0, 0, zc)) from inside.
+
+    Returns ``(x, y, z, hit)``.
+    """
+    oz = pz - zc
+    b = dx * px + dy * py + dz * oz
+    cc = px * px + py * py + oz * oz - r * r
+    disc = b * b - cc
+    s = -b + np.sqrt(np.maximum(disc, 0.0))
+    return px + s * dx, py + s * dy, pz + s * dz, disc >= 0.0
+
+
 def trace_source_fast(
     lens: MainLens,
     source_xyz_mm: tuple[float, float, float],
@@ -340,32 +368,17 @@ def trace_source_fast(
     dx *= inv
     dy *= inv
     dz = dzs * inv
-    # front sphere, centre on axis at zc1; near root computed stably
+    # front sphere, centre on axis at zc1
     zc1 = lens.front_vertex_z_mm + r
-    ozc = sz - zc1
-    b = dx * sx + dy * sy + dz * ozc
-    cc = sx * sx + sy * sy + ozc * ozc - r * r
-    disc = b * b - cc
-    ok = (disc >= 0.0) & (b < 0.0)
-    s_near = cc / (-b + np.sqrt(np.maximum(disc, 0.0)))
-    ex = sx + s_near * dx
-    ey = sy + s_near * dy
-    ez = sz + s_near * dz
+    ex, ey, ez, ok = _sphere_entry(sx, sy, sz, dx, dy, dz, zc1, r)
     ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
     nx, ny, nz = ex / r, ey / r, (ez - zc1) / r
     tx, ty, tz, tir = _refract_xyz(dx, dy, dz, nx, ny, nz, 1.0 / n_glass)
     ok &= ~tir
     # back sphere, centre zc2; far root from inside
     zc2 = lens.back_vertex_z_mm - r
-    oz = ez - zc2
-    b = tx * ex + ty * ey + tz * oz
-    cc = ex * ex + ey * ey + oz * oz - r * r
-    disc = b * b - cc
-    ok &= disc >= 0.0
-    s = -b + np.sqrt(np.maximum(disc, 0.0))
-    qx = ex + s * tx
-    qy = ey + s * ty
-    qz = ez + s * tz
+    qx, qy, qz, hit = _sphere_exit(ex, ey, ez, tx, ty, tz, zc2, r)
+    ok &= hit
     ok &= qx * qx + qy * qy <= lens.edge_radius_mm ** 2
     nx, ny, nz = -qx / r, -qy / r, -(qz - zc2) / r
     ux, uy, uz, tir = _refract_xyz(tx, ty, tz, nx, ny, nz, n_glass)
@@ -401,17 +414,9 @@ def trace_backward_fast(
     dx = -slope_x * inv
     dy = -slope_y * inv
     dz = -inv
-    # back sphere (centre zc2 on axis), entered from outside: near root
+    # back sphere (centre zc2 on axis), entered from outside
     zc2 = lens.back_vertex_z_mm - r
-    oz = z_mm - zc2
-    b = dx * x_mm + dy * y_mm + dz * oz
-    cc = x_mm * x_mm + y_mm * y_mm + oz * oz - r * r
-    disc = b * b - cc
-    ok = (disc >= 0.0) & (b < 0.0)
-    s = cc / (-b + np.sqrt(np.maximum(disc, 0.0)))
-    qx = x_mm + s * dx
-    qy = y_mm + s * dy
-    qz = z_mm + s * dz
+    qx, qy, qz, ok = _sphere_entry(x_mm, y_mm, z_mm, dx, dy, dz, zc2, r)
     edge2 = lens.edge_radius_mm ** 2
     ok &= qx * qx + qy * qy <= edge2
     # outward normal of the back surface faces the incoming (backward) ray
@@ -419,15 +424,8 @@ def trace_backward_fast(
     ok &= ~tir
     # front sphere (centre zc1), far root from inside
     zc1 = lens.front_vertex_z_mm + r
-    oz = qz - zc1
-    b = tx * qx + ty * qy + tz * oz
-    cc = qx * qx + qy * qy + oz * oz - r * r
-    disc = b * b - cc
-    ok &= disc >= 0.0
-    s = -b + np.sqrt(np.maximum(disc, 0.0))
-    ex = qx + s * tx
-    ey = qy + s * ty
-    ez = qz + s * tz
+    ex, ey, ez, hit = _sphere_exit(qx, qy, qz, tx, ty, tz, zc1, r)
+    ok &= hit
     ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
     ux, uy, uz, tir = _refract_xyz(tx, ty, tz, -ex / r, -ey / r, -(ez - zc1) / r, n_glass)
     ok &= ~tir & (uz < 0.0)
