@@ -49,7 +49,7 @@ from lfcam.models import auto
 from lfcam.models.base import Status
 from lfcam.optics.trace import forward
 
-MODELS = ("auto", "exact", "offaxis", "onaxis", "thin")
+MODELS = ("auto", "exact", "offaxis", "onaxis", "thin", "refocus")
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
@@ -218,6 +218,53 @@ def measure_line(profile, geom: Geometry, image, region: Region, box, near) -> M
     return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
                        lf.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
                        misfit=lf.misfit, endpoints=tuple(ends))
+
+
+def measure_refocus(profile, geom: Geometry, image, region: Region) -> tuple[float, float, str]:
+    """Hahne et al.'s depth from refocus (the seed's baseline [14]): (distance, σ, status).
+
+    Shift-and-sum maps a sample of lenslet ``j`` (lattice units) at angular offset ``u`` (pixels
+    from its micro-image centre) to ``j + a·u``; the refocused spot is sharpest where its
+    spatial spread is least, i.e. where ``u`` is linear in ``j`` with slope ``−1/a``; the
+    continuous sweep's optimum is the regression ``a* = −Var(j)/Cov(j, u)`` (both axes pooled,
+    intensity-weighted),
+    and Hahne's model maps ``a*`` to a distance (``lfcam.models.hahne``).
+    """
+    from lfcam.models import hahne
+
+    x0, y0, x1, y1 = region.box_px
+    labels = geom.lmap.labels[y0:y1, x0:x1]
+    mask = np.isin(labels, region.lenslets)
+    w = np.clip(image[y0:y1, x0:x1][mask], 0.0, None)
+    if w.sum() <= 0:
+        return float("nan"), float("nan"), "near-focus"
+    ys, xs = np.nonzero(mask)
+    k = labels[mask]
+    centre = geom.lmap.centres_px[k]
+    u = np.column_stack([xs + x0 - centre[:, 0], ys + y0 - centre[:, 1]])
+    j = centre / geom.pitch_px  # lenslet positions in lattice units
+    wn = w / w.sum()
+    jm, um = wn @ j, wn @ u
+    cov = float((wn * ((j - jm) * (u - um)).sum(axis=1)).sum())
+    var_j = float((wn * ((j - jm) ** 2).sum(axis=1)).sum())
+    if cov == 0.0 or var_j <= 0:
+        return float("nan"), float("nan"), "near-focus"
+    # regress u on j, not j on u: a sample's true crossing differs from its lenslet centre by
+    # up to half a pitch, an error correlated with u (which is set by the crossing) but not
+    # with j — the j-on-u regression would be diluted toward zero shift
+    a_star = -var_j / cov
+    params = hahne.parameters_for(profile, geom.d_in_mm)
+    offset = hahne.mla_to_front_vertex_mm(profile, geom.d_in_mm)
+    d = float(hahne.refocus_distance(params, a_star).distance_mm) - offset
+    # σ of a* from the weighted regression's residual, mapped through the model
+    resid = (u - um) + (j - jm) / a_star
+    n_eff = 1.0 / float((wn * wn).sum())
+    slope_sigma = float(np.sqrt((wn * (resid**2).sum(axis=1)).sum() / max(n_eff - 1, 1) / var_j))
+    sigma_a = a_star * a_star * slope_sigma  # a = −1/slope
+    d2 = float(hahne.refocus_distance(params, a_star + 1e-3).distance_mm) - offset
+    sigma_d = abs(d2 - d) / 1e-3 * sigma_a
+    status = "ok" if np.isfinite(d) and d > 0 else "out-of-domain"
+    return d, sigma_d, status
 
 
 def _neighbours(geom: Geometry, region: Region) -> np.ndarray:
@@ -404,7 +451,10 @@ def run_distance(
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     for i, reg in enumerate(regions):
         nan = float("nan")
-        if reg.kind in ("spot", "line"):
+        if reg.kind in ("spot", "line") and model == "refocus":
+            d, sig, status = measure_refocus(profile, geom, img, reg)
+            name, off, diameter, kind = "refocus", float("nan"), float("nan"), reg.kind
+        elif reg.kind in ("spot", "line"):
             if method == "lightfield":
                 meas = measure_lightfield(profile, geom, img, reg, noise, fast)
             else:

@@ -102,3 +102,15 @@ def test_profile_size_mismatch_is_reported():
 
     with pytest.raises(InputFileError, match="describes a 1024"):
         run_distance(np.zeros((1536, 1536)), prof, cal)
+
+
+def test_refocus_baseline_near_and_its_f2_limit():
+    """Hahne's depth from refocus (the seed's [14]): a few % close in, as the paper reports
+    for [14]; far out, F/2 aberration moves the sharpest plane beyond Hahne's paraxial range
+    and the region is flagged rather than given a wrong distance."""
+    run, truth = _run("system2", 450, 0, model="refocus")
+    r = run.regions[0]
+    assert r.model == "refocus" and r.status == "ok"
+    assert abs(r.distance_mm - 450.0) <= 0.06 * 450.0
+    far, _ = _run("system2", 3500, 0, model="refocus")
+    assert far.regions[0].status != "ok" and np.isnan(far.regions[0].distance_mm)

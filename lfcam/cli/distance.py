@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calibration", required=True, help="calibration JSON (lfcam calibrate)")
     p.add_argument("--profile", help="camera profile (default: CAPTURE's .profile.toml sidecar)")
     p.add_argument("--model", default="auto",
-                   choices=("auto", "exact", "offaxis", "onaxis", "thin"))
+                   choices=("auto", "exact", "offaxis", "onaxis", "thin", "refocus"),
+                   help="refocus = Hahne et al.'s depth from refocus (the seed's baseline)")
     p.add_argument("--method", default="lightfield", choices=("lightfield", "diameter"),
                    help="blur measurement: exact light-field fit, or the seed's diameter")
     p.add_argument("--tolerance", type=float, metavar="PCT",
