@@ -466,6 +466,10 @@ def run_distance(
             name, d, off, sig, diameter = model, nan, nan, nan, nan
             status = f"unsupported-{reg.kind}"
             kind = reg.kind
+        if status != "ok" or not np.isfinite(d):
+            # no estimate: no numbers (CONTRACT §3), whatever the model computed on the way
+            status = status if status != "ok" else "out-of-domain"
+            d = off = sig = float("nan")
         results.append(RegionResult(
             region_id=reg.region_id, x_px=reg.centroid_px[0], y_px=reg.centroid_px[1],
             kind=kind, model=name, distance_mm=d, offset_mm=off, diameter_mm=diameter,
