@@ -14,6 +14,7 @@ from typing import Any
 
 from lfcam.camera import BAYER_PATTERNS
 from lfcam.errors import SceneError
+from lfcam.validate import Fields
 
 MAX_RAYS = 500_000_000  # per source; bounds the work an untrusted scene can ask for
 MAX_SAMPLES = 4096
@@ -106,38 +107,11 @@ class Scene:
     output_format: str | None = None
 
 
-def _num(key: str, value: Any, positive: bool = False, nonneg: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneError(f"{key}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise SceneError(f"{key}: must be finite, got {value!r}")
-    if positive and v <= 0:
-        raise SceneError(f"{key}: must be positive, got {value!r}")
-    if nonneg and v < 0:
-        raise SceneError(f"{key}: must not be negative, got {value!r}")
-    return v
-
-
-def _int(key: str, value: Any, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise SceneError(f"{key}: expected an integer, got {value!r}")
-    if not lo <= value <= hi:
-        raise SceneError(f"{key}: must be in [{lo}, {hi}], got {value}")
-    return int(value)
-
-
-def _pair(key: str, value: Any) -> tuple[float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise SceneError(f"{key}: expected [x, y], got {value!r}")
-    return (_num(f"{key}[0]", value[0]), _num(f"{key}[1]", value[1]))
-
-
-def _keys(obj: dict, where: str, allowed: set[str]) -> None:
-    extra = sorted(set(obj) - allowed)
-    if extra:
-        names = ", ".join(sorted(allowed))
-        raise SceneError(f"{where}: unknown key {extra[0]!r} (allowed: {names})")
+_FIELDS = Fields(SceneError)
+_num = _FIELDS.number
+_int = _FIELDS.integer
+_pair = _FIELDS.pair
+_keys = _FIELDS.known_keys
 
 
 def _lateral(obj: dict, where: str) -> tuple[float, float]:
