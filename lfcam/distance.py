@@ -290,7 +290,6 @@ def measure_diameter(profile, geom: Geometry, image, stats, region: Region,
     c = geom.lens_centres_mm[region.lenslets]
     centre = (c * e[:, None]).sum(0) / e.sum()
     radial = float(np.hypot(*centre))
-    meridian = centre / radial if radial > 0 else np.array([0.0, 1.0])
     # sign from the slope field of the spots: converging bundle (dσ/ds < 0) → y1 > y2
     x0, y0, x1, y1_ = region.box_px
     sub = image[y0:y1_, x0:x1]
@@ -316,7 +315,6 @@ def measure_diameter(profile, geom: Geometry, image, stats, region: Region,
     sign = -1.0 if divergence > 0 else 1.0
     y1 = radial + sign * 0.5 * diameter
     y2 = radial - sign * 0.5 * diameter
-    del meridian
     return Measurement(y1, y2, DIAMETER_SIGMA_PITCH * pitch, nan, nan, nan, "ok",
                        geom.d_in_mm - fx)
 

@@ -43,11 +43,6 @@ class PointFit:
     ok: bool
     reason: str = ""
 
-    @property
-    def distance_mm(self) -> float:
-        """Source plane → front vertex (CONTRACT §1) — needs the lens; see :func:`to_distance`."""
-        raise AttributeError("use to_distance(profile, fit)")
-
 
 def to_distance(profile: CameraProfile, fit: PointFit) -> tuple[float, float, float]:
     """(distance_mm, offset_mm, sigma_distance_mm) of a fit."""
