@@ -1,0 +1,605 @@
+"""Microlens centres from a white image, and the global lattice model.
+
+Pipeline (every step vectorised over all lenses; no Python loop per lens):
+
+1. **Period** — strongest non-DC peak of the power spectrum of a central crop.
+2. **Candidates** — Gaussian smoothing (σ = period/4) and a maximum filter of radius
+   0.45·period; a candidate is a local maximum brighter than 10 % of the bright level.
+3. **Rough lattice** — nearest-neighbour vectors of the candidates; the 4-fold vs 6-fold
+   orientation order decides rect vs hex and gives the rotation; the median neighbour
+   distance gives the pitch.
+4. **Centroids** — each centre is the fixed point of an intensity centroid inside a window
+   centred on it: an axis-aligned rectangle with a one-pixel linear edge, half-widths
+   (p/2, p/2) for rect and a brick (p/2, √3p/4) for hex — a fundamental domain of the lattice,
+   so it holds one whole micro-image and none of its neighbours' light. The window is
+   separable, so each iteration is two small matrix products per lens. A point-symmetric
+   window makes the fixed point the true intensity centroid of any micro-image that fits
+   inside it, whatever the brightness gradient.
+5. **Indices** — lattice indices (i, j) by rounding in the rough basis, re-fitted on a disc
+   of lenses that doubles in radius, so mild distortion never skips a row.
+6. **Models** — least squares, robustly reweighted: similarity (pitch, rotation, offset) for
+   both rect and hex (the grid with the lower residual wins), then affine and projective;
+   a richer model is kept only when an F-test says it is significant (p < 1e-3) *and* it
+   moves some lens prediction by more than 0.01 px.
+7. **Rejections** — clipped by the image edge, dim (flux under 70 % of the local median of its
+   lattice neighbours: partial or shadowed), window not converged, duplicate index,
+   grid outlier (residual above max(0.25 px, 6 robust sigmas)). Rejected lenses are
+   reported with their reason, never silently dropped, and no lens is ever added from
+   the model: every returned centre is a measured micro-image.
+
+The returned centre is the **intensity centroid** of each micro-image (FIELD-NOTES item 2).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy import stats
+from scipy.spatial import cKDTree
+
+from lfcam.calibrate.synthetic import lattice_basis, rotation_matrix
+from lfcam.errors import CalibrationError
+
+MIN_PERIOD_PX = 3.0
+MAX_PERIOD_PX = 120.0
+CHUNK_LENSES = 16384
+REJECT_REASONS = ("edge", "dim", "unconverged", "duplicate", "outlier")
+
+Progress = Callable[[str, float], None]
+
+
+def _noop(stage: str, frac: float) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class GridFit:
+    """Result of :func:`find_centres`.
+
+    Attributes
+    ----------
+    grid : str
+        ``"rect"`` or ``"hex"``.
+    pitch_px, rotation_rad : float
+        From the similarity fit: lens centre ≈ offset + pitch·R(rotation)·B·(i, j).
+    offset_px : (2,) array
+        Similarity-model position of index (0, 0) (the lens nearest the image centre).
+    model : str
+        Model used for residuals: ``"similarity"``, ``"affine"`` or ``"projective"``.
+    matrix : (3, 3) array
+        Homography of the chosen model: (x, y, 1) ∝ matrix @ (i, j, 1).
+    centres_px : (N, 2) array
+        Accepted measured centres (x, y).
+    indices : (N, 2) int array
+        Their lattice indices.
+    flux : (N,) array
+        Windowed flux of each accepted lens (relative brightness).
+    residual_rms_px : float
+        RMS of |centre − model(index)| over accepted lenses.
+    rejected_px : (M, 2) array
+        Positions of rejected candidates.
+    rejected_reason : tuple of str
+        One reason per rejected candidate (see ``REJECT_REASONS``).
+    diagnostics : dict
+        Model-selection statistics and counts.
+    """
+
+    grid: str
+    pitch_px: float
+    rotation_rad: float
+    offset_px: np.ndarray
+    model: str
+    matrix: np.ndarray
+    centres_px: np.ndarray
+    indices: np.ndarray
+    flux: np.ndarray
+    residual_rms_px: float
+    rejected_px: np.ndarray
+    rejected_reason: tuple[str, ...]
+    diagnostics: dict = field(default_factory=dict)
+
+    def predict(self, indices: np.ndarray) -> np.ndarray:
+        """Model position (x, y) of lattice ``indices`` (N×2)."""
+        return apply_homography(self.matrix, indices)
+
+    @property
+    def residuals_px(self) -> np.ndarray:
+        """Per-lens residual vectors, measured centre − model."""
+        return self.centres_px - self.predict(self.indices)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def apply_homography(h: np.ndarray, ij: np.ndarray) -> np.ndarray:
+    """Map lattice indices through a 3×3 homography."""
+    ij = np.asarray(ij, dtype=np.float64).reshape(-1, 2)
+    q = ij @ h[:, :2].T + h[:, 2]
+    return q[:, :2] / q[:, 2:3]
+
+
+def estimate_period(image: np.ndarray, crop: int = 1024) -> float:
+    """Dominant spatial period (px) of the micro-image pattern from the power spectrum.
+
+    For a rect lattice this is the pitch; for hex it is the row spacing, pitch·√3/2.
+    """
+    h, w = image.shape
+    n = min(crop, h, w)
+    n -= n % 2
+    y0, x0 = (h - n) // 2, (w - n) // 2
+    patch = image[y0:y0 + n, x0:x0 + n].astype(np.float64)
+    patch = patch - patch.mean()
+    win = np.hanning(n)
+    spec = np.abs(np.fft.rfft2(patch * win[:, None] * win[None, :])) ** 2
+    fy = np.fft.fftfreq(n)[:, None]
+    fx = np.fft.rfftfreq(n)[None, :]
+    k = np.hypot(fx, fy)
+    valid = (k > 1.0 / MAX_PERIOD_PX) & (k < 1.0 / MIN_PERIOD_PX) & (k > 2.5 / n)
+    if not valid.any():
+        raise CalibrationError(f"white image too small ({h}×{w}) to find a lens period")
+    spec = np.where(valid, spec, 0.0)
+    iy, ix = np.unravel_index(int(np.argmax(spec)), spec.shape)
+    peak = spec[iy, ix]
+    if peak <= 0.0 or peak < 20.0 * float(np.median(spec[valid])):
+        raise CalibrationError("no periodic microlens pattern found in the white image")
+    return float(1.0 / k[iy, ix])
+
+
+def find_candidates(image: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer local maxima of the smoothed image (x, y) and the smoothed value there."""
+    sigma = 0.25 * period
+    smooth = cv2.GaussianBlur(image, (0, 0), sigmaX=sigma, sigmaY=sigma,
+                              borderType=cv2.BORDER_REFLECT)
+    rad = max(1, int(round(0.45 * period)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    dil = cv2.dilate(smooth, kernel, borderType=cv2.BORDER_REFLECT)
+    level = float(np.percentile(smooth[::3, ::3], 99.5))
+    if level <= 0.0:
+        raise CalibrationError("white image is dark")
+    peaks = (smooth >= dil) & (smooth > 0.1 * level)
+    ys, xs = np.nonzero(peaks)
+    pts = np.stack([xs, ys], axis=1)
+    vals = smooth[ys, xs]
+    if len(pts) > 1:  # plateaus: keep one maximum per 0.5·period cluster (the first)
+        tree = cKDTree(pts)
+        pairs = tree.query_pairs(0.5 * period, output_type="ndarray")
+        if len(pairs):
+            drop = np.zeros(len(pts), bool)
+            drop[np.maximum(pairs[:, 0], pairs[:, 1])] = True
+            pts, vals = pts[~drop], vals[~drop]
+    return pts.astype(np.float64), vals
+
+
+def rough_lattice(points: np.ndarray) -> tuple[str, float, float, float]:
+    """Grid kind, pitch, rotation and orientation order from nearest-neighbour vectors.
+
+    Returns
+    -------
+    grid, pitch_px, rotation_rad, order_strength
+    """
+    if len(points) < 5:
+        raise CalibrationError(f"only {len(points)} micro-images found: not a white image?")
+    tree = cKDTree(points)
+    k = min(7, len(points))
+    dist, idx = tree.query(points, k=k)
+    nn = float(np.median(dist[:, 1]))
+    vec = points[idx[:, 1:]] - points[:, None, :]
+    d = dist[:, 1:]
+    keep = (d > 0.75 * nn) & (d < 1.25 * nn)
+    v = vec[keep]
+    phi = np.arctan2(v[:, 1], v[:, 0])
+    r4 = np.mean(np.exp(4j * phi))
+    r6 = np.mean(np.exp(6j * phi))
+    if abs(r6) > abs(r4):
+        grid, order, strength = "hex", 6, abs(r6)
+        rot = np.angle(r6) / 6.0
+    else:
+        grid, order, strength = "rect", 4, abs(r4)
+        rot = np.angle(r4) / 4.0
+    if strength < 0.5:
+        raise CalibrationError(
+            f"micro-image positions do not form a regular grid (orientation order {strength:.2f})"
+        )
+    pitch = float(np.median(d[keep]))
+    return grid, pitch, float(rot), float(strength)
+
+
+def window_half_widths(grid: str, pitch: float, rotation: float) -> tuple[float, float]:
+    """Half-widths (x, y) of the separable centroid window for this lattice."""
+    if grid == "rect":
+        return 0.5 * pitch, 0.5 * pitch
+    # brick: p/2 along the rows, √3p/4 across them; rows ≈ vertical when rotation ≈ ±30°
+    if abs(abs(rotation) - np.pi / 6) < abs(rotation):
+        return np.sqrt(3.0) * pitch / 4.0, 0.5 * pitch
+    return 0.5 * pitch, np.sqrt(3.0) * pitch / 4.0
+
+
+def refine_centroids(
+    image: np.ndarray,
+    start: np.ndarray,
+    half_x: float,
+    half_y: float,
+    iterations: int = 12,
+    tol: float = 1e-4,
+    progress: Progress = _noop,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fixed-point intensity centroids inside a separable soft-edged rectangle.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+    start : (N, 2) float
+        Initial (x, y).
+    half_x, half_y : float
+        Window half-widths; pixel weights ramp linearly from 1 to 0 across one pixel at
+        the window edge (the pixel-area coverage of a moving edge).
+
+    Returns
+    -------
+    centres : (N, 2)
+    flux : (N,)
+        Window-weighted intensity sum (background-subtracted).
+    converged : (N,) bool
+        False where the window left the gathered patch or the iteration did not settle.
+    """
+    h, w = image.shape
+    margin = 3
+    rx = int(np.ceil(half_x)) + margin
+    ry = int(np.ceil(half_y)) + margin
+    pad = max(rx, ry)
+    padded = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), pad, pad, pad, pad,
+                                cv2.BORDER_CONSTANT, value=0.0)
+    view = np.lib.stride_tricks.sliding_window_view(padded, (2 * ry + 1, 2 * rx + 1))
+    ox = np.arange(-rx, rx + 1, dtype=np.float32)
+    oy = np.arange(-ry, ry + 1, dtype=np.float32)
+    n = len(start)
+    centres = np.array(start, dtype=np.float64)
+    flux = np.zeros(n)
+    converged = np.ones(n, bool)
+    for s in range(0, n, CHUNK_LENSES):
+        e = min(n, s + CHUNK_LENSES)
+        c = centres[s:e]
+        base = np.round(c).astype(np.int64)
+        bx = np.clip(base[:, 0], 0, w - 1)
+        by = np.clip(base[:, 1], 0, h - 1)
+        patches = view[by - ry + pad, bx - rx + pad]  # (n, 2ry+1, 2rx+1) copy
+        # background: a low percentile of each patch, so an unsubtracted level only slows
+        # convergence a little instead of biasing anything (the fixed point is unbiased)
+        bg = np.percentile(patches.reshape(len(c), -1), 5, axis=1).astype(np.float32)
+        patches = patches - bg[:, None, None]
+        dxy = (c - base).astype(np.float32)  # centre relative to the patch centre
+        ok = np.ones(len(c), bool)
+        for _ in range(iterations):
+            wx = np.clip(half_x + 0.5 - np.abs(ox[None, :] - dxy[:, :1]), 0.0, 1.0)
+            wy = np.clip(half_y + 0.5 - np.abs(oy[None, :] - dxy[:, 1:2]), 0.0, 1.0)
+            wxs = np.stack([wx, wx * ox[None, :]], axis=2)  # (n, K, 2)
+            rows = np.matmul(patches, wxs)  # (n, Ky, 2): Σx w I, Σx w I x
+            s0 = np.einsum("nk,nk->n", rows[:, :, 0], wy)
+            sx = np.einsum("nk,nk->n", rows[:, :, 1], wy)
+            sy = np.einsum("nk,nk->n", rows[:, :, 0], wy * oy[None, :])
+            good = s0 > 0
+            with np.errstate(invalid="ignore", divide="ignore"):
+                new = np.stack([sx / s0, sy / s0], axis=1)
+            new[~good] = dxy[~good]
+            step = np.abs(new - dxy).max(axis=1)
+            dxy = new.astype(np.float32)
+            ok &= good
+            if step.max() < tol:
+                break
+        inside = (np.abs(dxy[:, 0]) < margin - 1) & (np.abs(dxy[:, 1]) < margin - 1)
+        converged[s:e] = ok & inside & (step < 1e-2)
+        centres[s:e] = base + dxy.astype(np.float64)
+        flux[s:e] = s0
+        progress("centroids", e / n)
+    return centres, flux, converged
+
+
+def assign_indices(
+    points: np.ndarray, basis: np.ndarray, origin: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice indices by rounding, refitting an affine lattice on a growing disc.
+
+    Returns
+    -------
+    indices : (N, 2) int
+    matrix : (2, 3) affine [A | o] of the last fit
+    """
+    a = np.array(basis, dtype=np.float64)
+    o = np.array(origin, dtype=np.float64)
+    pitch = float(np.sqrt(abs(np.linalg.det(a))))
+    r = np.hypot(*(points - o).T)
+    radius = 8.0 * pitch
+    r_max = float(r.max())
+    while True:
+        sel = r <= radius
+        f = (points[sel] - o) @ np.linalg.inv(a).T
+        idx = np.round(f)
+        good = (np.abs(f - idx) < 0.3).all(axis=1)
+        if good.sum() >= 6:
+            design = np.column_stack([idx[good], np.ones(good.sum())])
+            sol, *_ = np.linalg.lstsq(design, points[sel][good], rcond=None)
+            a, o = sol[:2].T, sol[2]
+        if radius >= r_max:
+            break
+        radius = min(2.0 * radius, r_max)
+    f = (points - o) @ np.linalg.inv(a).T
+    return np.round(f).astype(np.int64), np.column_stack([a, o])
+
+
+def _robust_weights(res: np.ndarray) -> np.ndarray:
+    """Tukey-biweight weights from residual magnitudes (scale from the MAD)."""
+    mag = np.hypot(res[:, 0], res[:, 1])
+    scale = 1.4826 * float(np.median(mag)) + 1e-9
+    u = mag / (4.685 * scale)
+    return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
+def fit_similarity(
+    idx: np.ndarray, pts: np.ndarray, grid: str, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """Least-squares pitch·R(θ)·B lattice. Returns (homography, pitch, rotation, weights)."""
+    u = idx.astype(np.float64) @ lattice_basis(grid).T
+    n = len(u)
+    wts = np.ones(n) if weights is None else weights
+    for _ in range(4):
+        # unknowns (ox, oy, a, b) with a = p cos θ, b = p sin θ
+        rows = np.zeros((2 * n, 4))
+        rows[:n, 0] = 1.0
+        rows[:n, 2] = u[:, 0]
+        rows[:n, 3] = -u[:, 1]
+        rows[n:, 1] = 1.0
+        rows[n:, 2] = u[:, 1]
+        rows[n:, 3] = u[:, 0]
+        rhs = np.concatenate([pts[:, 0], pts[:, 1]])
+        sw = np.sqrt(np.concatenate([wts, wts]))
+        sol, *_ = np.linalg.lstsq(rows * sw[:, None], rhs * sw, rcond=None)
+        pred = (rows @ sol).reshape(2, n).T
+        wts = _robust_weights(pts - pred)
+    ox, oy, ca, sb = sol
+    pitch = float(np.hypot(ca, sb))
+    rot = float(np.arctan2(sb, ca))
+    a = pitch * rotation_matrix(rot) @ lattice_basis(grid)
+    hmat = np.array([[a[0, 0], a[0, 1], ox], [a[1, 0], a[1, 1], oy], [0.0, 0.0, 1.0]])
+    return hmat, pitch, rot, wts
+
+
+def fit_affine(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust affine lattice fit. Returns (homography, weights)."""
+    design = np.column_stack([idx.astype(np.float64), np.ones(len(idx))])
+    wts = weights
+    for _ in range(3):
+        sw = np.sqrt(wts)[:, None]
+        sol, *_ = np.linalg.lstsq(design * sw, pts * sw, rcond=None)
+        wts = _robust_weights(pts - design @ sol)
+    hmat = np.vstack([sol.T, [0.0, 0.0, 1.0]])
+    return hmat, wts
+
+
+def fit_projective(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray,
+                   start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust projective lattice fit (Gauss–Newton on reprojection error from ``start``)."""
+    hmat = start / start[2, 2]
+    ij = idx.astype(np.float64)
+    wts = weights
+    for _ in range(6):
+        p = hmat.ravel()[:8]
+        q = ij @ hmat[:, :2].T + hmat[:, 2]
+        x, y, z = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2], q[:, 2]
+        one = np.ones(len(ij))
+        zero = np.zeros(len(ij))
+        i, j = ij[:, 0], ij[:, 1]
+        jx = np.column_stack([i / z, j / z, one / z, zero, zero, zero, -x * i / z, -x * j / z])
+        jy = np.column_stack([zero, zero, zero, i / z, j / z, one / z, -y * i / z, -y * j / z])
+        jac = np.vstack([jx, jy])
+        res = np.concatenate([pts[:, 0] - x, pts[:, 1] - y])
+        sw = np.sqrt(np.concatenate([wts, wts]))
+        dp, *_ = np.linalg.lstsq(jac * sw[:, None], res * sw, rcond=None)
+        p = p + dp
+        hmat = np.append(p, 1.0).reshape(3, 3)
+        wts = _robust_weights(pts - apply_homography(hmat, ij))
+    return hmat, wts
+
+
+def _rss(hmat: np.ndarray, idx: np.ndarray, pts: np.ndarray, wts: np.ndarray) -> float:
+    res = pts - apply_homography(hmat, idx)
+    return float(np.sum(wts[:, None] * res * res))
+
+
+def _richer_warranted(
+    rss_a: float, rss_b: float, k_a: int, k_b: int, n_eff: float, shift_px: float
+) -> tuple[bool, float]:
+    """F-test of a richer nested model; also requires a practical effect (> 0.01 px)."""
+    dof = 2.0 * n_eff - k_b
+    if dof <= 0 or rss_b <= 0.0:
+        return False, 1.0
+    f = ((rss_a - rss_b) / (k_b - k_a)) / (rss_b / dof)
+    pval = float(stats.f.sf(max(f, 0.0), k_b - k_a, dof))
+    return bool(pval < 1e-3 and shift_px > 0.01), pval
+
+
+def find_centres(
+    image: np.ndarray,
+    pitch_hint_px: float | None = None,
+    progress: Progress = _noop,
+) -> GridFit:
+    """Detect, refine and fit every fully visible micro-image of a prepared white image.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+        Output of :func:`lfcam.calibrate.image.prepare_white`.
+    pitch_hint_px : float, optional
+        Expected pitch; only checked against the measured one (a factor-1.5 disagreement
+        raises, it usually means the wrong profile).
+    progress : callable(stage, fraction)
+
+    Returns
+    -------
+    GridFit
+
+    Raises
+    ------
+    CalibrationError
+        No periodic pattern, too few micro-images, or an irregular grid.
+    """
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    h, w = img.shape
+    progress("period", 0.0)
+    period = estimate_period(img)
+    progress("candidates", 0.0)
+    cand, _ = find_candidates(img, period)
+    grid, pitch, rot, order = rough_lattice(cand)
+    if pitch_hint_px is not None and not (pitch_hint_px / 1.5 < pitch < pitch_hint_px * 1.5):
+        raise CalibrationError(
+            f"measured lens pitch {pitch:.2f} px is far from the profile's {pitch_hint_px:.2f} px"
+        )
+    hx, hy = window_half_widths(grid, pitch, rot)
+    centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
+
+    reason = np.full(len(centres), "", dtype=object)
+    # fully visible = the whole window (the lens's cell, edge ramp included) is on the sensor
+    at_edge = (
+        (centres[:, 0] - hx < 0.0) | (centres[:, 0] + hx > w - 1.0)
+        | (centres[:, 1] - hy < 0.0) | (centres[:, 1] + hy > h - 1.0)
+    )
+    reason[at_edge] = "edge"
+    reason[(reason == "") & ~conv] = "unconverged"
+
+    # lattice indices around the usable lens nearest the image centre
+    usable = reason == ""
+    if usable.sum() < 5:
+        raise CalibrationError(f"only {int(usable.sum())} fully visible micro-images found")
+    pts_u = centres[usable]
+    mid = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+    origin = pts_u[np.argmin(np.hypot(*(pts_u - mid).T))]
+    basis = pitch * rotation_matrix(rot) @ lattice_basis(grid)
+    idx_all = np.zeros((len(centres), 2), np.int64)
+    idx_u, _ = assign_indices(pts_u, basis, origin)
+    idx_all[usable] = idx_u
+
+    # duplicates: same index twice → keep the one nearest the affine prediction
+    _dedupe(idx_all, centres, usable, reason)
+    # dim lenses: flux far below the local median of lattice neighbours
+    _mark_dim(idx_all, flux, reason)
+
+    progress("fit", 0.0)
+    diag: dict = {"period_px": period, "orientation_order": order, "n_candidates": len(cand)}
+    for _ in range(2):  # refit after outlier rejection
+        keep = reason == ""
+        idx_k, pts_k = idx_all[keep], centres[keep]
+        fits = {}
+        for g in ("rect", "hex"):
+            fits[g] = fit_similarity(idx_k if g == grid else _reindex(idx_k, grid, g), pts_k, g)
+        rms = {}
+        for g, (hm, _p, _r, wt) in fits.items():
+            ii = idx_k if g == grid else _reindex(idx_k, grid, g)
+            res = pts_k - apply_homography(hm, ii)
+            rms[g] = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
+        best = min(rms, key=rms.get)
+        if best != grid:
+            idx_all = _reindex(idx_all, grid, best)
+            idx_k = idx_all[keep]
+            grid = best
+        h_sim, pitch, rot, w_sim = fits[grid]
+        h_aff, w_aff = fit_affine(idx_k, pts_k, w_sim)
+        h_prj, w_prj = fit_projective(idx_k, pts_k, w_aff, h_aff)
+        n_eff = float(np.sum(w_prj))
+        rss_s = _rss(h_sim, idx_k, pts_k, w_prj)
+        rss_a = _rss(h_aff, idx_k, pts_k, w_prj)
+        rss_p = _rss(h_prj, idx_k, pts_k, w_prj)
+        pred_s = apply_homography(h_sim, idx_k)
+        pred_a = apply_homography(h_aff, idx_k)
+        pred_p = apply_homography(h_prj, idx_k)
+        shift_a = float(np.abs(pred_a - pred_s).max())
+        shift_p = float(np.abs(pred_p - pred_a).max())
+        use_a, p_a = _richer_warranted(rss_s, rss_a, 4, 6, n_eff, shift_a)
+        use_p, p_p = _richer_warranted(rss_a, rss_p, 6, 8, n_eff, shift_p)
+        if use_a and use_p:
+            model, hmat = "projective", h_prj
+        elif use_a:
+            model, hmat = "affine", h_aff
+        else:
+            model, hmat = "similarity", h_sim
+        res_all = centres - apply_homography(hmat, idx_all)
+        mag = np.hypot(res_all[:, 0], res_all[:, 1])
+        sigma = 1.4826 * float(np.median(mag[keep]))
+        outlier = (reason == "") & (mag > max(0.25, 6.0 * sigma))
+        reason[outlier] = "outlier"
+        if not outlier.any():
+            break
+    diag.update({
+        "similarity_rms_rect_px": rms["rect"], "similarity_rms_hex_px": rms["hex"],
+        "affine_p_value": p_a, "projective_p_value": p_p,
+        "affine_max_shift_px": shift_a, "projective_max_shift_px": shift_p,
+    })
+    keep = reason == ""
+    res = centres[keep] - apply_homography(hmat, idx_all[keep])
+    rms_px = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
+    rej = ~keep
+    progress("fit", 1.0)
+    return GridFit(
+        grid=grid,
+        pitch_px=pitch,
+        rotation_rad=rot,
+        offset_px=h_sim[:2, 2].copy(),
+        model=model,
+        matrix=hmat,
+        centres_px=centres[keep],
+        indices=idx_all[keep],
+        flux=flux[keep],
+        residual_rms_px=rms_px,
+        rejected_px=centres[rej],
+        rejected_reason=tuple(str(r) for r in reason[rej]),
+        diagnostics=diag,
+    )
+
+
+def _reindex(idx: np.ndarray, src: str, dst: str) -> np.ndarray:
+    """Re-express indices of one lattice basis in the other (rounded, for the grid test)."""
+    if src == dst:
+        return idx
+    m = np.linalg.inv(lattice_basis(dst)) @ lattice_basis(src)
+    return np.round(idx.astype(np.float64) @ m.T).astype(np.int64)
+
+
+def _dedupe(idx: np.ndarray, centres: np.ndarray, usable: np.ndarray, reason: np.ndarray) -> None:
+    sel = np.flatnonzero(usable)
+    if len(sel) < 2:
+        return
+    key = idx[sel]
+    design = np.column_stack([key.astype(np.float64), np.ones(len(sel))])
+    sol, *_ = np.linalg.lstsq(design, centres[sel], rcond=None)
+    err = np.hypot(*(centres[sel] - design @ sol).T)
+    order = np.lexsort((err, key[:, 1], key[:, 0]))
+    k_sorted = key[order]
+    same = np.zeros(len(sel), bool)
+    same[1:] = (k_sorted[1:] == k_sorted[:-1]).all(axis=1)
+    reason[sel[order[same]]] = "duplicate"
+
+
+def _mark_dim(idx: np.ndarray, flux: np.ndarray, reason: np.ndarray, frac: float = 0.7) -> None:
+    sel = np.flatnonzero(reason == "")
+    if len(sel) == 0:
+        return
+    key = idx[sel]
+    lo = key.min(axis=0)
+    shape = tuple(key.max(axis=0) - lo + 1 + 4)
+    table = np.full(shape, np.nan)
+    table[key[:, 0] - lo[0] + 2, key[:, 1] - lo[1] + 2] = flux[sel]
+    win = np.lib.stride_tricks.sliding_window_view(np.pad(table, 2, constant_values=np.nan),
+                                                   (5, 5))
+    local = win[key[:, 0] - lo[0] + 2, key[:, 1] - lo[1] + 2].reshape(len(sel), -1)
+    count = np.sum(np.isfinite(local), axis=1)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(local, axis=1)
+    glob = float(np.median(flux[sel]))
+    ref = np.where(count >= 4, med, glob)
+    dim = flux[sel] < frac * ref
+    reason[sel[dim]] = "dim"
