@@ -184,9 +184,10 @@ def rough_lattice(points: np.ndarray) -> tuple[str, float, float, float]:
         raise CalibrationError(f"only {len(points)} micro-images found: not a white image?")
     tree = cKDTree(points)
     k = min(7, len(points))
-    dist, idx = tree.query(points, k=k)
+    step = max(1, len(points) // 20000)  # a subsample is plenty for the rough lattice
+    dist, idx = tree.query(points[::step], k=k)
     nn = float(np.median(dist[:, 1]))
-    vec = points[idx[:, 1:]] - points[:, None, :]
+    vec = points[idx[:, 1:]] - points[::step, None, :]
     d = dist[:, 1:]
     keep = (d > 0.75 * nn) & (d < 1.25 * nn)
     v = vec[keep]
@@ -194,10 +195,10 @@ def rough_lattice(points: np.ndarray) -> tuple[str, float, float, float]:
     r4 = np.mean(np.exp(4j * phi))
     r6 = np.mean(np.exp(6j * phi))
     if abs(r6) > abs(r4):
-        grid, order, strength = "hex", 6, abs(r6)
+        grid, strength = "hex", abs(r6)
         rot = np.angle(r6) / 6.0
     else:
-        grid, order, strength = "rect", 4, abs(r4)
+        grid, strength = "rect", abs(r4)
         rot = np.angle(r4) / 4.0
     if strength < 0.5:
         raise CalibrationError(
@@ -266,10 +267,10 @@ def refine_centroids(
         bx = np.clip(base[:, 0], 0, w - 1)
         by = np.clip(base[:, 1], 0, h - 1)
         patches = view[by - ry + pad, bx - rx + pad]  # (n, 2ry+1, 2rx+1) copy
-        # background: a low percentile of each patch, so an unsubtracted level only slows
+        # background: the minimum of each patch, so an unsubtracted level only slows
         # convergence a little instead of biasing anything (the fixed point is unbiased)
-        bg = np.percentile(patches.reshape(len(c), -1), 5, axis=1).astype(np.float32)
-        patches = patches - bg[:, None, None]
+        bg = patches.min(axis=(1, 2))
+        patches -= bg[:, None, None]
         dxy = (c - base).astype(np.float32)  # centre relative to the patch centre
         ok = np.ones(len(c), bool)
         for _ in range(iterations):
@@ -329,6 +330,12 @@ def assign_indices(
     return np.round(f).astype(np.int64), np.column_stack([a, o])
 
 
+def _wlstsq(design: np.ndarray, rhs: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted least squares through the normal equations (few unknowns, many rows)."""
+    dw = design * weights[:, None]
+    return np.linalg.solve(dw.T @ design, dw.T @ rhs)
+
+
 def _robust_weights(res: np.ndarray) -> np.ndarray:
     """Tukey-biweight weights from residual magnitudes (scale from the MAD)."""
     mag = np.hypot(res[:, 0], res[:, 1])
@@ -354,8 +361,7 @@ def fit_similarity(
         rows[n:, 2] = u[:, 1]
         rows[n:, 3] = u[:, 0]
         rhs = np.concatenate([pts[:, 0], pts[:, 1]])
-        sw = np.sqrt(np.concatenate([wts, wts]))
-        sol, *_ = np.linalg.lstsq(rows * sw[:, None], rhs * sw, rcond=None)
+        sol = _wlstsq(rows, rhs, np.concatenate([wts, wts]))
         pred = (rows @ sol).reshape(2, n).T
         wts = _robust_weights(pts - pred)
     ox, oy, ca, sb = sol
@@ -366,13 +372,14 @@ def fit_similarity(
     return hmat, pitch, rot, wts
 
 
-def fit_affine(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fit_affine(
+    idx: np.ndarray, pts: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Robust affine lattice fit. Returns (homography, weights)."""
     design = np.column_stack([idx.astype(np.float64), np.ones(len(idx))])
     wts = weights
     for _ in range(3):
-        sw = np.sqrt(wts)[:, None]
-        sol, *_ = np.linalg.lstsq(design * sw, pts * sw, rcond=None)
+        sol = _wlstsq(design, pts, wts)
         wts = _robust_weights(pts - design @ sol)
     hmat = np.vstack([sol.T, [0.0, 0.0, 1.0]])
     return hmat, wts
@@ -395,8 +402,7 @@ def fit_projective(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray,
         jy = np.column_stack([zero, zero, zero, i / z, j / z, one / z, -y * i / z, -y * j / z])
         jac = np.vstack([jx, jy])
         res = np.concatenate([pts[:, 0] - x, pts[:, 1] - y])
-        sw = np.sqrt(np.concatenate([wts, wts]))
-        dp, *_ = np.linalg.lstsq(jac * sw[:, None], res * sw, rcond=None)
+        dp = _wlstsq(jac, res, np.concatenate([wts, wts]))
         p = p + dp
         hmat = np.append(p, 1.0).reshape(3, 3)
         wts = _robust_weights(pts - apply_homography(hmat, ij))
@@ -494,7 +500,7 @@ def find_centres(
         for g in ("rect", "hex"):
             fits[g] = fit_similarity(idx_k if g == grid else _reindex(idx_k, grid, g), pts_k, g)
         rms = {}
-        for g, (hm, _p, _r, wt) in fits.items():
+        for g, (hm, _p, _r, _w) in fits.items():
             ii = idx_k if g == grid else _reindex(idx_k, grid, g)
             res = pts_k - apply_homography(hm, ii)
             rms[g] = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
@@ -516,8 +522,12 @@ def find_centres(
         shift_a = float(np.abs(pred_a - pred_s).max())
         shift_p = float(np.abs(pred_p - pred_a).max())
         use_a, p_a = _richer_warranted(rss_s, rss_a, 4, 6, n_eff, shift_a)
-        use_p, p_p = _richer_warranted(rss_a, rss_p, 6, 8, n_eff, shift_p)
-        if use_a and use_p:
+        if use_a:
+            use_p, p_p = _richer_warranted(rss_a, rss_p, 6, 8, n_eff, shift_p)
+        else:  # the projective terms may matter even when the affine ones do not
+            shift_p = float(np.abs(pred_p - pred_s).max())
+            use_p, p_p = _richer_warranted(rss_s, rss_p, 4, 8, n_eff, shift_p)
+        if use_p:
             model, hmat = "projective", h_prj
         elif use_a:
             model, hmat = "affine", h_aff

@@ -210,3 +210,49 @@ def make_white(
         offset_px=off,
         grid=grid,
     )
+
+
+def make_reference_capture(
+    profile, d_in_mm: float, distance_mm: float, period_mm: float = 2.0, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Render (white, capture) of a textured plane with pinhole lenslets and the exact trace.
+
+    Every sensor pixel takes the ray through the centre of its lenslet (the lenslet under the
+    nearest micro-image centre) with slope offset/f_x, traced backward through the exact thick
+    main lens to the plane ``distance_mm`` before the front vertex. The white image is 1 where
+    that ray passes the aperture; the capture is a smooth random texture (sum of sinusoids of
+    period about ``period_mm``) on the plane. Rect MLA on the axis, no lenslet blur.
+    """
+    from lfcam.optics.trace import trace_rays
+
+    lens = profile.main_lens
+    sen = profile.sensor
+    fx, p = profile.mla.focal_length_mm, profile.mla.pitch_mm
+    pp = sen.pixel_pitch_mm
+    w, h = sen.width_px, sen.height_px
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    x_mm = (xs - 0.5 * (w - 1)) * pp
+    y_mm = (ys - 0.5 * (h - 1)) * pp
+    scale = 1.0 + fx / (d_in_mm - lens.exit_pupil_z_mm)  # micro-image centre / lenslet centre
+    jx = np.round(x_mm / (p * scale))
+    jy = np.round(y_mm / (p * scale))
+    lx, ly = jx * p, jy * p
+    ux, uy = x_mm - lx, y_mm - ly
+    n = x_mm.size
+    origins = np.column_stack([lx.ravel(), ly.ravel(), np.full(n, -d_in_mm)])
+    dirs = np.column_stack([-ux.ravel() / fx, -uy.ravel() / fx, np.ones(n)])
+    res = trace_rays(lens, origins, dirs, 0.5 * lens.thickness_mm + distance_mm)
+    ok = (res.status == 0).reshape(h, w)
+    px = res.points[:, 0].reshape(h, w)
+    py = res.points[:, 1].reshape(h, w)
+    rng = np.random.default_rng(seed)
+    tex = np.zeros((h, w))
+    for _ in range(6):
+        ang = rng.uniform(0, np.pi)
+        per = period_mm * rng.uniform(0.8, 1.6)
+        ph = rng.uniform(0, 2 * np.pi)
+        with np.errstate(invalid="ignore"):
+            tex += np.cos(2 * np.pi * (np.cos(ang) * px + np.sin(ang) * py) / per + ph)
+    white = ok.astype(np.float32)
+    capture = np.where(ok, 1.0 + 0.15 * tex, 0.0).astype(np.float32)
+    return white, capture

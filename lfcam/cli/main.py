@@ -12,6 +12,7 @@ from lfcam.errors import LfcamError
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
     "lfcam.cli.demo",
+    "lfcam.cli.calibrate",
 ]
 
 
