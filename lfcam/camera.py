@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from lfcam.errors import ProfileError
+from lfcam.validate import Fields
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -231,32 +232,15 @@ class CameraProfile:
 # ----------------------------------------------------------------------------- loading
 
 
+_FIELDS = Fields(ProfileError)
+_number = _FIELDS.number
+_integer = _FIELDS.integer
+_pair = _FIELDS.pair
+_known_keys = _FIELDS.known_keys
+
+
 def _check_positive(key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ProfileError(f"{key}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ProfileError(f"{key}: must be finite, got {value!r}")
-    if v <= 0.0:
-        raise ProfileError(f"{key}: must be positive, got {value!r}")
-    return v
-
-
-def _number(key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ProfileError(f"{key}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ProfileError(f"{key}: must be finite, got {value!r}")
-    return v
-
-
-def _integer(key: str, value: Any, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ProfileError(f"{key}: expected an integer, got {value!r}")
-    if not lo <= value <= hi:
-        raise ProfileError(f"{key}: must be in [{lo}, {hi}], got {value}")
-    return int(value)
+    return _FIELDS.number(key, value, positive=True)
 
 
 def _table(data: dict, key: str) -> dict:
@@ -271,18 +255,6 @@ def _required(table: dict, section: str, key: str) -> Any:
     if key not in table:
         raise ProfileError(f"missing key {section}.{key}")
     return table[key]
-
-
-def _pair(key: str, value: Any) -> tuple[float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ProfileError(f"{key}: expected [x, y], got {value!r}")
-    return (_number(f"{key}[0]", value[0]), _number(f"{key}[1]", value[1]))
-
-
-def _known_keys(table: dict, section: str, allowed: set[str]) -> None:
-    extra = sorted(set(table) - allowed)
-    if extra:
-        raise ProfileError(f"unknown key {section}.{extra[0]} (allowed: {', '.join(sorted(allowed))})")
 
 
 def profile_from_dict(data: dict, source: str = "") -> CameraProfile:

@@ -32,3 +32,49 @@ class FormatError(InputFileError):
 
 class CalibrationError(LfcamError):
     """A calibration could not be computed or a calibration file is invalid."""
+
+
+# ----------------------------------------------------------------------------- loaders (lfcam.io)
+
+
+class UnsupportedFormatError(InputFileError):
+    """The file's content (magic bytes) matches no capture format lfcam reads."""
+
+
+class TruncatedFileError(InputFileError):
+    """The file ends before a header, section or pixel buffer it announces."""
+
+
+class ContainerError(FormatError):
+    """An LFP/LFR container violates its layout (magic, version, lengths, names, padding)."""
+
+
+class ChecksumError(FormatError):
+    """An LFP section's sha1 name does not match the sha1 of its bytes."""
+
+
+class MetadataError(FormatError):
+    """Capture metadata is not UTF-8, not valid JSON, or lacks / mistypes a required key."""
+
+
+class RawDataError(FormatError):
+    """A raw pixel buffer has absurd dimensions or a size that disagrees with its metadata."""
+
+
+class NoRawFrameError(InputFileError):
+    """A well-formed container holds no raw sensor frame (e.g. a processed Lytro picture)."""
+
+
+class WhiteImageNotFoundError(InputFileError):
+    """No white (modulation) image in a calibration folder fits the capture."""
+
+
+# ----------------------------------------------------------------------------- renderer (lfcam.sim)
+
+
+class SceneError(LfcamError):
+    """A simulation scene description is missing a key, has an invalid value or is too large."""
+
+
+class BatchError(LfcamError):
+    """Bad ``lfcam batch`` arguments: input folder, output folder, Dask scheduler."""

@@ -11,7 +11,13 @@ from lfcam.errors import LfcamError
 
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
+    "lfcam.cli.optics",
     "lfcam.cli.demo",
+    "lfcam.cli.info",
+    "lfcam.cli.simulate",
+    "lfcam.cli.decode",
+    "lfcam.cli.distance",
+    "lfcam.cli.batch",
     "lfcam.cli.calibrate",
 ]
 
@@ -42,14 +48,17 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # e.g. `lfcam demo | head`: the reader left, nothing to report
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print(f"lfcam {args.command}: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"lfcam {args.command}: error: {exc.strerror or exc}: {exc.filename or ''}".rstrip(": "),
-              file=sys.stderr)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"lfcam {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 1
 
 

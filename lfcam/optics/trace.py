@@ -272,3 +272,161 @@ def meridional_rim_heights(
     y = qy + uy * ((z_plane_mm - qz) / uz)
     ok = (k2 >= 0.0) & (disc >= 0.0) & (uz > 0.0) & (qy * qy <= lens.edge_radius_mm ** 2)
     return y, ok
+
+
+# ----------------------------------------------------------------------------- fast paths
+# Component-wise (x, y, z arrays instead of (N, 3)) versions for the renderer (lfcam.sim),
+# where tens of millions of rays are traced. They are checked against ``trace_rays`` in the
+# tests; they share the geometry, not the code.
+
+
+class FastTrace(NamedTuple):
+    """Component-wise trace result: positions, unit directions and a pass mask."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    dz: np.ndarray
+    ok: np.ndarray  # bool, True where the ray passed
+
+
+def _refract_xyz(dx, dy, dz, nx, ny, nz, eta):
+    """Vector Snell's law on components; ``n`` faces against ``d``. Returns (t, tir)."""
+    cos_i = -(nx * dx + ny * dy + nz * dz)
+    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+    tir = k < 0.0
+    g = eta * cos_i - np.sqrt(np.maximum(k, 0.0))
+    return eta * dx + g * nx, eta * dy + g * ny, eta * dz + g * nz, tir
+
+
+def _sphere_entry(px, py, pz, dx, dy, dz, zc: float, r: float):
+    """Near intersection of rays ``p + s·d`` entering a sphere (centre (0, 0, zc)) from outside.
+
+    Uses the cancellation-free form ``s = cc/(−b + √disc)``, so sources 10⁶ mm away keep
+    sub-nanometre entry points. Returns ``(x, y, z, hit)``.
+    """
+    oz = pz - zc
+    b = dx * px + dy * py + dz * oz
+    cc = px * px + py * py + oz * oz - r * r
+    disc = b * b - cc
+    hit = (disc >= 0.0) & (b < 0.0)
+    s = cc / (-b + np.sqrt(np.maximum(disc, 0.0)))
+    return px + s * dx, py + s * dy, pz + s * dz, hit
+
+
+def _sphere_exit(px, py, pz, dx, dy, dz, zc: float, r: float):
+    """Far intersection of rays ``p + s·d`` leaving a sphere (centre (0, 0, zc)) from inside.
+
+    Returns ``(x, y, z, hit)``.
+    """
+    oz = pz - zc
+    b = dx * px + dy * py + dz * oz
+    cc = px * px + py * py + oz * oz - r * r
+    disc = b * b - cc
+    s = -b + np.sqrt(np.maximum(disc, 0.0))
+    return px + s * dx, py + s * dy, pz + s * dz, disc >= 0.0
+
+
+def trace_source_fast(
+    lens: MainLens,
+    source_xyz_mm: tuple[float, float, float],
+    rim_x_mm: np.ndarray,
+    rim_y_mm: np.ndarray,
+    z_plane_mm: float,
+) -> FastTrace:
+    """Trace rays from one point source through given points of the front-rim plane.
+
+    Each ray runs from the source toward ``(rim_x, rim_y, lens.rim_z_mm)``; it enters the
+    front surface where that line meets the sphere (near root, stable for far sources) and is
+    traced exactly to the plane ``z = z_plane_mm``. Rays through rim-plane points within D/2
+    enter the front surface within D/2 (the cap is convex toward the source).
+
+    Parameters
+    ----------
+    lens : MainLens
+    source_xyz_mm : tuple of float
+        Source position (z in front of the front vertex).
+    rim_x_mm, rim_y_mm : ndarray
+        Aim points on the rim plane.
+    z_plane_mm : float
+        Target plane behind the lens.
+
+    Returns
+    -------
+    FastTrace
+        Positions at the target plane and unit directions after the lens.
+    """
+    sx, sy, sz = (float(v) for v in source_xyz_mm)
+    r, n_glass = lens.radius_mm, lens.refractive_index
+    half_d = 0.5 * lens.pupil_diameter_mm
+    dx = rim_x_mm - sx
+    dy = rim_y_mm - sy
+    dzs = lens.rim_z_mm - sz
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dzs * dzs)
+    dx *= inv
+    dy *= inv
+    dz = dzs * inv
+    # front sphere, centre on axis at zc1
+    zc1 = lens.front_vertex_z_mm + r
+    ex, ey, ez, ok = _sphere_entry(sx, sy, sz, dx, dy, dz, zc1, r)
+    ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
+    nx, ny, nz = ex / r, ey / r, (ez - zc1) / r
+    tx, ty, tz, tir = _refract_xyz(dx, dy, dz, nx, ny, nz, 1.0 / n_glass)
+    ok &= ~tir
+    # back sphere, centre zc2; far root from inside
+    zc2 = lens.back_vertex_z_mm - r
+    qx, qy, qz, hit = _sphere_exit(ex, ey, ez, tx, ty, tz, zc2, r)
+    ok &= hit
+    ok &= qx * qx + qy * qy <= lens.edge_radius_mm ** 2
+    nx, ny, nz = -qx / r, -qy / r, -(qz - zc2) / r
+    ux, uy, uz, tir = _refract_xyz(tx, ty, tz, nx, ny, nz, n_glass)
+    ok &= ~tir & (uz > 0.0)
+    t = (z_plane_mm - qz) / np.where(uz > 0.0, uz, 1.0)
+    return FastTrace(qx + t * ux, qy + t * uy, np.full_like(qx, z_plane_mm), ux, uy, uz, ok)
+
+
+def trace_backward_fast(
+    lens: MainLens,
+    x_mm: np.ndarray,
+    y_mm: np.ndarray,
+    z_mm: float,
+    slope_x: np.ndarray,
+    slope_y: np.ndarray,
+) -> FastTrace:
+    """Trace image-side rays backward through the lens to the front surface.
+
+    A ray that travels toward +z with slopes ``(slope_x, slope_y) = (dx/dz, dy/dz)`` and
+    crosses the plane ``z = z_mm`` (behind the lens) at ``(x, y)`` is followed back: into the
+    back surface, through the glass, out of the front surface. It passes when it leaves the
+    front surface within the clear aperture D/2 (the stop) and inside the lens edge.
+
+    Returns
+    -------
+    FastTrace
+        ``x, y, z``: where the ray leaves the front surface; ``dx, dy, dz``: unit direction
+        toward the object (dz < 0); ``ok``: passed the aperture.
+    """
+    r, n_glass = lens.radius_mm, lens.refractive_index
+    half_d = 0.5 * lens.pupil_diameter_mm
+    inv = 1.0 / np.sqrt(1.0 + slope_x * slope_x + slope_y * slope_y)
+    dx = -slope_x * inv
+    dy = -slope_y * inv
+    dz = -inv
+    # back sphere (centre zc2 on axis), entered from outside
+    zc2 = lens.back_vertex_z_mm - r
+    qx, qy, qz, ok = _sphere_entry(x_mm, y_mm, z_mm, dx, dy, dz, zc2, r)
+    edge2 = lens.edge_radius_mm ** 2
+    ok &= qx * qx + qy * qy <= edge2
+    # outward normal of the back surface faces the incoming (backward) ray
+    tx, ty, tz, tir = _refract_xyz(dx, dy, dz, qx / r, qy / r, (qz - zc2) / r, 1.0 / n_glass)
+    ok &= ~tir
+    # front sphere (centre zc1), far root from inside
+    zc1 = lens.front_vertex_z_mm + r
+    ex, ey, ez, hit = _sphere_exit(qx, qy, qz, tx, ty, tz, zc1, r)
+    ok &= hit
+    ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
+    ux, uy, uz, tir = _refract_xyz(tx, ty, tz, -ex / r, -ey / r, -(ez - zc1) / r, n_glass)
+    ok &= ~tir & (uz < 0.0)
+    return FastTrace(ex, ey, ez, ux, uy, uz, ok)

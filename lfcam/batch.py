@@ -1,0 +1,622 @@
+"""Many captures at once: ``lfcam batch`` and its Python API :func:`run_batch`.
+
+Every capture found under an input folder (recursively, recognised by content) is run through
+the distance pipeline (:mod:`lfcam.distance`) and gets its own output folder
+``OUT/captures/<relative path>/`` with the ``lfcam distance`` outputs plus a completion record
+``done.json``. ``OUT/summary.csv`` has one row a region of every finished capture,
+``OUT/failures.csv`` one row a capture that failed.
+
+Resumability rule: a capture counts as finished only when its ``done.json`` exists, was
+written for the same capture content (sha256), the same calibration content and the same
+settings, and every output it lists exists with the recorded size and sha256. Each output is
+written atomically and ``done.json`` last, so a batch killed at any point leaves only
+finished captures (skipped on the next run) and unfinished ones (redone).
+
+Captures with identical content and identical profile are computed once; the copies get the
+same outputs (``duplicate_of`` names the capture that was computed).
+
+Parallelism: local worker processes by default; with ``scheduler`` (or ``client``) the
+captures go to a Dask distributed cluster (optional extra ``lfcam[dask]``). In both cases the
+calibration is parsed once per worker process and the lenslet geometry is prepared once per
+worker and (profile, sensor size); the captures and the output folder must be visible to the
+workers at the same paths (shared file system).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lfcam.cli.common import atomic_write_text, write_csv
+from lfcam.errors import BatchError, InputFileError
+from lfcam.export import REGION_COLUMNS
+from lfcam.io.capture import RAW_EXTENSIONS
+
+SUMMARY_COLUMNS = ("capture", "duplicate_of", *REGION_COLUMNS)
+FAILURE_COLUMNS = ("capture", "error_class", "message")
+OUTPUT_FILES = ("regions.csv", "distance.tiff", "distance.png")
+DONE_FILE = "done.json"
+CAPTURES_DIR = "captures"
+# files with these extensions are reported as failures when their content is not a capture;
+# files with any other extension are silently skipped unless their content is a capture
+CAPTURE_EXTENSIONS = {".png", ".tif", ".tiff", ".lfp", ".lfr", ".raw", *RAW_EXTENSIONS}
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_INT_COLUMNS = {"region_id"}
+_FLOAT_COLUMNS = {"x_px", "y_px", "distance_mm", "offset_mm", "diameter_mm", "uncertainty_mm"}
+
+
+# ----------------------------------------------------------------------------- jobs
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Pipeline options shared by every capture of a batch (recorded in ``done.json``)."""
+
+    model: str = "auto"
+    method: str = "lightfield"
+    tolerance_pct: float | None = None
+    fast: bool = False
+    profile: str | None = None  # name or path; None: each capture's .profile.toml sidecar
+
+
+@dataclass(frozen=True)
+class Job:
+    """One capture to compute (picklable; sent to the workers)."""
+
+    capture: str  # absolute path
+    rel: str  # path relative to the input folder (posix), as written in the CSVs
+    outdir: str
+    sha256: str
+    calibration_sha256: str
+    settings: Settings
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A capture that could not be processed (a row of ``failures.csv``)."""
+
+    capture: str
+    error_class: str
+    message: str
+
+
+@dataclass
+class BatchResult:
+    """What :func:`run_batch` did.
+
+    ``summary`` holds one dict a region (keys :data:`SUMMARY_COLUMNS`; numbers as float/int,
+    NaN for empty cells), in capture order; ``failures`` one :class:`Failure` a capture.
+    """
+
+    summary: list[dict[str, Any]]
+    failures: list[Failure]
+    captures: list[str]
+    computed: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    duplicates: dict[str, str] = field(default_factory=dict)
+    worker_stats: list[dict] = field(default_factory=list)
+    elapsed_s: float = 0.0
+
+
+def _sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ()) -> list[Path]:
+    """Every file under ``input_dir`` that is, or claims to be, a capture (sorted).
+
+    A file is taken when its content is a supported capture (``lfcam.io.sniff_kind``) whatever
+    its name, or when its extension is a capture extension (``.png``, ``.lfp``, ``.raw``,
+    camera raws, …) whatever its content — such a file that is not readable becomes a failure
+    rather than being ignored. Hidden files and folders, and the ``exclude`` folders (the
+    output folder), are skipped.
+    """
+    from lfcam.io import sniff_kind
+
+    root = Path(input_dir)
+    if not root.is_dir():
+        raise BatchError(f"input folder not found: {root}")
+    excl = [Path(e).resolve() for e in exclude]
+    found: list[Path] = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        d = Path(dirpath)
+        dirnames[:] = sorted(n for n in dirnames if not n.startswith(".")
+                             and not any((d / n).resolve() == e for e in excl))
+        for name in sorted(filenames):
+            if name.startswith("."):
+                continue
+            p = d / name
+            if not p.is_file():
+                continue
+            try:
+                sniff_kind(p)
+            except InputFileError:
+                if p.suffix.lower() not in CAPTURE_EXTENSIONS:
+                    continue
+            found.append(p)
+    return sorted(found, key=lambda q: q.relative_to(root).as_posix())
+
+
+# ----------------------------------------------------------------------------- worker side
+
+_STATE_LOCK = threading.Lock()
+_CALIBRATIONS: dict[str, Any] = {}  # calibration sha256 -> Calibration (one per process)
+_GEOMETRIES: dict[tuple, Any] = {}  # (calibration sha, profile, shape) -> Geometry
+_STATS = {"calibration_loads": 0, "geometry_builds": 0}
+
+
+def init_worker(calibration_bytes: bytes, single_thread: bool = True) -> None:
+    """Parse the calibration once in this process (pool initializer / Dask worker plugin).
+
+    With ``single_thread`` OpenCV runs on one thread: a worker is one core, parallelism comes
+    from running several workers.
+    """
+    import cv2
+
+    from lfcam.distance import load_calibration
+
+    if single_thread:
+        cv2.setNumThreads(1)
+    _undo_malloc_trim()
+
+    key = hashlib.sha256(calibration_bytes).hexdigest()
+    with _STATE_LOCK:
+        if key in _CALIBRATIONS:
+            return
+        fd, tmp = tempfile.mkstemp(suffix=".json", prefix="lfcam-calib-")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(calibration_bytes)
+            _CALIBRATIONS[key] = load_calibration(tmp)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        _STATS["calibration_loads"] += 1
+
+
+def _undo_malloc_trim() -> None:
+    """Undo a small ``MALLOC_TRIM_THRESHOLD_`` (Dask sets 65536 in its workers by default).
+
+    With it, glibc returns every large freed block to the system and maps it again on the
+    next allocation; the pipeline allocates many full-frame temporaries and ran 3× slower
+    (measured: 2.0 → 6.0 s a capture). Restores large fixed thresholds, glibc only.
+    """
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ or not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD: full frames stay on the heap
+        libc.mallopt(-1, 64 << 20)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):  # not glibc: nothing to undo
+        pass
+
+
+def _geometry(cal_key: str, profile, shape: tuple[int, int]):
+    from lfcam.distance import prepare_geometry
+
+    key = (cal_key, profile, shape)
+    with _STATE_LOCK:
+        geom = _GEOMETRIES.get(key)
+        if geom is None:
+            geom = prepare_geometry(profile, _CALIBRATIONS[cal_key], shape)
+            _GEOMETRIES[key] = geom
+            _STATS["geometry_builds"] += 1
+    return geom
+
+
+def _write_done(outdir: Path, job: Job, duplicate_of: str = "") -> None:
+    outputs = {}
+    for name in OUTPUT_FILES:
+        p = outdir / name
+        outputs[name] = {"bytes": p.stat().st_size, "sha256": _sha256_file(p)}
+    record = {
+        "capture": job.rel, "sha256": job.sha256, "calibration_sha256": job.calibration_sha256,
+        "settings": job.settings.__dict__, "duplicate_of": duplicate_of, "outputs": outputs,
+    }
+    atomic_write_text(outdir / DONE_FILE, json.dumps(record, indent=1) + "\n")
+
+
+def process_capture(job: Job) -> dict:
+    """Compute one capture and write its outputs; never raises for a bad capture.
+
+    Returns a dict with ``status`` (``ok`` | ``failed``), the capture's ``rel`` path, the
+    worker's ``pid``, its calibration-load and geometry-build counters, and for a failure
+    ``error_class`` and ``message``.
+    """
+    t0 = time.perf_counter()
+    out = {"rel": job.rel, "pid": os.getpid()}
+    try:
+        from lfcam.cli.distance import resolve_profile
+        from lfcam.decode.lightfield import to_grey
+        from lfcam.distance import run_distance, write_outputs
+        from lfcam.io import load_capture
+
+        if job.calibration_sha256 not in _CALIBRATIONS:
+            raise BatchError("this worker has no calibration (worker not initialised)")
+        s = job.settings
+        path = Path(job.capture)
+        profile = resolve_profile(path, s.profile)
+        cap = load_capture(path, profile)
+        image = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+        geom = _geometry(job.calibration_sha256, profile, image.shape)
+        run = run_distance(image, profile, _CALIBRATIONS[job.calibration_sha256],
+                           model=s.model, method=s.method, tolerance_pct=s.tolerance_pct,
+                           fast=s.fast, geometry=geom)
+        outdir = Path(job.outdir)
+        (outdir / DONE_FILE).unlink(missing_ok=True)
+        write_outputs(outdir, run)
+        _write_done(outdir, job)
+        out.update(status="ok", regions=len(run.regions))
+    except Exception as exc:  # noqa: BLE001 - one bad capture must never stop the batch
+        msg = " ".join(str(exc).split()) or repr(exc)
+        out.update(status="failed", error_class=type(exc).__name__, message=msg)
+    out.update(seconds=time.perf_counter() - t0, **_STATS)
+    return out
+
+
+# ----------------------------------------------------------------------------- coordinator
+
+
+def is_finished(job: Job) -> bool:
+    """Whether ``job``'s outputs are complete for this capture, calibration and settings."""
+    outdir = Path(job.outdir)
+    try:
+        rec = json.loads((outdir / DONE_FILE).read_text(encoding="utf-8"))
+        if (rec["sha256"] != job.sha256 or rec["calibration_sha256"] != job.calibration_sha256
+                or rec["settings"] != job.settings.__dict__):
+            return False
+        for name in OUTPUT_FILES:
+            want = rec["outputs"][name]
+            p = outdir / name
+            if p.stat().st_size != want["bytes"] or _sha256_file(p) != want["sha256"]:
+                return False
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return True
+
+
+def _copy_outputs(src: Job, dst: Job) -> None:
+    """Give the duplicate ``dst`` the outputs computed for ``src`` (atomic per file)."""
+    sdir, ddir = Path(src.outdir), Path(dst.outdir)
+    ddir.mkdir(parents=True, exist_ok=True)
+    (ddir / DONE_FILE).unlink(missing_ok=True)
+    for name in OUTPUT_FILES:
+        fd, tmp = tempfile.mkstemp(dir=ddir, prefix=f".{name}.", suffix=".tmp")
+        os.close(fd)
+        try:
+            shutil.copyfile(sdir / name, tmp)
+            os.replace(tmp, ddir / name)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    _write_done(ddir, dst, duplicate_of=src.rel)
+
+
+def _profile_fingerprint(capture: Path, profile: str | None) -> str:
+    """What decides the capture's profile: ``--profile`` or the sidecar's content."""
+    if profile:
+        return "profile:" + profile
+    side = capture.with_name(capture.stem + ".profile.toml")
+    try:
+        return "sidecar:" + _sha256_file(side)
+    except OSError:
+        return "sidecar:none"
+
+
+def _read_rows(job: Job, duplicate_of: str) -> list[list[str]]:
+    with (Path(job.outdir) / "regions.csv").open(encoding="utf-8", newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or tuple(rows[0]) != REGION_COLUMNS:
+        raise InputFileError(f"{job.outdir}/regions.csv: unexpected header")
+    return [[job.rel, duplicate_of, *r] for r in rows[1:]]
+
+
+def _typed(row: list[str]) -> dict[str, Any]:
+    d: dict[str, Any] = {}
+    for k, v in zip(SUMMARY_COLUMNS, row, strict=True):
+        if k in _INT_COLUMNS:
+            d[k] = int(v)
+        elif k in _FLOAT_COLUMNS:
+            d[k] = float(v) if v else float("nan")
+        else:
+            d[k] = v
+    return d
+
+
+def _csv_cell(v: str) -> str:
+    if any(c in v for c in ',"\n\r'):
+        return '"' + v.replace('"', '""') + '"'
+    return v
+
+
+class _Progress:
+    """``done / failed / remaining`` and rate on one stderr line (only on a terminal)."""
+
+    def __init__(self, total: int, enabled: bool | None = None) -> None:
+        self.total, self.done, self.failed = total, 0, 0
+        self.t0 = time.perf_counter()
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self.show()
+
+    def update(self, ok: bool) -> None:
+        if ok:
+            self.done += 1
+        else:
+            self.failed += 1
+        self.show()
+
+    def show(self) -> None:
+        if not self.enabled:
+            return
+        n = self.done + self.failed
+        dt = time.perf_counter() - self.t0
+        rate = 60.0 * n / dt if dt > 0 and n else 0.0
+        width = 30
+        fill = int(width * n / self.total) if self.total else width
+        print(f"\r[{'#' * fill}{'.' * (width - fill)}] done {self.done}  failed {self.failed}  "
+              f"remaining {self.total - n}  {rate:.1f}/min", end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.enabled:
+            print(file=sys.stderr, flush=True)
+
+
+def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> None:
+    if workers <= 1 or len(jobs) <= 1:
+        import cv2
+
+        n_cv = cv2.getNumThreads()
+        try:
+            init_worker(cal_bytes)
+            for job in jobs:
+                on_result(process_capture(job))
+        finally:
+            cv2.setNumThreads(n_cv)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = mp.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx,
+                               initializer=init_worker, initargs=(cal_bytes,))
+    try:
+        # spawned workers start on the first submit: single-threaded numerical libraries
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update(dict.fromkeys(_THREAD_VARS, "1"))
+        try:
+            futures = {pool.submit(process_capture, j): j for j in jobs}
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        for fut in as_completed(futures):
+            try:
+                on_result(fut.result())
+            except BrokenProcessPool as exc:  # a worker died (e.g. out of memory)
+                on_result({"rel": futures[fut].rel, "status": "failed",
+                           "error_class": type(exc).__name__,
+                           "message": "a worker process died while processing this capture"})
+    except BaseException:  # Ctrl-C: drop the queued captures instead of finishing them
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_dask(jobs: list[Job], cal_bytes: bytes, scheduler: str | None, client, on_result):
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:
+        raise BatchError("--scheduler needs Dask: pip install 'lfcam[dask]'") from None
+    own = client is None
+    if own:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise BatchError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+    try:
+        from lfcam._dask_plugin import CalibrationPlugin
+
+        plugin = CalibrationPlugin(cal_bytes)
+        name = f"lfcam-calibration-{jobs[0].calibration_sha256[:16]}"
+        if hasattr(client, "register_plugin"):
+            client.register_plugin(plugin, name=name)
+        else:  # older distributed
+            client.register_worker_plugin(plugin, name=name)
+        futures = [client.submit(process_capture, j, pure=False, key=f"lfcam-{i}-{j.sha256[:12]}")
+                   for i, j in enumerate(jobs)]
+        by_key = {f.key: j for f, j in zip(futures, jobs, strict=True)}
+        for fut in as_completed(futures):
+            try:
+                on_result(fut.result())
+            except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
+                on_result({"rel": by_key[fut.key].rel, "status": "failed",
+                           "error_class": type(exc).__name__,
+                           "message": " ".join(str(exc).split())})
+    finally:
+        if own:
+            client.close()
+
+
+def run_batch(
+    input_dir: str | Path,
+    calibration: str | Path,
+    output_dir: str | Path,
+    profile: str | None = None,
+    *,
+    model: str = "auto",
+    method: str = "lightfield",
+    tolerance_pct: float | None = None,
+    fast: bool = False,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    client: Any = None,
+    force: bool = False,
+    progress: bool | None = None,
+    on_result: Callable[[dict], None] | None = None,
+) -> BatchResult:
+    """Run the distance pipeline on every capture under ``input_dir``.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+        Folder searched recursively (see :func:`discover_captures`).
+    calibration : str or Path
+        Calibration JSON (``lfcam calibrate``), used for every capture.
+    output_dir : str or Path
+        Receives ``summary.csv``, ``failures.csv`` and ``captures/<relative path>/``.
+    profile : str, optional
+        Camera profile name or path for every capture; default: each capture's
+        ``<stem>.profile.toml`` sidecar.
+    model, method, tolerance_pct, fast
+        As for :func:`lfcam.distance.run_distance`.
+    workers : int, optional
+        Local worker processes (default: ``os.cpu_count()``); 1 runs in this process.
+    scheduler : str, optional
+        Address of a Dask scheduler (``tcp://host:8786``): the captures run on that cluster.
+    client : dask.distributed.Client, optional
+        An existing Dask client (instead of ``scheduler``).
+    force : bool
+        Recompute every capture, even finished ones.
+    progress : bool, optional
+        Progress line on stderr (default: when stderr is a terminal).
+    on_result : callable, optional
+        Called with each worker result dict as it arrives (coordinator side).
+
+    Returns
+    -------
+    BatchResult
+
+    Raises
+    ------
+    BatchError
+        Missing input folder, output folder inside a capture path, unreachable scheduler.
+    CalibrationError
+        Unreadable or invalid calibration (checked once, before any capture runs).
+    """
+    from lfcam.distance import METHODS, MODELS, load_calibration
+
+    t0 = time.perf_counter()
+    if model not in MODELS:
+        raise BatchError(f"unknown model {model!r} (choose from {', '.join(MODELS)})")
+    if method not in METHODS:
+        raise BatchError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
+    root = Path(input_dir).resolve()
+    out = Path(output_dir).resolve()
+    load_calibration(calibration)  # fail early, with the calibration's own message
+    cal_bytes = Path(calibration).read_bytes()
+    cal_sha = hashlib.sha256(cal_bytes).hexdigest()
+    if profile is not None:
+        from lfcam.camera import load_profile
+
+        load_profile(profile)  # a wrong --profile is a usage error, not N failures
+    settings = Settings(model, method, tolerance_pct, bool(fast), profile)
+    paths = discover_captures(root, exclude=[out])
+    out.mkdir(parents=True, exist_ok=True)
+
+    failures: list[Failure] = []
+    jobs: list[Job] = []
+    for p in paths:
+        rel = p.relative_to(root).as_posix()
+        try:
+            sha = _sha256_file(p)
+        except OSError as exc:
+            failures.append(Failure(rel, type(exc).__name__, str(exc.strerror or exc)))
+            continue
+        jobs.append(Job(str(p), rel, str(out / CAPTURES_DIR / rel), sha, cal_sha, settings))
+
+    # duplicates: same content and same profile -> computed once
+    first: dict[tuple[str, str], Job] = {}
+    dup_of: dict[str, Job] = {}
+    for j in jobs:
+        key = (j.sha256, _profile_fingerprint(Path(j.capture), profile))
+        if key in first:
+            dup_of[j.rel] = first[key]
+        else:
+            first[key] = j
+    originals = [j for j in jobs if j.rel not in dup_of]
+    todo = [j for j in originals if force or not is_finished(j)]
+    skipped = [j.rel for j in originals if j not in todo]
+
+    bar = _Progress(len(todo), progress)
+    computed: list[str] = []
+    failed: dict[str, Failure] = {}
+    worker_stats: list[dict] = []
+
+    def handle(res: dict) -> None:
+        ok = res.get("status") == "ok"
+        if ok:
+            computed.append(res["rel"])
+        else:
+            failed[res["rel"]] = Failure(res["rel"], res.get("error_class", "Error"),
+                                         res.get("message", ""))
+        worker_stats.append(res)
+        bar.update(ok)
+        if on_result is not None:
+            on_result(res)
+
+    try:
+        if todo:
+            if scheduler or client is not None:
+                _run_dask(todo, cal_bytes, scheduler, client, handle)
+            else:
+                _run_local(todo, cal_bytes, workers or os.cpu_count() or 1, handle)
+    finally:
+        bar.close()
+
+    duplicates: dict[str, str] = {}
+    for j in jobs:
+        src = dup_of.get(j.rel)
+        if src is None:
+            continue
+        duplicates[j.rel] = src.rel
+        if src.rel in failed:
+            f = failed[src.rel]
+            failed[j.rel] = Failure(j.rel, f.error_class, f"duplicate of {src.rel}: {f.message}")
+        elif force or not is_finished(j):
+            _copy_outputs(src, j)
+
+    failures += [failed[j.rel] for j in jobs if j.rel in failed]
+    failures.sort(key=lambda f: f.capture)
+    rows: list[list[str]] = []
+    for j in jobs:
+        if j.rel in failed:
+            continue
+        src = dup_of.get(j.rel)
+        try:
+            rows += _read_rows(j, src.rel if src else "")
+        except (OSError, InputFileError) as exc:
+            failures.append(Failure(j.rel, type(exc).__name__, str(exc)))
+    atomic_write_text(out / "summary.csv", "\n".join(
+        [",".join(SUMMARY_COLUMNS)] + [",".join(_csv_cell(c) for c in r) for r in rows]) + "\n")
+    write_csv(out / "failures.csv", FAILURE_COLUMNS,
+              ([_csv_cell(f.capture), f.error_class, _csv_cell(f.message)] for f in failures))
+    return BatchResult(
+        summary=[_typed(r) for r in rows], failures=failures, captures=[j.rel for j in jobs],
+        computed=sorted(computed), skipped=skipped, duplicates=duplicates,
+        worker_stats=worker_stats, elapsed_s=time.perf_counter() - t0,
+    )
+
+
+__all__ = [
+    "BatchError", "BatchResult", "Failure", "Job", "Settings", "discover_captures",
+    "init_worker", "is_finished", "process_capture", "run_batch",
+]

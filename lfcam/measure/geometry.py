@@ -1,0 +1,109 @@
+"""Lenslet centres on the MLA plane from calibrated white-image micro-image centroids.
+
+A calibration returns where each micro-image's light lands on the sensor (intensity centroid
+of the white image, FIELD-NOTES 2). The distance fits need the lenslet itself: light crossing
+lenslet k with slope σ lands at ``C_k + f_x·σ`` (ideal lenslet), so the white centroid is
+``C_k + f_x·⟨σ⟩_white(C_k)``, where ⟨σ⟩ is the mean slope, weighted by cos⁴ of the angle at
+which the light of each lenslet point reaches the sensor, of the light that
+reaches the lenslet through the aperture stop. By symmetry ⟨σ⟩ is radial; we tabulate its
+radial component by tracing backward (exact main lens) from sample points of a lenslet cell
+over a grid of slopes, then invert ``r_white = r + f_x·g(r)`` by interpolation.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.optics.trace import trace_backward_fast
+
+RADII = 48
+SLOPE_GRID = 96
+CELL_GRID = 3
+
+
+@lru_cache(maxsize=16)
+def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: float):
+    """(r, r_white) of lenslets along a radius: the radial white-centroid map (mm)."""
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    pitch = profile.mla.pitch_mm * profile.mla.fill_factor
+    d_a = d_in_mm - lens.exit_pupil_z_mm
+    radii = np.linspace(0.0, max_radius_mm, RADII)
+    # slopes covering the pupil as seen from any lenslet out to the largest radius
+    reach = (0.5 * lens.pupil_diameter_mm + max_radius_mm + pitch) / d_a * 1.2
+    g = np.linspace(-reach, reach, SLOPE_GRID)
+    sx, sy = np.meshgrid(g, g)
+    sx, sy = sx.ravel(), sy.ravel()
+    cell = (np.arange(CELL_GRID) + 0.5) / CELL_GRID - 0.5
+    cu, cv = np.meshgrid(cell * pitch, cell * pitch)
+    out = np.empty_like(radii)
+    for i, r in enumerate(radii):
+        # every (cell point, slope) pair: −σ·d_A … the backward ray must leave within D/2
+        px = (r + cu.ravel())[:, None] + 0.0 * sx[None, :]
+        py = cv.ravel()[:, None] + 0.0 * sy[None, :]
+        tsx = np.broadcast_to(sx, px.shape)
+        tsy = np.broadcast_to(sy, py.shape)
+        tr = trace_backward_fast(lens, px.ravel(), py.ravel(), d_in_mm, tsx.ravel(), tsy.ravel())
+        # light from cell point P reaches the sensor point X = C + f_x·σ at the angle of X − P
+        ax_ = sx[None, :] - cu.ravel()[:, None] / fx
+        ay_ = sy[None, :] - cv.ravel()[:, None] / fx
+        cos4_p = 1.0 / (1.0 + ax_ * ax_ + ay_ * ay_) ** 2
+        w = (tr.ok.reshape(px.shape) * cos4_p).mean(axis=0)
+        out[i] = r + fx * float((w * sx).sum() / w.sum())
+    return radii, out
+
+
+def lenslet_centres_mm(
+    profile: CameraProfile, d_in_mm: float, centroids_px: np.ndarray
+) -> np.ndarray:
+    """Lenslet centres (mm, MLA plane, from the axis) of calibrated white centroids (px)."""
+    c = np.asarray(centroids_px, dtype=np.float64).reshape(-1, 2)
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    m = np.column_stack([(c[:, 0] - ax) * pp, (c[:, 1] - ay) * pp])
+    r_white = np.hypot(m[:, 0], m[:, 1])
+    radii, r_w = white_offset_table(profile, float(d_in_mm), float(r_white.max() * 1.05 + 1e-6))
+    r = np.interp(r_white, r_w, radii)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(r_white > 0, r / r_white, 1.0 / (r_w[1] / radii[1]))
+    return m * scale[:, None]
+
+
+LATTICE_MAX_RMS_PITCH = 0.02  # a regular MLA explains its centres to better than this
+
+
+def regularise_to_lattice(
+    centres_mm: np.ndarray, pitch_mm: float, grid: str, rotation_rad: float
+) -> tuple[np.ndarray, float]:
+    """Replace lenslet centres by a least-squares affine lattice through them.
+
+    The MLA is one rigid part: an affine lattice ``C = o + i·a1 + j·a2`` averages the
+    per-lenslet errors of the white-centroid inversion away (system 1: 1.6 → 0.9 µm RMS).
+    Integer coordinates come from the nominal basis about the centre nearest the axis. When
+    the fit leaves more than ``LATTICE_MAX_RMS_PITCH`` pitch RMS, the lattice does not describe
+    the array and the centres are returned unchanged.
+
+    Returns
+    -------
+    centres_mm : ndarray
+    rms_pitch : float
+        RMS residual of the lattice fit, in pitches.
+    """
+    from lfcam.optics.mla import MlaGrid
+
+    c = np.asarray(centres_mm, dtype=np.float64)
+    if len(c) < 8:
+        return c, float("nan")
+    ref = c[np.argmin(np.hypot(c[:, 0], c[:, 1]))]
+    basis = MlaGrid(pitch_mm=pitch_mm, grid=grid, rotation_rad=rotation_rad).basis_mm
+    ij = np.round(np.linalg.solve(basis, (c - ref).T).T)
+    a = np.column_stack([np.ones(len(ij)), ij])
+    coef, *_ = np.linalg.lstsq(a, c, rcond=None)
+    fitted = a @ coef
+    rms = float(np.sqrt(((fitted - c) ** 2).sum(axis=1).mean())) / pitch_mm
+    if not rms <= LATTICE_MAX_RMS_PITCH:
+        return c, rms
+    return fitted, rms

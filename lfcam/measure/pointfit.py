@@ -1,0 +1,642 @@
+"""Light-field measurement of a point-like source: triangulation through the exact lens.
+
+A point source lights a cluster of lenslets; under each lenslet its light forms a compact spot
+whose offset from the lenslet centre is ``f_x`` times the mean slope of the rays that crossed
+that lenslet (ideal thin lenslets). Traced *backward* through the exact main lens, each
+(lenslet centre, mean slope) pair is a line in object space that passes, to second order in
+the lenslet size, through the source. The source is the intensity-weighted least-squares point
+closest to all those lines — a 3×3 linear solve, no model error, no iterations.
+
+Spots near the seam of two micro-images (fast systems overlap by ~10 %, FIELD-NOTES 3) are
+ambiguous between two lenslets; they are assigned with the smoothness of the slope field:
+a robust affine model ``offset = a + B·C`` of spot offset against lenslet centre is fitted on
+unambiguous spots, then every spot goes to the candidate lenslet that model explains best.
+The signed rim-ray heights (y1, y2) then follow from the exact forward trace of the source.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lfcam.camera import CameraProfile
+from lfcam.optics.trace import trace_backward_fast, trace_source_fast
+
+MIN_SPOTS = 6
+PARTIAL_FRACTION = 0.5  # lenslets dimmer than this × the median are edge (partially lit) ones
+PUPIL_SAMPLES = 160  # per side of the stratified pupil grid of the forward model (~20 k rays)
+MAX_ITERATIONS = 8
+
+
+@dataclass(frozen=True)
+class PointFit:
+    """Result of triangulating one point-like region."""
+
+    source_mm: np.ndarray  # (3,) x, y, z of the source (z < 0, in front of the lens)
+    covariance_mm2: np.ndarray  # (3, 3)
+    spots: int  # spots used
+    rms_miss_mm: float  # weighted RMS distance of the lines from the source
+    ok: bool
+    reason: str = ""
+
+    @property
+    def distance_mm(self) -> float:
+        """Source plane → front vertex (CONTRACT §1) — needs the lens; see :func:`to_distance`."""
+        raise AttributeError("use to_distance(profile, fit)")
+
+
+def to_distance(profile: CameraProfile, fit: PointFit) -> tuple[float, float, float]:
+    """(distance_mm, offset_mm, sigma_distance_mm) of a fit."""
+    z_front = profile.main_lens.front_vertex_z_mm
+    distance = z_front - fit.source_mm[2]
+    offset = float(np.hypot(fit.source_mm[0], fit.source_mm[1]))
+    return float(distance), offset, float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
+
+
+def find_spots(image: np.ndarray, mask: np.ndarray, threshold: float):
+    """Connected bright spots inside ``mask``: (centroid_px (M, 2), energy (M,))."""
+    lit = ((image > threshold) & mask).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
+    if n <= 1:
+        return np.zeros((0, 2)), np.zeros(0)
+    lab = labels.ravel()
+    keep = lab > 0
+    val = image.ravel()[keep].astype(np.float64)
+    idx = np.flatnonzero(keep)
+    yy, xx = np.divmod(idx, image.shape[1])
+    lk = lab[keep]
+    e = np.bincount(lk, val, minlength=n)[1:]
+    cx = np.bincount(lk, val * xx, minlength=n)[1:] / e
+    cy = np.bincount(lk, val * yy, minlength=n)[1:] / e
+    return np.column_stack([cx, cy]), e
+
+
+def _affine_fit(c: np.ndarray, off: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted least squares ``off ≈ [1, cx, cy] @ M`` (M: 3×2)."""
+    a = np.column_stack([np.ones(len(c)), c])
+    sw = np.sqrt(w)[:, None]
+    m, *_ = np.linalg.lstsq(a * sw, off * sw, rcond=None)
+    return m
+
+
+def assign_spots(
+    spots_mm: np.ndarray, weights: np.ndarray, lens_centres_mm: np.ndarray, pitch_mm: float,
+    magnification: float,
+) -> np.ndarray:
+    """Lenslet index of every spot (see module docstring); −1 where none fits.
+
+    Parameters
+    ----------
+    spots_mm : (M, 2) spot centroids on the sensor, mm from the axis.
+    weights : (M,) spot energies.
+    lens_centres_mm : (N, 2) lenslet centres on the MLA plane.
+    pitch_mm : lenslet pitch.
+    magnification : micro-image centre = lenslet centre × magnification (chief ray).
+    """
+    tree = cKDTree(lens_centres_mm * magnification)
+    dist, cand = tree.query(spots_mm, k=min(4, len(lens_centres_mm)))
+    cand = np.atleast_2d(cand)
+    dist = np.atleast_2d(dist)
+    first = cand[:, 0]
+    # unambiguous: clearly nearer one micro-image centre than the next
+    clear = (dist[:, 1] - dist[:, 0]) > 0.25 * pitch_mm * magnification if dist.shape[1] > 1 \
+        else np.ones(len(first), bool)
+    if clear.sum() < 3:
+        return first
+    centres = lens_centres_mm[first]
+    model = _affine_fit(centres[clear], spots_mm[clear] - centres[clear], weights[clear])
+    best = first.copy()
+    best_err = np.full(len(first), np.inf)
+    for k in range(cand.shape[1]):
+        c = lens_centres_mm[cand[:, k]]
+        pred = np.column_stack([np.ones(len(c)), c]) @ model
+        err = np.hypot(*(spots_mm - c - pred).T)
+        better = err < best_err
+        best[better], best_err[better] = cand[better, k], err[better]
+    best[best_err > 0.5 * pitch_mm] = -1
+    return best
+
+
+def triangulate_lines(points: np.ndarray, dirs: np.ndarray, w: np.ndarray):
+    """Weighted least-squares point nearest to lines (point, unit direction); (S, cov, rms)."""
+    proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    a = np.einsum("n,nij->ij", w, proj)
+    b = np.einsum("n,nij,nj->i", w, proj, points)
+    s = np.linalg.solve(a, b)
+    resid = np.einsum("nij,nj->ni", proj, s[None] - points)
+    r2 = (resid**2).sum(1)
+    dof = max(2 * len(w) - 3, 1)
+    sigma2 = float((w * r2).sum() / w.sum()) * len(w) / dof
+    # lines are independent measurements: cov = σ² (Σ w P)⁻¹ (Σ w² P) (Σ w P)⁻¹ / (Σ w)… → use
+    # the standard weighted normal-equation form with weights normalised to mean 1
+    wn = w / w.mean()
+    an = np.einsum("n,nij->ij", wn, proj)
+    cov = sigma2 * np.linalg.inv(an)
+    return s, cov, float(np.sqrt(sigma2))
+
+
+def _lenslet_lines(lens, d_in_mm, fx, centres_mm, energy, landing_mm):
+    """Backward-traced object-space line of each well-lit lenslet: (points, dirs, weights)."""
+    full = energy >= PARTIAL_FRACTION * np.median(energy)
+    c = centres_mm[full]
+    slope = (landing_mm[full] - c) / fx
+    tr = trace_backward_fast(lens, c[:, 0], c[:, 1], d_in_mm, slope[:, 0], slope[:, 1])
+    ok = tr.ok
+    pts = np.column_stack([tr.x, tr.y, tr.z])[ok]
+    dirs = np.column_stack([tr.dx, tr.dy, tr.dz])[ok]
+    return pts, dirs, energy[full][ok]
+
+
+def _statistic(lens, d_in_mm, fx, centres_mm, energy, landing_mm):
+    """The triangulated point of a set of lenslet measurements (the fit's summary statistic)."""
+    pts, dirs, w = _lenslet_lines(lens, d_in_mm, fx, centres_mm, energy, landing_mm)
+    if len(w) < MIN_SPOTS:
+        return None
+    return triangulate_lines(pts, dirs, w)
+
+
+def _pupil_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stratified points of the unit disc (cell centres of an n×n grid inside the disc)."""
+    g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+    u, v = np.meshgrid(g, g)
+    inside = u * u + v * v <= 1.0
+    return u[inside], v[inside]
+
+
+def simulate_lenslets(profile, d_in_mm, source_mm, tree: cKDTree, centres_mm, pattern):
+    """Per-lenslet energy and mean landing point of a point source (exact trace, ideal lenslets).
+
+    This is what the camera records of the source (the micro-image energy and centroid of each
+    lenslet), up to pixel integration, which does not move centroids.
+    """
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    half = 0.5 * lens.pupil_diameter_mm
+    rx, ry = pattern[0] * half, pattern[1] * half
+    tr = trace_source_fast(lens, tuple(source_mm), rx, ry, d_in_mm)
+    ok = tr.ok
+    x, y = tr.x[ok], tr.y[ok]
+    sx, sy = tr.dx[ok] / tr.dz[ok], tr.dy[ok] / tr.dz[ok]
+    # solid angle of each rim-plane cell seen from the source ∝ cos³θ / L²
+    along = lens.rim_z_mm - source_mm[2]
+    rho2 = (rx[ok] - source_mm[0]) ** 2 + (ry[ok] - source_mm[1]) ** 2 + along**2
+    w = (along / np.sqrt(rho2)) ** 3
+    _, k = tree.query(np.column_stack([x, y]))
+    n = len(centres_mm)
+    e = np.bincount(k, w, minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lx = centres_mm[:, 0] + fx * np.bincount(k, w * sx, minlength=n) / e
+        ly = centres_mm[:, 1] + fx * np.bincount(k, w * sy, minlength=n) / e
+    return e, np.column_stack([lx, ly])
+
+
+def fit_point(
+    profile: CameraProfile,
+    d_in_mm: float,
+    spots_px: np.ndarray,
+    energy: np.ndarray,
+    lens_centres_mm: np.ndarray,
+) -> PointFit:
+    """Locate a point source from its spots (see module docstring).
+
+    The triangulation of the measured lenslet lines is a biased summary of the source when the
+    slope field folds inside a lenslet (F/2 spherical aberration beyond focus). The fit removes
+    the bias by indirect inference: it simulates the same summary from a candidate source with
+    the exact forward model and moves the candidate by the difference,
+    ``S ← S + (T_measured − T_simulated(S))``, until the step is below 1e-6 of the distance.
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    d_in_mm : float
+        Calibrated MLA distance.
+    spots_px : (M, 2) spot centroids in sensor pixels (x, y).
+    energy : (M,) spot energies.
+    lens_centres_mm : (N, 2) lenslet centres on the MLA plane.
+    """
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    if len(spots_px) < MIN_SPOTS:
+        return PointFit(nan3, nan33, len(spots_px), np.nan, False, "near-focus")
+    spots_mm = np.column_stack([(spots_px[:, 0] - ax) * pp, (spots_px[:, 1] - ay) * pp])
+    mag = 1.0 + fx / (d_in_mm - lens.exit_pupil_z_mm)
+    k = assign_spots(spots_mm, energy, lens_centres_mm, profile.mla.pitch_mm, mag)
+    good = k >= 0
+    n = len(lens_centres_mm)
+    e_meas = np.bincount(k[good], energy[good], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        land = np.column_stack([
+            np.bincount(k[good], energy[good] * spots_mm[good, 0], minlength=n) / e_meas,
+            np.bincount(k[good], energy[good] * spots_mm[good, 1], minlength=n) / e_meas,
+        ])
+    lit = np.flatnonzero(e_meas > 0)
+    measured = _statistic(lens, d_in_mm, fx, lens_centres_mm[lit], e_meas[lit], land[lit])
+    if measured is None:
+        return PointFit(nan3, nan33, int(len(lit)), np.nan, False, "near-focus")
+    t_meas, cov, rms = measured
+    if not (np.isfinite(t_meas).all() and t_meas[2] < lens.front_vertex_z_mm):
+        return PointFit(t_meas, cov, int(len(lit)), rms, False, "no-solution")
+    # neighbourhood of the lit lenslets for the forward model's binning
+    tree_all = cKDTree(lens_centres_mm)
+    near = np.unique(np.concatenate(tree_all.query_ball_point(
+        lens_centres_mm[lit], 3.0 * profile.mla.pitch_mm)))
+    centres = lens_centres_mm[near]
+    tree = cKDTree(centres)
+    pattern = _pupil_pattern(PUPIL_SAMPLES)
+    source = t_meas.copy()
+    for _ in range(MAX_ITERATIONS):
+        e_sim, land_sim = simulate_lenslets(profile, d_in_mm, source, tree, centres, pattern)
+        lit_sim = e_sim > 0
+        sim = _statistic(lens, d_in_mm, fx, centres[lit_sim], e_sim[lit_sim], land_sim[lit_sim])
+        if sim is None:
+            return PointFit(source, cov, int(len(lit)), rms, False, "near-focus")
+        step = t_meas - sim[0]
+        source = source + step
+        if not (np.isfinite(source).all() and source[2] < lens.front_vertex_z_mm):
+            return PointFit(source, cov, int(len(lit)), rms, False, "no-solution")
+        if abs(step[2]) < 1e-6 * abs(source[2]):
+            break
+    return PointFit(source, cov, int(len(lit)), rms, True)
+
+
+# ----------------------------------------------------------------------------- image matching
+
+IMAGE_PUPIL_SAMPLES = 180  # per side (~25 k rays per model evaluation)
+SCAN_PUPIL_SAMPLES = 72  # per side for the basin-finding distance scan (~4 k rays)
+MATCH_BLUR_PX = 0.8  # both model and data are smoothed alike before comparison
+GOOD_MISFIT = 0.08  # a start whose refined misfit is below this needs no distance scan
+
+
+@dataclass(frozen=True)
+class ImageFit:
+    """Source found by matching the exact forward model to the pixels of a region."""
+
+    source_mm: np.ndarray  # (3,)
+    misfit: float  # relative residual |data − a·model| / |data|
+    sigma_distance_mm: float  # from the curvature of the misfit along the distance
+    evaluations: int
+    ok: bool
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class _LocalLattice:
+    """Exact nearest-lenslet lookup for centres that form an affine lattice."""
+
+    origin: np.ndarray  # (2,)
+    basis: np.ndarray  # (2, 2), columns a1, a2
+    inverse: np.ndarray
+    table: np.ndarray  # (ni, nj) index into the centres, −1 where none
+    i0: int
+    j0: int
+    centres: np.ndarray
+
+    @classmethod
+    def fit(cls, centres: np.ndarray, pitch_mm: float) -> _LocalLattice | None:
+        """Fit the lattice through ``centres``; ``None`` if they are not one (→ k-d tree)."""
+        c = np.asarray(centres, dtype=np.float64)
+        if len(c) < 4:
+            return None
+        ref = c[0]
+        d = c - ref
+        # nominal basis from the nearest neighbours of the reference centre
+        order = np.argsort(np.hypot(d[:, 0], d[:, 1]))[1:]
+        a1 = d[order[0]]
+        a2 = next((d[k] for k in order[1:]
+                   if abs(a1[0] * d[k][1] - a1[1] * d[k][0]) > 0.5 * pitch_mm * pitch_mm), None)
+        if a2 is None:
+            return None
+        ij = np.round(np.linalg.solve(np.column_stack([a1, a2]), d.T).T).astype(np.int64)
+        a = np.column_stack([np.ones(len(ij)), ij])
+        coef, *_ = np.linalg.lstsq(a, c, rcond=None)
+        if np.sqrt(((a @ coef - c) ** 2).sum(axis=1).mean()) > 1e-3 * pitch_mm:
+            return None
+        basis = np.column_stack([coef[1], coef[2]])
+        i0, j0 = ij.min(axis=0)
+        table = np.full(tuple(ij.max(axis=0) - ij.min(axis=0) + 1), -1, dtype=np.int64)
+        table[ij[:, 0] - i0, ij[:, 1] - j0] = np.arange(len(c))
+        return cls(coef[0], basis, np.linalg.inv(basis), table, int(i0), int(j0), c)
+
+    def nearest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Index of the lenslet whose Voronoi cell holds each point (−1: not in the set)."""
+        u = self.inverse @ np.vstack([x - self.origin[0], y - self.origin[1]])
+        fu, fv = np.floor(u[0]), np.floor(u[1])
+        best = np.full(x.shape, np.inf)
+        bi = np.zeros(x.shape, dtype=np.int64)
+        bj = np.zeros(x.shape, dtype=np.int64)
+        for di in (0.0, 1.0):
+            for dj in (0.0, 1.0):
+                ci, cj = fu + di, fv + dj
+                px = self.origin[0] + self.basis[0, 0] * ci + self.basis[0, 1] * cj
+                py = self.origin[1] + self.basis[1, 0] * ci + self.basis[1, 1] * cj
+                dist = (x - px) ** 2 + (y - py) ** 2
+                better = dist < best
+                best[better] = dist[better]
+                bi[better], bj[better] = ci[better], cj[better]
+        ti, tj = bi - self.i0, bj - self.j0
+        inside = (ti >= 0) & (ti < self.table.shape[0]) & (tj >= 0) & (tj < self.table.shape[1])
+        out = np.full(x.shape, -1, dtype=np.int64)
+        out[inside] = self.table[ti[inside], tj[inside]]
+        return out
+
+
+class _Patch:
+    """Forward model of one region: renders a candidate source into the region's pixels."""
+
+    def __init__(self, profile, d_in_mm, image, box, lens_centres_mm):
+        x0, y0, x1, y1 = box
+        self.profile, self.d_in = profile, d_in_mm
+        self.box = box
+        self.shape = (y1 - y0, x1 - x0)
+        # the model splats rays bilinearly (a tent, variance 1/6 px²) where the sensor
+        # integrates over the pixel (a box, 1/12 px²): blur the data by the difference
+        self.data = cv2.GaussianBlur(np.asarray(image[y0:y1, x0:x1], np.float64), (0, 0),
+                                     float(np.sqrt(MATCH_BLUR_PX**2 + 1.0 / 12.0)))
+        self.norm = float(np.sqrt((self.data**2).sum()))
+        self.tree = cKDTree(lens_centres_mm)
+        self.centres = lens_centres_mm
+        self.lattice = _LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
+        self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
+        self.evaluations = 0
+
+    def render(self, source_mm, pattern=None):
+        """Model image of a unit-intensity source (blurred like the data).
+
+        ``source_mm`` is one point (3,) or several (M, 3) of equal intensity (a line).
+        """
+        p = self.profile
+        lens = p.main_lens
+        half = 0.5 * lens.pupil_diameter_mm
+        pattern = self.pattern if pattern is None else pattern
+        points = np.atleast_2d(np.asarray(source_mm, dtype=np.float64))
+        xs, ys, sxs, sys_, ws = [], [], [], [], []
+        rx, ry = pattern[0] * half, pattern[1] * half
+        for pt in points:
+            tr = trace_source_fast(lens, tuple(pt), rx, ry, self.d_in)
+            ok = tr.ok
+            xs.append(tr.x[ok])
+            ys.append(tr.y[ok])
+            sxs.append(tr.dx[ok] / tr.dz[ok])
+            sys_.append(tr.dy[ok] / tr.dz[ok])
+            # each rim-plane cell carries the solid angle it subtends at the source, ∝ cos³θ
+            along = lens.rim_z_mm - pt[2]
+            rho2 = (rx[ok] - pt[0]) ** 2 + (ry[ok] - pt[1]) ** 2 + along * along
+            ws.append((along * along / rho2) ** 1.5)
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        weight = np.concatenate(ws)
+        if self.lattice is not None:
+            k = self.lattice.nearest(x, y)
+            known = k >= 0
+            x, y, weight, k = x[known], y[known], weight[known], k[known]
+            sx_all, sy_all = np.concatenate(sxs)[known], np.concatenate(sys_)[known]
+        else:
+            _, k = self.tree.query(np.column_stack([x, y]))
+            sx_all, sy_all = np.concatenate(sxs), np.concatenate(sys_)
+        c = self.centres[k]
+        fx = p.mla.focal_length_mm
+        pp = p.sensor.pixel_pitch_mm
+        ax, ay = p.sensor.axis_xy_px
+        px = (c[:, 0] + fx * sx_all) / pp + ax - self.box[0]
+        py = (c[:, 1] + fx * sy_all) / pp + ay - self.box[1]
+        h, w = self.shape
+        ix, iy = np.floor(px).astype(np.int64), np.floor(py).astype(np.int64)
+        fxr, fyr = px - ix, py - iy
+        # bilinear splat: the four corner contributions in one bincount
+        jx = np.concatenate([ix, ix + 1, ix, ix + 1])
+        jy = np.concatenate([iy, iy, iy + 1, iy + 1])
+        wt = np.concatenate([(1 - fxr) * (1 - fyr), fxr * (1 - fyr), (1 - fxr) * fyr,
+                             fxr * fyr]) * np.tile(weight, 4)
+        inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
+        img = np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
+        return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
+
+    def residual(self, source_mm, pattern=None) -> np.ndarray:
+        """Data minus the best-scaled model (scale in closed form), over ‖data‖."""
+        self.evaluations += 1
+        m = self.render(source_mm, pattern)
+        mm = float((m * m).sum())
+        a = float((m * self.data).sum()) / mm if mm > 0 else 0.0
+        return ((self.data - a * m) / self.norm).ravel()
+
+    def misfit(self, source_mm, pattern=None) -> float:
+        """Relative residual norm after the best intensity scale."""
+        r = self.residual(source_mm, pattern)
+        return float(np.sqrt((r * r).sum()))
+
+
+def _centroid_px(img: np.ndarray) -> np.ndarray:
+    tot = img.sum()
+    if tot <= 0:
+        return np.full(2, np.nan)
+    yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
+    return np.array([(xx * img).sum() / tot, (yy * img).sum() / tot])
+
+
+def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front, pattern=None):
+    """Lateral source position at a trial distance whose *modelled* light centroid matches the
+    data's: chief-ray start, then two Newton steps through the exact render (coma and
+    aberrations move the light centroid off the chief ray)."""
+    xy = chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm)
+    want = _centroid_px(patch.data)
+    gain = None
+    for _ in range(2):
+        got = _centroid_px(patch.render(np.array([xy[0], xy[1], z_front - distance_mm]),
+                                        pattern))
+        patch.evaluations += 1
+        if not np.isfinite(got).all():
+            break
+        if gain is None:
+            g = chief_ray_offset(profile, d_in_mm, distance_mm, np.array([1.0, 0.0]))[0]
+            mag = 1.0 + profile.mla.focal_length_mm / (d_in_mm - profile.main_lens.exit_pupil_z_mm)
+            gain = g * profile.sensor.pixel_pitch_mm / mag  # source mm per data pixel
+        xy = xy + (want - got) * gain
+    return xy
+
+
+def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm):
+    """Lateral source position whose chief ray (through the stop centre) meets the MLA at
+    ``target_xy_mm`` — the paraxial-free starting point of the image fit at a trial distance."""
+    lens = profile.main_lens
+    z_src = lens.front_vertex_z_mm - distance_mm
+    probe = 1.0
+    tr = trace_source_fast(lens, (probe, 0.0, z_src), np.zeros(1), np.zeros(1), d_in_mm)
+    gain = tr.x[0] / probe  # MLA height per unit source height (chief ray, linear to 1st order)
+    if not (np.isfinite(gain) and gain != 0):
+        return np.zeros(2)
+    return np.asarray(target_xy_mm, dtype=np.float64) / gain
+
+
+class PhysicalJacobian:
+    """Residual function with a forward-difference Jacobian in physically sized steps.
+
+    Parameters are ``(log distance, lateral mm …)``. Steps are 0.2 % in distance and
+    ``1e-4 × distance`` laterally (~0.1 px of image motion): relative steps would vanish for
+    lateral positions near 0 and only sample the ray-hopping noise of the render. The residual
+    at the point the optimiser just evaluated is reused for the Jacobian's base.
+    """
+
+    def __init__(self, residual: Callable[[np.ndarray], np.ndarray]):
+        self._residual = residual
+        self._last_q: np.ndarray | None = None
+        self._last_r: np.ndarray | None = None
+
+    def fun(self, q: np.ndarray) -> np.ndarray:
+        """Residual at ``q`` (remembered for :meth:`jac`)."""
+        r = self._residual(q)
+        self._last_q, self._last_r = np.array(q, dtype=np.float64), r
+        return r
+
+    def jac(self, q: np.ndarray) -> np.ndarray:
+        """Forward-difference Jacobian at ``q``."""
+        if self._last_q is not None and np.array_equal(self._last_q, q):
+            base = self._last_r
+        else:
+            base = self.fun(q)
+        steps = np.full(len(q), 1e-4 * np.exp(q[0]))
+        steps[0] = 2e-3
+        cols = []
+        for i, h in enumerate(steps):
+            dq = np.zeros(len(q))
+            dq[i] = h
+            cols.append((self._residual(q + dq) - base) / h)
+        return np.column_stack(cols)
+
+
+def fit_point_image(
+    profile: CameraProfile,
+    d_in_mm: float,
+    image: np.ndarray,
+    box: tuple[int, int, int, int],
+    lens_centres_mm: np.ndarray,
+    start_mm: np.ndarray | None = None,
+) -> ImageFit:
+    """Match the exact forward model of a point source to the pixels inside ``box``.
+
+    Without a start, a coarse scan over distance (lateral position from the chief ray through
+    the light's centroid) picks the basin; Nelder–Mead then refines (log distance, x, y).
+    """
+    lens = profile.main_lens
+    patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
+    if patch.norm <= 0:
+        return ImageFit(np.full(3, np.nan), 1.0, np.nan, 0, False, "empty")
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    h, w = patch.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    tot = patch.data.sum()
+    cen_mm = np.array([((xx * patch.data).sum() / tot + box[0] - ax) * pp,
+                       ((yy * patch.data).sum() / tot + box[1] - ay) * pp])
+    mag = 1.0 + profile.mla.focal_length_mm / (d_in_mm - lens.exit_pupil_z_mm)
+    target = cen_mm / mag
+    z_front = lens.front_vertex_z_mm
+
+    def source_of(params):
+        return np.array([params[1], params[2], z_front - np.exp(params[0])])
+
+    def cost(params):
+        return patch.misfit(source_of(params))
+
+    f = lens.focal_length_mm
+    from scipy.optimize import least_squares
+
+    model = PhysicalJacobian(lambda q: patch.residual(source_of(q)))
+    fun, jac = model.fun, model.jac
+
+    def refine(x0):
+        res = least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=15)
+        return float(np.sqrt((res.fun**2).sum())), res.x
+
+    best = None
+    if start_mm is not None and np.isfinite(start_mm).all() and start_mm[2] < z_front - 1.05 * f:
+        best = refine(np.array([np.log(z_front - start_mm[2]), start_mm[0], start_mm[1]]))
+    if best is None or best[0] > GOOD_MISFIT:
+        # no (good) start: scan the distance, lateral position from the chief ray
+        # the scan only has to find the basin: a coarse pupil sample (~1/6 of the rays) will do
+        coarse = _pupil_pattern(SCAN_PUPIL_SAMPLES)
+
+        def scan_cost(params):
+            return patch.misfit(source_of(params), coarse)
+
+        scored = []
+        for d in np.geomspace(1.1 * f, 2e4, 32):
+            xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front, coarse)
+            params = np.array([np.log(d), xy[0], xy[1]])
+            scored.append((scan_cost(params), params))
+        scored.sort(key=lambda t: t[0])
+        # the coarse grid steps ~18 % in distance; the basin is a few % wide: refine around
+        # the two best coarse points before handing over to the local optimiser
+        fine = []
+        for _, params in scored[:2]:
+            for d in np.exp(params[0]) * np.linspace(0.9, 1.1, 9):
+                xy = _match_centroid(patch, profile, d_in_mm, d, target, z_front, coarse)
+                q = np.array([np.log(d), xy[0], xy[1]])
+                fine.append((scan_cost(q), q))
+        scored = sorted(fine + scored, key=lambda t: t[0])
+        for _, params in scored[:2]:
+            cand = refine(params)
+            if best is None or cand[0] < best[0]:
+                best = cand
+
+    # Escape side basins along the line of sight (distance and lateral position trade off
+    # there): scan ±15 %, restart the refinement from a better point if one turns up.
+    pupil = np.array([0.0, 0.0, lens.rim_z_mm])
+    source = source_of(best[1])
+    scales = np.linspace(0.85, 1.15, 13)
+    vals = [patch.misfit(pupil + sc * (source - pupil)) for sc in scales]
+    k = int(np.argmin(vals))
+    if vals[k] < best[0] and abs(scales[k] - 1.0) > 1e-9:
+        s2 = pupil + scales[k] * (source - pupil)
+        cand = refine(np.array([np.log(z_front - s2[2]), s2[0], s2[1]]))
+        if cand[0] < best[0]:
+            best = cand
+
+    # Polish along the line of sight (through the entrance-pupil centre), where the misfit is
+    # shallow but smooth on the 0.5 % scale that finite differences cannot resolve: fit a
+    # parabola to the misfit at seven scale factors, recentre, repeat with half the span; then
+    # let the local refinement move across the valley again, and polish once more.
+    def polish(source, f0, span=0.02):
+        curvature = np.nan
+        for _ in range(3):
+            scales = 1.0 + span * np.linspace(-1.0, 1.0, 7)
+            vals = np.array([patch.misfit(pupil + sc * (source - pupil)) for sc in scales])
+            c2, c1, c0 = np.polyfit(scales - 1.0, vals, 2)
+            if c2 <= 0:
+                k = int(np.argmin(vals))
+                source, f0 = pupil + scales[k] * (source - pupil), float(vals[k])
+                continue
+            vertex = float(np.clip(-c1 / (2 * c2), -span, span))
+            source = pupil + (1.0 + vertex) * (source - pupil)
+            f0 = float(c0 - c1 * c1 / (4 * c2))
+            curvature = 2 * c2
+            span *= 0.5
+        return source, f0, curvature
+
+    source, f0, curvature = polish(source_of(best[1]), best[0])
+    again = refine(np.array([np.log(z_front - source[2]), source[0], source[1]]))
+    if again[0] < f0:
+        source, f0, curvature = polish(source_of(again[1]), again[0], span=0.01)
+    dist = float(z_front - source[2])
+    npix = max(int((patch.data > 0.05 * patch.data.max()).sum()), 1)
+    # misfit is an RMS over the patch: its noise is ~ f0/√npix per unit of misfit
+    sigma_scale = np.sqrt(2 * f0 / np.sqrt(npix) / curvature) if curvature > 0 else np.inf
+    sigma_d = float(sigma_scale) * dist
+    # the valley couples distance and lateral position: the full normal matrix of the three
+    # parameters, with the residual's per-pixel variance, gives the marginal σ of the distance
+    q = np.array([np.log(dist), source[0], source[1]])
+    jm = jac(q)
+    r = fun(q)
+    n_eff = max(npix - 3, 1)
+    s2 = float((r * r).sum()) / n_eff
+    try:
+        cov = s2 * np.linalg.inv(jm.T @ jm)
+        sigma_d = max(sigma_d, dist * float(np.sqrt(max(cov[0, 0], 0.0))))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
+    return ImageFit(source, float(f0), sigma_d, patch.evaluations, bool(np.isfinite(f0)))

@@ -1,0 +1,162 @@
+"""Uncertainty propagation and ``--model auto``: per region, only as much model as needed.
+
+* :func:`propagate` pushes the measurement uncertainty of (y1, y2) through any point model by
+  central differences (vectorised; one extra pair of model calls per input).
+* :class:`ErrorTable` holds each closed-form model's own error (against the exact trace) over
+  distance and offset for one camera; it is computed once per (camera, d_in), in milliseconds.
+* :func:`choose` picks for each region the cheapest model whose predicted total error,
+  ``hypot(model error, propagated measurement error)``, meets the tolerance; ``exact`` (no model
+  error) is the fallback and the default when no tolerance is given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.models import POINT_MODELS
+from lfcam.models.base import Inversion, Status
+from lfcam.optics.trace import forward
+
+# cheapest first (benchmarks/models.py: thin ≫ onaxis > offaxis > exact in regions/s)
+COST_ORDER = ("thin", "onaxis", "offaxis", "exact")
+TABLE_OFFSET_FRACTIONS = np.array([0.0, 0.05, 0.1, 0.2, 0.3, 0.45])
+TABLE_DISTANCES = 96
+
+
+def propagate(
+    model: str, profile: CameraProfile, d_in_mm: float | None, y1_mm, y2_mm, sigma1_mm, sigma2_mm
+) -> tuple[Inversion, np.ndarray]:
+    """Invert with ``model`` and propagate independent height errors to a distance error.
+
+    Returns
+    -------
+    inversion : Inversion
+    sigma_distance_mm : ndarray
+        1-σ distance uncertainty (NaN where the status is not ok or a derivative is undefined).
+    """
+    fn = POINT_MODELS[model]
+    y1 = np.asarray(y1_mm, dtype=np.float64)
+    y2 = np.asarray(y2_mm, dtype=np.float64)
+    s1 = np.broadcast_to(np.asarray(sigma1_mm, dtype=np.float64), y1.shape)
+    s2 = np.broadcast_to(np.asarray(sigma2_mm, dtype=np.float64), y2.shape)
+    inv = fn(profile, d_in_mm, y1, y2)
+    h1 = np.maximum(0.25 * s1, 1e-7)
+    h2 = np.maximum(0.25 * s2, 1e-7)
+    d1 = (fn(profile, d_in_mm, y1 + h1, y2).distance_mm
+          - fn(profile, d_in_mm, y1 - h1, y2).distance_mm) / (2 * h1)
+    d2 = (fn(profile, d_in_mm, y1, y2 + h2).distance_mm
+          - fn(profile, d_in_mm, y1, y2 - h2).distance_mm) / (2 * h2)
+    sigma = np.hypot(d1 * s1, d2 * s2)
+    sigma = np.where(inv.status == Status.OK, sigma, np.nan)
+    return inv, sigma
+
+
+@dataclass(frozen=True)
+class ErrorTable:
+    """Relative distance error of each model against the exact trace, over (distance, |offset|)."""
+
+    log_distance: np.ndarray  # (Nd,) log of distance_mm
+    offsets_mm: np.ndarray  # (No,) |offset| grid
+    relative_error: dict  # model → (No, Nd) array, inf where the model gives no answer
+
+    def predict(self, model: str, distance_mm, offset_mm) -> np.ndarray:
+        """Model error (relative) at the given places; bilinear in (log distance, |offset|)."""
+        if model == "exact":
+            return np.zeros(np.shape(distance_mm))
+        table = self.relative_error[model]
+        dist = np.asarray(distance_mm, dtype=np.float64)
+        offs = np.abs(np.asarray(offset_mm, dtype=np.float64))
+        unknown = ~(np.isfinite(dist) & (dist > 0) & np.isfinite(offs))
+        dist = np.where(unknown, np.exp(self.log_distance[0]), dist)
+        offs = np.where(unknown, 0.0, offs)
+        ld = np.clip(np.log(dist), self.log_distance[0], self.log_distance[-1])
+        off = np.clip(offs, self.offsets_mm[0], self.offsets_mm[-1])
+        fi = np.interp(ld, self.log_distance, np.arange(self.log_distance.size))
+        fj = np.interp(off, self.offsets_mm, np.arange(self.offsets_mm.size))
+        i0 = np.clip(np.floor(fi).astype(int), 0, self.log_distance.size - 2)
+        j0 = np.clip(np.floor(fj).astype(int), 0, self.offsets_mm.size - 2)
+        wi, wj = fi - i0, fj - j0
+        # bilinear, never below the best corner; inf if any corner has no answer
+        corners = np.stack([table[j0, i0], table[j0, i0 + 1], table[j0 + 1, i0],
+                            table[j0 + 1, i0 + 1]])
+        with np.errstate(invalid="ignore"):
+            blend = ((1 - wj) * ((1 - wi) * corners[0] + wi * corners[1])
+                     + wj * ((1 - wi) * corners[2] + wi * corners[3]))
+        known = np.isfinite(corners).all(axis=0) & ~unknown
+        return np.where(known, np.maximum(blend, corners.min(0)), np.inf)
+
+
+@lru_cache(maxsize=16)
+def error_table(profile: CameraProfile, d_in_mm: float | None = None) -> ErrorTable:
+    """Build the :class:`ErrorTable` of ``profile`` (cached per camera and d_in)."""
+    lens = profile.main_lens
+    dist = np.geomspace(1.2 * lens.focal_length_mm, 1e5, TABLE_DISTANCES)
+    offs = TABLE_OFFSET_FRACTIONS * lens.pupil_diameter_mm
+    dd, oo = np.meshgrid(dist, offs)
+    fw = forward(profile, d_in_mm, dd, oo)
+    errors = {}
+    for name in COST_ORDER[:-1]:
+        inv = POINT_MODELS[name](profile, d_in_mm, fw.y1_mm, fw.y2_mm)
+        rel = np.abs(inv.distance_mm - dd) / dd
+        errors[name] = np.where(inv.status == Status.OK, rel, np.inf)
+    return ErrorTable(np.log(dist), offs, errors)
+
+
+def choose(
+    profile: CameraProfile,
+    d_in_mm: float | None,
+    y1_mm,
+    y2_mm,
+    sigma1_mm,
+    sigma2_mm,
+    tolerance_pct: float | None = None,
+) -> tuple[np.ndarray, Inversion, np.ndarray]:
+    """Per region, the cheapest model whose predicted error meets ``tolerance_pct``.
+
+    Parameters
+    ----------
+    tolerance_pct : float or None
+        Allowed relative distance error in percent; ``None`` = the best available (``exact``).
+
+    Returns
+    -------
+    models : ndarray of str
+    inversion : Inversion
+        Each region's answer from its chosen model.
+    sigma_distance_mm : ndarray
+        Propagated 1-σ measurement uncertainty plus the chosen model's predicted error (added
+        in quadrature).
+    """
+    y1 = np.atleast_1d(np.asarray(y1_mm, dtype=np.float64))
+    y2 = np.atleast_1d(np.asarray(y2_mm, dtype=np.float64))
+    s1 = np.broadcast_to(np.asarray(sigma1_mm, dtype=np.float64), y1.shape)
+    s2 = np.broadcast_to(np.asarray(sigma2_mm, dtype=np.float64), y2.shape)
+    ref, ref_sigma = propagate("exact", profile, d_in_mm, y1, y2, s1, s2)
+    chosen = np.full(y1.shape, "exact", dtype=object)
+    if tolerance_pct is not None:
+        table = error_table(profile, d_in_mm)
+        tol = tolerance_pct / 100.0
+        meas = ref_sigma / ref.distance_mm
+        undecided = ref.status == Status.OK
+        for name in COST_ORDER[:-1]:
+            predicted = np.hypot(table.predict(name, ref.distance_mm, ref.offset_mm), meas)
+            take = undecided & (predicted <= tol)
+            chosen[take] = name
+            undecided &= ~take
+    distance = ref.distance_mm.copy()
+    offset = ref.offset_mm.copy()
+    status = ref.status.copy()
+    sigma = ref_sigma.copy()
+    for name in COST_ORDER[:-1]:
+        idx = np.flatnonzero(chosen == name)
+        if idx.size == 0:
+            continue
+        inv, sig = propagate(name, profile, d_in_mm, y1[idx], y2[idx], s1[idx], s2[idx])
+        model_err = error_table(profile, d_in_mm).predict(name, inv.distance_mm, inv.offset_mm)
+        distance[idx], offset[idx], status[idx] = inv.distance_mm, inv.offset_mm, inv.status
+        sigma[idx] = np.hypot(sig, model_err * inv.distance_mm)
+    return chosen.astype(str), Inversion(distance, offset, status), sigma
