@@ -40,12 +40,16 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
+from lfcam.calibrate.microimage import fit_disc_model, fit_discs, own_light_centroids
 from lfcam.calibrate.synthetic import lattice_basis, rotation_matrix
 from lfcam.errors import CalibrationError
 
 MIN_PERIOD_PX = 3.0
 MAX_PERIOD_PX = 120.0
 CHUNK_LENSES = 16384
+# relative RMS misfit of the disc model above which micro-images are not treated as discs
+# (renderer white images: 0.035–0.044; blurred light-field-microscope spots: 0.086–0.099)
+DISC_LIKE_MAX = 0.065
 REJECT_REASONS = ("edge", "dim", "unconverged", "duplicate", "outlier")
 
 Progress = Callable[[str, float], None]
@@ -121,51 +125,84 @@ def apply_homography(h: np.ndarray, ij: np.ndarray) -> np.ndarray:
     return q[:, :2] / q[:, 2:3]
 
 
-def estimate_period(image: np.ndarray, crop: int = 1024) -> float:
-    """Dominant spatial period (px) of the micro-image pattern from the power spectrum.
+def estimate_pitch(image: np.ndarray, crop: int = 768) -> float:
+    """Nearest-neighbour distance (px) of the micro-image lattice from the autocorrelation.
 
-    For a rect lattice this is the pitch; for hex it is the row spacing, pitch·√3/2.
+    The autocorrelation of a periodic image peaks at every lattice vector whatever the
+    micro-image looks like, so this works where the power spectrum's strongest peak does
+    not: with overlapping micro-images (FIELD-NOTES item 3) the fundamental harmonic nearly
+    vanishes (a disc of radius ≈ 0.55·pitch) and the spectrum peaks at a diagonal harmonic.
+    The nearest peak reaching half the zero-lag value (normalised by the overlap area) is
+    refined to sub-pixel by a parabola in x and y.
     """
     h, w = image.shape
     n = min(crop, h, w)
     n -= n % 2
+    if n < 4 * MIN_PERIOD_PX:
+        raise CalibrationError(f"white image too small ({h}×{w}) to find a lens period")
     y0, x0 = (h - n) // 2, (w - n) // 2
     patch = image[y0:y0 + n, x0:x0 + n].astype(np.float64)
-    patch = patch - patch.mean()
-    win = np.hanning(n)
-    spec = np.abs(np.fft.rfft2(patch * win[:, None] * win[None, :])) ** 2
-    fy = np.fft.fftfreq(n)[:, None]
-    fx = np.fft.rfftfreq(n)[None, :]
-    k = np.hypot(fx, fy)
-    valid = (k > 1.0 / MAX_PERIOD_PX) & (k < 1.0 / MIN_PERIOD_PX) & (k > 2.5 / n)
-    if not valid.any():
-        raise CalibrationError(f"white image too small ({h}×{w}) to find a lens period")
-    spec = np.where(valid, spec, 0.0)
-    iy, ix = np.unravel_index(int(np.argmax(spec)), spec.shape)
-    peak = spec[iy, ix]
-    if peak <= 0.0 or peak < 20.0 * float(np.median(spec[valid])):
+    patch -= patch.mean()
+    if not np.any(patch):
         raise CalibrationError("no periodic microlens pattern found in the white image")
-    return float(1.0 / k[iy, ix])
+    spec = np.abs(np.fft.rfft2(patch, s=(2 * n, 2 * n))) ** 2
+    acf = np.fft.fftshift(np.fft.irfft2(spec, s=(2 * n, 2 * n)))
+    ones = np.abs(np.fft.rfft2(np.ones((n, n)), s=(2 * n, 2 * n))) ** 2
+    overlap = np.fft.fftshift(np.fft.irfft2(ones, s=(2 * n, 2 * n)))
+    r = min(n // 2, int(2 * MAX_PERIOD_PX))
+    sub = (acf / np.maximum(overlap, 1.0))[n - r:n + r + 1, n - r:n + r + 1].astype(np.float32)
+    peak0 = float(sub[r, r])
+    dil = cv2.dilate(sub, np.ones((3, 3), np.uint8))
+    ys, xs = np.nonzero((sub >= dil) & (sub > 0.5 * peak0))
+    dist = np.hypot(xs - r, ys - r)
+    keep = (dist >= MIN_PERIOD_PX) & (dist <= MAX_PERIOD_PX)
+    if not keep.any():
+        raise CalibrationError("no periodic microlens pattern found in the white image")
+    k = int(np.argmin(np.where(keep, dist, np.inf)))
+    py, px = int(ys[k]), int(xs[k])
+    if not (0 < py < 2 * r and 0 < px < 2 * r):
+        return float(dist[k])
+
+    def vertex(m1: float, m0: float, p1: float) -> float:
+        den = m1 - 2.0 * m0 + p1
+        return 0.0 if den >= 0 else 0.5 * (m1 - p1) / den
+
+    fx = px + vertex(sub[py, px - 1], sub[py, px], sub[py, px + 1])
+    fy = py + vertex(sub[py - 1, px], sub[py, px], sub[py + 1, px])
+    return float(np.hypot(fx - r, fy - r))
 
 
-def find_candidates(image: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
-    """Integer local maxima of the smoothed image (x, y) and the smoothed value there."""
-    sigma = 0.25 * period
-    smooth = cv2.GaussianBlur(image, (0, 0), sigmaX=sigma, sigmaY=sigma,
-                              borderType=cv2.BORDER_REFLECT)
-    rad = max(1, int(round(0.45 * period)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    dil = cv2.dilate(smooth, kernel, borderType=cv2.BORDER_REFLECT)
-    level = float(np.percentile(smooth[::3, ::3], 99.5))
+def find_candidates(image: np.ndarray, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integer micro-image centre candidates (x, y) and their score.
+
+    Score = local mean − 2·local standard deviation over a disc of radius 0.3·pitch: high
+    where the image is bright *and* flat, i.e. inside a micro-image and away from its edge.
+    Unlike a smoothed-brightness maximum it is not fooled by the bright seams of overlapping
+    micro-images (twice as bright but not flat across). Candidates are its local maxima over
+    a disc of radius 0.45·pitch, above 20 % of the bright level.
+    """
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    rad = max(1, int(round(0.3 * pitch)))
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    k = (k / k.sum()).astype(np.float32)
+    mean = cv2.filter2D(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    mean2 = cv2.filter2D(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    score = mean - 2.0 * np.sqrt(np.maximum(mean2 - mean * mean, 0.0))
+    score = cv2.GaussianBlur(score, (0, 0), sigmaX=max(0.1 * pitch, 0.5),
+                             borderType=cv2.BORDER_REFLECT)
+    rmax = max(1, int(round(0.45 * pitch)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rmax + 1, 2 * rmax + 1))
+    dil = cv2.dilate(score, kernel, borderType=cv2.BORDER_REFLECT)
+    level = float(np.percentile(score[::3, ::3], 99.5))
     if level <= 0.0:
         raise CalibrationError("white image is dark")
-    peaks = (smooth >= dil) & (smooth > 0.1 * level)
+    peaks = (score >= dil) & (score > 0.2 * level)
     ys, xs = np.nonzero(peaks)
     pts = np.stack([xs, ys], axis=1)
-    vals = smooth[ys, xs]
-    if len(pts) > 1:  # plateaus: keep one maximum per 0.5·period cluster (the first)
+    vals = score[ys, xs]
+    if len(pts) > 1:  # plateaus: keep one maximum per 0.5·pitch cluster (the first)
         tree = cKDTree(pts)
-        pairs = tree.query_pairs(0.5 * period, output_type="ndarray")
+        pairs = tree.query_pairs(0.5 * pitch, output_type="ndarray")
         if len(pairs):
             drop = np.zeros(len(pts), bool)
             drop[np.maximum(pairs[:, 0], pairs[:, 1])] = True
@@ -454,23 +491,42 @@ def find_centres(
     img = np.ascontiguousarray(image, dtype=np.float32)
     h, w = img.shape
     progress("period", 0.0)
-    period = estimate_period(img)
+    period = estimate_pitch(img)
     progress("candidates", 0.0)
     cand, _ = find_candidates(img, period)
     grid, pitch, rot, order = rough_lattice(cand)
-    if pitch_hint_px is not None and not (pitch_hint_px / 1.5 < pitch < pitch_hint_px * 1.5):
+    if pitch_hint_px is not None and not (pitch_hint_px / 1.5 < period < pitch_hint_px * 1.5):
         raise CalibrationError(
-            f"measured lens pitch {pitch:.2f} px is far from the profile's {pitch_hint_px:.2f} px"
+            f"measured lens pitch {period:.2f} px is far from the profile's {pitch_hint_px:.2f} px"
         )
-    hx, hy = window_half_widths(grid, pitch, rot)
-    centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
-
-    reason = np.full(len(centres), "", dtype=object)
-    # fully visible = the whole window (the lens's cell, edge ramp included) is on the sensor
-    at_edge = (
-        (centres[:, 0] - hx < 0.0) | (centres[:, 0] + hx > w - 1.0)
-        | (centres[:, 1] - hy < 0.0) | (centres[:, 1] + hy > h - 1.0)
-    )
+    hx, hy = window_half_widths(grid, period, rot)
+    progress("micro-image shape", 0.0)
+    try:
+        disc = fit_disc_model(img, cand, period)
+    except CalibrationError:
+        disc = None
+    use_model = (disc is not None and disc.rel_residual < DISC_LIKE_MAX
+                 and disc.support_px + 0.5 > min(hx, hy))
+    reason = np.full(len(cand), "", dtype=object)
+    if use_model:
+        # touching or overlapping discs: fit the white image, attribute the seams
+        disc_c, coef, conv = fit_discs(img, cand, disc, period, progress=progress)
+        centres, flux = own_light_centroids(img, disc_c, coef, disc)
+        conv &= np.isfinite(centres).all(axis=1)
+        centres = np.where(np.isfinite(centres), centres, disc_c)
+        reach = disc.support_px
+        at_edge = (
+            (disc_c[:, 0] - reach < -0.5) | (disc_c[:, 0] + reach > w - 0.5)
+            | (disc_c[:, 1] - reach < -0.5) | (disc_c[:, 1] + reach > h - 0.5)
+        )
+    else:
+        # separated micro-images (or not disc-like): the cell window holds each one whole
+        centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
+        # fully visible = the whole window (the lens's cell, edge ramp included) is on the sensor
+        at_edge = (
+            (centres[:, 0] - hx < 0.0) | (centres[:, 0] + hx > w - 1.0)
+            | (centres[:, 1] - hy < 0.0) | (centres[:, 1] + hy > h - 1.0)
+        )
     reason[at_edge] = "edge"
     reason[(reason == "") & ~conv] = "unconverged"
 
@@ -492,7 +548,12 @@ def find_centres(
     _mark_dim(idx_all, flux, reason)
 
     progress("fit", 0.0)
-    diag: dict = {"period_px": period, "orientation_order": order, "n_candidates": len(cand)}
+    diag: dict = {"pitch_acf_px": period, "orientation_order": order,
+                  "n_candidates": len(cand),
+                  "centroid_method": "micro-image model" if use_model else "cell window"}
+    if disc is not None:
+        diag.update({"disc_radius_px": disc.radius_px, "disc_edge_px": disc.edge_px,
+                     "disc_rel_residual": disc.rel_residual})
     for _ in range(2):  # refit after outlier rejection
         keep = reason == ""
         idx_k, pts_k = idx_all[keep], centres[keep]
