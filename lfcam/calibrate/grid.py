@@ -40,7 +40,12 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from lfcam.calibrate.microimage import fit_disc_model, fit_discs, own_light_centroids
+from lfcam.calibrate.microimage import (
+    DiscModel,
+    fit_disc_model,
+    fit_discs,
+    own_light_centroids,
+)
 from lfcam.calibrate.synthetic import lattice_basis, rotation_matrix
 from lfcam.errors import CalibrationError
 
@@ -507,18 +512,9 @@ def find_centres(
         disc = None
     use_model = (disc is not None and disc.rel_residual < DISC_LIKE_MAX
                  and disc.support_px + 0.5 > min(hx, hy))
-    reason = np.full(len(cand), "", dtype=object)
     if use_model:
-        # touching or overlapping discs: fit the white image, attribute the seams
-        disc_c, coef, conv = fit_discs(img, cand, disc, period, progress=progress)
-        centres, flux = own_light_centroids(img, disc_c, coef, disc)
-        conv &= np.isfinite(centres).all(axis=1)
-        centres = np.where(np.isfinite(centres), centres, disc_c)
-        reach = disc.support_px
-        at_edge = (
-            (disc_c[:, 0] - reach < -0.5) | (disc_c[:, 0] + reach > w - 0.5)
-            | (disc_c[:, 1] - reach < -0.5) | (disc_c[:, 1] + reach > h - 0.5)
-        )
+        centres, flux, conv, at_edge = _model_centroids(img, cand, disc, period, grid, rot,
+                                                        progress)
     else:
         # separated micro-images (or not disc-like): the cell window holds each one whole
         centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
@@ -527,6 +523,7 @@ def find_centres(
             (centres[:, 0] - hx < 0.0) | (centres[:, 0] + hx > w - 1.0)
             | (centres[:, 1] - hy < 0.0) | (centres[:, 1] + hy > h - 1.0)
         )
+    reason = np.full(len(centres), "", dtype=object)
     reason[at_edge] = "edge"
     reason[(reason == "") & ~conv] = "unconverged"
 
@@ -626,6 +623,67 @@ def find_centres(
         rejected_reason=tuple(str(r) for r in reason[rej]),
         diagnostics=diag,
     )
+
+
+def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: float,
+                     grid: str, rot: float, progress: Progress):
+    """Own-light centroids of touching/overlapping micro-images (``lfcam.calibrate.microimage``).
+
+    Micro-images cut by the sensor border are not measured, but their light reaches the seams
+    of their fully visible neighbours, so they are modelled at the lattice position predicted
+    from their nearest fully visible neighbour (fixed centre, the neighbour's brightness).
+    Returns centroids, fluxes and convergence of the fully visible lenses followed by the
+    candidates that were cut, and an ``edge`` mask marking the latter (reported as rejected,
+    at their candidate position).
+    """
+    h, w = img.shape
+    reach = disc.support_px
+
+    def inside(pts: np.ndarray) -> np.ndarray:
+        return ((pts[:, 0] - reach >= -0.5) & (pts[:, 0] + reach <= w - 0.5)
+                & (pts[:, 1] - reach >= -0.5) & (pts[:, 1] + reach <= h - 0.5))
+
+    disc_c, _, _ = fit_discs(img, cand, disc, pitch, iterations=12, tol_px=5e-3)
+    full = inside(disc_c)
+    if full.sum() < 5:
+        raise CalibrationError(f"only {int(full.sum())} fully visible micro-images found")
+    pts = disc_c[full]
+    mid = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+    origin = pts[np.argmin(np.hypot(*(pts - mid).T))]
+    idx, affine = assign_indices(pts, pitch * rotation_matrix(rot) @ lattice_basis(grid), origin)
+    basis = affine[:, :2]
+    # every lattice site whose micro-image reaches the sensor but is not fully on it
+    corners = np.array([[-reach, -reach], [w + reach, -reach], [-reach, h + reach],
+                        [w + reach, h + reach]])
+    f = (corners - affine[:, 2]) @ np.linalg.inv(basis).T
+    lo, hi = np.floor(f.min(axis=0)) - 1, np.ceil(f.max(axis=0)) + 1
+    gi, gj = np.mgrid[int(lo[0]):int(hi[0]) + 1, int(lo[1]):int(hi[1]) + 1]
+    sites = np.column_stack([gi.ravel(), gj.ravel()])
+    tree = cKDTree(idx)
+    _, near = tree.query(sites)
+    pred = pts[near] + (sites - idx[near]) @ basis.T
+    touches = ((pred[:, 0] + reach > -0.5) & (pred[:, 0] - reach < w - 0.5)
+               & (pred[:, 1] + reach > -0.5) & (pred[:, 1] - reach < h - 0.5))
+    # sites with no measured lens: cut by the border → modelled only (fixed); fully on the
+    # sensor but missed by the candidate search → measured like the others (and still subject
+    # to the ``dim`` test, so an empty site is never reported as a lens)
+    occupied = np.all(sites == idx[near], axis=1)
+    extra = pred[touches & ~occupied]
+    extra_free = inside(extra)
+    allc = np.vstack([pts, extra])
+    fixed = np.r_[np.zeros(len(pts), bool), ~extra_free]
+    centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
+                 & (allc[:, 1] <= h - 1))
+    disc_all, coef, conv_all = fit_discs(img, allc, disc, pitch, fixed=fixed,
+                                         fit_fixed_centres=centre_on, progress=progress)
+    own, flux_own = own_light_centroids(img, disc_all, coef, disc)
+    measured = ~fixed
+    good = np.isfinite(own).all(axis=1)
+    centres = np.vstack([np.where(good[:, None], own, disc_all)[measured], cand[~full]])
+    flux = np.r_[flux_own[measured], np.zeros(int((~full).sum()))]
+    conv = np.r_[(conv_all & good)[measured], np.ones(int((~full).sum()), bool)]
+    at_edge = np.r_[np.zeros(int(measured.sum()), bool), np.ones(int((~full).sum()), bool)]
+    return centres, flux, conv, at_edge
 
 
 def _reindex(idx: np.ndarray, src: str, dst: str) -> np.ndarray:

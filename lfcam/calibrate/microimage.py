@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.spatial import cKDTree
 
 from lfcam.errors import CalibrationError
 
@@ -229,6 +230,8 @@ def fit_discs(
     iterations: int = 40,
     tol_px: float = 1e-3,
     damping: float = 0.6,
+    fixed: np.ndarray | None = None,
+    fit_fixed_centres: np.ndarray | None = None,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit every disc's centre against the data minus its neighbours' current model.
@@ -244,17 +247,39 @@ def fit_discs(
         Brightness planes (a, gx, gy).
     converged : (N,) bool
         The last centre update was below ``10·tol_px``.
+
+    ``fixed`` marks discs whose brightness cannot be measured (micro-images cut by the sensor
+    border): their brightness plane is the nearest measured disc's, extrapolated to their
+    centre, so their light on the seams of visible neighbours is accounted for. Their centres
+    are fitted only when ``fit_fixed_centres`` says so (enough of their edge is visible).
     """
     img = np.asarray(image, dtype=np.float64)
     flat_img = img.ravel()
     c = np.array(centres, dtype=np.float64)
+    fixed = np.zeros(len(c), bool) if fixed is None else np.asarray(fixed, bool)
+    hold = fixed.copy()
+    if fit_fixed_centres is not None:
+        hold &= ~np.asarray(fit_fixed_centres, bool)
+    free = np.flatnonzero(~fixed)
+    if free.size == 0:
+        raise CalibrationError("no micro-image lies fully on the sensor")
     half = model.patch_half_px()
-    step = np.full(len(c), np.inf)
+    step = np.zeros(len(c))
     core = core_radius_px(model, pitch_px)
-    coef = brightness_planes(img, c, half, core)
+    donor = free[cKDTree(c[free]).query(c)[1]]  # nearest free disc (itself when free)
+
+    def planes() -> np.ndarray:
+        out = np.zeros((len(c), 3))
+        out[free] = brightness_planes(img, c[free], half, core)
+        out = out[donor]
+        # fixed discs: the donor's plane extrapolated to their centre
+        out[:, 0] += np.sum(out[:, 1:] * (c - c[donor]), axis=1)
+        return out
+
+    coef = planes()
     for it in range(iterations):
         if it % 4 == 3:
-            coef = brightness_planes(img, c, half, core)
+            coef = planes()
         total = model_image(img.shape, c, coef, model)
         new_c = c.copy()
         for sl in _chunks(len(c)):
@@ -279,12 +304,13 @@ def fit_discs(
             del mk
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
+        new_c[hold] = c[hold]
+        step[fixed] = 0.0
         c = new_c
         progress("micro-image fit", (it + 1) / iterations)
         if float(step.max()) < tol_px:
             break
-    coef = brightness_planes(img, c, half, core)
-    return c, coef, step < 10.0 * tol_px
+    return c, planes(), step < 10.0 * tol_px
 
 
 def own_light_centroids(image: np.ndarray, disc_centres: np.ndarray, coef: np.ndarray,
