@@ -47,6 +47,7 @@ from lfcam.measure.pointfit import _LocalLattice  # the fit's exact lattice look
 from lfcam.optics.paraxial import image_distance_mm
 from lfcam.optics.trace import trace_source_fast
 
+METHOD = "reference-dots-exact"  # Calibration.d_in_method of this route
 PUPIL_SAMPLES = 260  # per side of the stratified front-rim grid (~53 k rays per dot render)
 MIN_CELLS = 6  # micro-images a dot must light to be measured
 DOT_THRESHOLD = 0.01  # micro-images dimmer than this × the brightest one are ignored
