@@ -18,7 +18,8 @@ from lfcam.calibrate.model import (
 )
 
 __all__ = [
-    "Calibration", "GridFit", "calibrate_white", "calibrate_white_file", "find_centres",
+    "Calibration", "GridFit", "calibrate_reference", "calibrate_reference_file",
+    "calibrate_white", "calibrate_white_file", "find_centres",
     "load_calibration", "prepare_white", "read_raster", "save_calibration",
 ]
 
@@ -52,3 +53,50 @@ def calibrate_white_file(white_path, dark=None, profile=None, output=None,
     if output is not None:
         save_calibration(cal, Path(output))
     return cal
+
+
+def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
+                        **kwargs):
+    """Calibrate d_in from a dot-target capture; returns (calibration with d_in, DinResult).
+
+    ``profile`` is a :class:`~lfcam.camera.CameraProfile`; its d_in is only the solver's
+    start. The white calibration supplies the micro-image centroids, pitch and rotation
+    (see :func:`lfcam.calibrate.reference.measure_d_in`).
+    """
+    from lfcam.calibrate.reference import METHOD, measure_d_in
+
+    if tuple(cal.image_size_px) != (capture.shape[1], capture.shape[0]):
+        from lfcam.errors import CalibrationError
+
+        raise CalibrationError(
+            f"reference capture is {capture.shape[1]}×{capture.shape[0]} px but the white "
+            f"image was {cal.image_size_px[0]}×{cal.image_size_px[1]} px")
+    kwargs.setdefault("pitch_px", cal.pitch_px)
+    kwargs.setdefault("rotation_rad", cal.rotation_rad)
+    res = measure_d_in(capture, cal.centres_px, profile, distance_mm, **kwargs)
+    import math
+    from dataclasses import replace
+
+    def finite(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None
+
+    out = cal.with_d_in(res.d_in_mm, METHOD)
+    diagnostics = dict(cal.diagnostics)
+    diagnostics.update({
+        "d_in_sigma_mm": finite(res.sigma_mm), "d_in_paraxial_mm": finite(res.d_in_paraxial_mm),
+        "reference_distance_mm": res.distance_mm, "reference_dots": res.n_dots,
+    })
+    return replace(out, diagnostics=diagnostics), res
+
+
+def calibrate_reference_file(cal: Calibration, capture_path, profile, distance_mm: float):
+    """Read a grey dot-target raster and run :func:`calibrate_reference`."""
+    from lfcam.camera import load_profile
+    from lfcam.errors import CalibrationError
+
+    prof = load_profile(profile) if not hasattr(profile, "main_lens") else profile
+    if prof.sensor.bayer != "none":
+        raise CalibrationError(
+            f"profile {prof.name!r} has a {prof.sensor.bayer} colour filter: the reference "
+            "route needs a grey (un-mosaicked) capture")
+    return calibrate_reference(cal, read_raster(capture_path), prof, distance_mm)

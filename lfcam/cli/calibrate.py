@@ -1,4 +1,5 @@
-"""``lfcam calibrate WHITE [--dark DARK] [--profile P] -o calib.json``."""
+"""``lfcam calibrate WHITE [--dark DARK] [--profile P] [--reference CAPTURE
+--reference-distance MM] -o calib.json``."""
 
 from __future__ import annotations
 
@@ -17,6 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dark", help="dark frame subtracted from the white image")
     p.add_argument("--profile", help="camera profile (name or TOML path): Bayer pattern, "
                    "expected pitch")
+    p.add_argument("--reference", metavar="CAPTURE",
+                   help="dot-target capture (PNG/TIFF, grey): isolated point sources on a plane "
+                   "at --reference-distance; d_in is then calibrated and stored (needs --profile)")
+    p.add_argument("--reference-distance", metavar="MM", type=float,
+                   help="dot plane → front vertex of the main lens, mm")
     p.add_argument("-o", "--output", required=True, help="calibration JSON to write")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run)
@@ -46,18 +52,33 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".json":
         raise CalibrationError(f"output must be a .json file, got {out}")
+    ref = getattr(args, "reference", None)
+    ref_dist = getattr(args, "reference_distance", None)
+    if (ref is None) != (ref_dist is None):
+        raise CalibrationError("--reference and --reference-distance go together")
+    if ref is not None and args.profile is None:
+        raise CalibrationError("--reference needs --profile (main lens, MLA and sensor)")
     bar = _Bar()
     try:
         cal = calibrate_white_file(args.white, dark=args.dark, profile=args.profile,
-                                   output=out, progress=bar)
+                                   output=None if ref is not None else out, progress=bar)
     finally:
         bar.close()
+    din = None
+    if ref is not None:
+        from lfcam.calibrate import calibrate_reference_file, save_calibration
+
+        cal, din = calibrate_reference_file(cal, ref, args.profile, ref_dist)
+        save_calibration(cal, out)
     summary = {
         "output": str(out), "grid": cal.grid, "pitch_px": cal.pitch_px,
         "rotation_rad": cal.rotation_rad, "offset_px": list(cal.offset_px),
         "n_lenses": cal.n_lenses, "model": cal.model, "residual_rms_px": cal.residual_rms_px,
-        "rejected": cal.rejected,
+        "rejected": cal.rejected, "d_in_mm": cal.d_in_mm, "d_in_method": cal.d_in_method,
     }
+    if din is not None:
+        summary.update(d_in_sigma_mm=din.sigma_mm, d_in_paraxial_mm=din.d_in_paraxial_mm,
+                       reference_dots=din.n_dots)
     if args.json:
         print(json.dumps(summary))
     else:
@@ -65,4 +86,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{cal.n_lenses} lenses, {cal.grid} grid, pitch {cal.pitch_px:.5f} px, rotation "
               f"{cal.rotation_rad:.6f} rad, {cal.model} model, residual RMS "
               f"{cal.residual_rms_px:.4f} px; rejected: {rej} -> {out}")
+        if din is not None:
+            print(f"d_in {din.d_in_mm:.4f} ± {din.sigma_mm:.4f} mm from {din.n_dots} dots at "
+                  f"{din.distance_mm:g} mm (paraxial seed eqs. 10-12: "
+                  f"{din.d_in_paraxial_mm:.3f} mm)")
     return 0
