@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 
 from lfcam.calibrate.microimage import (
     DiscModel,
+    circle_window_centroids,
     fit_disc_model,
     fit_discs,
     own_light_centroids,
@@ -55,6 +56,9 @@ CHUNK_LENSES = 16384
 # relative RMS misfit of the disc model above which micro-images are not treated as discs
 # (renderer white images: 0.035–0.044; blurred light-field-microscope spots: 0.086–0.099)
 DISC_LIKE_MAX = 0.065
+# the circle-window centroid is exact when the micro-image support stays this far inside half
+# the pitch (rounding of the start, the gradient shift of the centroid, the 1-px soft edge)
+GAP_MARGIN_PX = 0.75
 REJECT_REASONS = ("edge", "dim", "unconverged", "duplicate", "outlier")
 
 Progress = Callable[[str, float], None]
@@ -126,8 +130,10 @@ class GridFit:
 def apply_homography(h: np.ndarray, ij: np.ndarray) -> np.ndarray:
     """Map lattice indices through a 3×3 homography."""
     ij = np.asarray(ij, dtype=np.float64).reshape(-1, 2)
-    q = ij @ h[:, :2].T + h[:, 2]
-    return q[:, :2] / q[:, 2:3]
+    i, j = ij[:, 0], ij[:, 1]
+    z = h[2, 0] * i + h[2, 1] * j + h[2, 2]
+    return np.column_stack([(h[0, 0] * i + h[0, 1] * j + h[0, 2]) / z,
+                            (h[1, 0] * i + h[1, 1] * j + h[1, 2]) / z])
 
 
 def estimate_pitch(image: np.ndarray, crop: int = 768) -> float:
@@ -187,6 +193,11 @@ def find_candidates(image: np.ndarray, pitch: float) -> tuple[np.ndarray, np.nda
     a disc of radius 0.45·pitch, above 20 % of the bright level.
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
+    if pitch >= 12.0:  # a candidate need only be within a pixel or two: score at half size
+        small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2),
+                           interpolation=cv2.INTER_AREA)
+        pts, vals = find_candidates(small, 0.5 * pitch)
+        return np.clip(2.0 * pts + 0.5, 0, [img.shape[1] - 1, img.shape[0] - 1]), vals
     rad = max(1, int(round(0.3 * pitch)))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
     k = (k / k.sum()).astype(np.float32)
@@ -510,11 +521,24 @@ def find_centres(
         disc = fit_disc_model(img, cand, period)
     except CalibrationError:
         disc = None
-    use_model = (disc is not None and disc.rel_residual < DISC_LIKE_MAX
-                 and disc.support_px + 0.5 > min(hx, hy))
-    if use_model:
+    disc_like = disc is not None and disc.rel_residual < DISC_LIKE_MAX
+    method = "cell window"
+    if disc_like and disc.support_px <= 0.5 * period - GAP_MARGIN_PX:
+        method = "circle window"
+    elif disc_like:
+        method = "micro-image model"
+    if method == "micro-image model":
         centres, flux, conv, at_edge = _model_centroids(img, cand, disc, period, grid, rot,
                                                         progress)
+    elif method == "circle window":
+        # a dark gap around every micro-image: a circle of half the pitch holds one whole
+        centres, flux, conv = circle_window_centroids(img, cand, 0.5 * period,
+                                                      progress=progress)
+        reach = disc.support_px + 0.5
+        at_edge = (
+            (centres[:, 0] - reach < -0.5) | (centres[:, 0] + reach > w - 0.5)
+            | (centres[:, 1] - reach < -0.5) | (centres[:, 1] + reach > h - 0.5)
+        )
     else:
         # separated micro-images (or not disc-like): the cell window holds each one whole
         centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
@@ -547,7 +571,7 @@ def find_centres(
     progress("fit", 0.0)
     diag: dict = {"pitch_acf_px": period, "orientation_order": order,
                   "n_candidates": len(cand),
-                  "centroid_method": "micro-image model" if use_model else "cell window"}
+                  "centroid_method": method}
     if disc is not None:
         diag.update({"disc_radius_px": disc.radius_px, "disc_edge_px": disc.edge_px,
                      "disc_rel_residual": disc.rel_residual})
