@@ -39,7 +39,7 @@ def main() -> None:
     class TimedStatus(PlenopticamStatus):
         """Status object that timestamps every stage message (no effect on the computation)."""
 
-        def status_msg(self, msg, opt=False):
+        def status_msg(self, msg="", opt=False):
             marks.append((str(msg), time.perf_counter()))
             print(f"\n[plenopticam {time.strftime('%H:%M:%S')}] {msg}", flush=True)
             return super().status_msg(msg, opt=False)
@@ -73,7 +73,7 @@ def main() -> None:
     t0 = time.perf_counter()
     top_level.LfpCalibrator(img, cfg, sta).main()
     t1 = time.perf_counter()
-    mics = np.asarray(cfg.calibs[cfg.mic_list], dtype=np.float64)
+    mics = np.asarray(cfg.calibs.get(cfg.mic_list, []), dtype=np.float64).reshape(-1, 4)
     names = [m for m, _ in marks]
     bounds = [t0] + [t for _, t in marks[1:]] + [t1]
     stage_s = np.diff(np.array(bounds)) if marks else np.zeros(0)
