@@ -3,10 +3,12 @@
 This file runs under a *foreign* interpreter (a throwaway venv with ``plenopticam``
 installed), so it imports nothing from lfcam and only numpy + plenopticam.
 
-Usage:  <venv>/bin/python plenopticam_driver.py IMAGE.npy OUT.npz [METHOD]
+Usage:  <venv>/bin/python plenopticam_driver.py IMAGE.npy OUT.npz [METHOD [M]]
 
 IMAGE.npy is a 2-D monochrome white image (rows × columns). METHOD is one of PlenoptiCam's
-``cal_meth`` values (default ``area``, the tool's own default). OUT.npz receives
+``cal_meth`` values (default ``area``, the tool's own default). M is the micro-image size
+in pixels handed to ``LfpCalibrator`` instead of its own estimate (``auto``, the default,
+keeps the estimate; ``LfpCalibrator.main`` uses a preset ``_M`` when one is set). OUT.npz receives
 ``centres_xy`` (final, sorted micro-image centres as x = column, y = row, pixel centres at
 integers — the same convention as lfcam), ``refined_xy`` (the refined detections before
 sorting), ``stage_names`` / ``stage_s`` (seconds per stage, from the tool's own status
@@ -28,6 +30,7 @@ def main() -> None:
     """Load the image, run ``LfpCalibrator.main()``, save centres and timings."""
     image_path, out_path = sys.argv[1], sys.argv[2]
     method = sys.argv[3] if len(sys.argv) > 3 else "area"
+    m_px = sys.argv[4] if len(sys.argv) > 4 else "auto"
 
     import plenopticam
     from plenopticam.cfg import PlenopticamConfig
@@ -69,9 +72,12 @@ def main() -> None:
     cfg.params[cfg.cal_meta] = str(tmp / "calib.json")
     sta = TimedStatus()
     print(f"[plenopticam] version {getattr(plenopticam, '__version__', '?')}, method {method}, "
-          f"image {img.shape[1]}x{img.shape[0]}", flush=True)
+          f"M {m_px}, image {img.shape[1]}x{img.shape[0]}", flush=True)
     t0 = time.perf_counter()
-    top_level.LfpCalibrator(img, cfg, sta).main()
+    cal = top_level.LfpCalibrator(img, cfg, sta)
+    if m_px != "auto":
+        cal._M = int(m_px)
+    cal.main()
     t1 = time.perf_counter()
     mics = np.asarray(cfg.calibs.get(cfg.mic_list, []), dtype=np.float64).reshape(-1, 4)
     names = [m for m, _ in marks]
@@ -81,7 +87,8 @@ def main() -> None:
     np.savez(out_path, centres_xy=mics[:, [1, 0]] if len(mics) else np.zeros((0, 2)),
              refined_xy=ref[:, [1, 0]] if len(ref) else np.zeros((0, 2)),
              stage_names=np.array(names), stage_s=stage_s, total_s=t1 - t0,
-             error=bool(sta.error), version=str(getattr(plenopticam, "__version__", "?")))
+             tool_error=bool(sta.error), m_used=int(cal._M or 0),
+             version=str(getattr(plenopticam, "__version__", "?")))
     print(f"[plenopticam] done in {t1 - t0:.1f} s, {len(mics)} centres", flush=True)
 
 
