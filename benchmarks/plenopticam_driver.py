@@ -19,7 +19,6 @@ memory).
 from __future__ import annotations
 
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -64,7 +63,7 @@ def main() -> None:
 
     img = np.load(image_path).astype(np.float64)
     img /= img.max()
-    tmp = Path(tempfile.mkdtemp(prefix="pcam_"))
+    tmp = Path(out_path).resolve().parent  # the caller's temporary folder
     cfg = PlenopticamConfig()
     cfg.params[cfg.cal_meth] = method
     cfg.params[cfg.opt_dbug] = False
