@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from lfcam.calibrate.grid import GridFit, find_centres
 from lfcam.calibrate.image import prepare_white, read_raster
 from lfcam.calibrate.model import (
@@ -38,16 +40,26 @@ def calibrate_white(white, dark=None, bayer: str = "none", pitch_hint_px: float 
 
 def calibrate_white_file(white_path, dark=None, profile=None, output=None,
                          progress=None) -> Calibration:
-    """Read WHITE (and DARK), calibrate, optionally save atomically to ``output``."""
-    bayer, hint = "none", None
-    if profile is not None:
-        from lfcam.camera import load_profile
+    """Read WHITE (and DARK), calibrate, optionally save atomically to ``output``.
 
-        prof = load_profile(profile)
-        bayer = prof.sensor.bayer
-        hint = prof.mla.pitch_mm / prof.sensor.pixel_pitch_mm
-    white = read_raster(white_path)
-    dark_img = None if dark is None else read_raster(dark)
+    WHITE and DARK may be anything :func:`lfcam.io.load_capture` reads (Lytro ``.lfp``/``.lfr``
+    containers and bare packed raws, camera raws, PNG/TIFF rasters). The capture's black
+    level is removed (when no dark frame is given) and its Bayer pattern, or else the
+    profile's, is equalised.
+    """
+    from lfcam.camera import load_profile
+    from lfcam.io import load_capture
+
+    prof = None if profile is None else load_profile(profile)
+    hint = None if prof is None else prof.mla.pitch_mm / prof.sensor.pixel_pitch_mm
+    cap = load_capture(white_path, prof)
+    white = np.asarray(cap.raw, dtype=np.float32)
+    bayer = cap.bayer if cap.bayer != "none" or prof is None else prof.sensor.bayer
+    if dark is None:
+        white = white - np.float32(cap.black_level)
+        dark_img = None
+    else:
+        dark_img = np.asarray(load_capture(dark, prof).raw, dtype=np.float32)
     cal = calibrate_white(white, dark_img, bayer, hint, progress,
                           sha256_file(white_path), None if dark is None else sha256_file(dark))
     if output is not None:
