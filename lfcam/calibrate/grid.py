@@ -193,11 +193,6 @@ def find_candidates(image: np.ndarray, pitch: float) -> tuple[np.ndarray, np.nda
     a disc of radius 0.45·pitch, above 20 % of the bright level.
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
-    if pitch >= 12.0:  # a candidate need only be within a pixel or two: score at half size
-        small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2),
-                           interpolation=cv2.INTER_AREA)
-        pts, vals = find_candidates(small, 0.5 * pitch)
-        return np.clip(2.0 * pts + 0.5, 0, [img.shape[1] - 1, img.shape[0] - 1]), vals
     rad = max(1, int(round(0.3 * pitch)))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
     k = (k / k.sum()).astype(np.float32)
