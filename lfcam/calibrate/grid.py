@@ -2,19 +2,17 @@
 
 Pipeline (every step vectorised over all lenses; no Python loop per lens):
 
-1. **Period** — strongest non-DC peak of the power spectrum of a central crop.
-2. **Candidates** — Gaussian smoothing (σ = period/4) and a maximum filter of radius
-   0.45·period; a candidate is a local maximum brighter than 10 % of the bright level.
+1. **Pitch** — nearest peak of the autocorrelation of a central crop (robust to overlapping
+   micro-images, whose fundamental harmonic nearly vanishes).
+2. **Candidates** — local maxima of a flatness score (local mean − 2 local standard
+   deviations over 0.3·pitch): inside a micro-image, never on an edge or a bright seam.
 3. **Rough lattice** — nearest-neighbour vectors of the candidates; the 4-fold vs 6-fold
-   orientation order decides rect vs hex and gives the rotation; the median neighbour
-   distance gives the pitch.
-4. **Centroids** — each centre is the fixed point of an intensity centroid inside a window
-   centred on it: an axis-aligned rectangle with a one-pixel linear edge, half-widths
-   (p/2, p/2) for rect and a brick (p/2, √3p/4) for hex — a fundamental domain of the lattice,
-   so it holds one whole micro-image and none of its neighbours' light. The window is
-   separable, so each iteration is two small matrix products per lens. A point-symmetric
-   window makes the fixed point the true intensity centroid of any micro-image that fits
-   inside it, whatever the brightness gradient.
+   orientation order decides rect vs hex and gives the rotation.
+4. **Centroids** — intensity centroid of each micro-image, by one of three methods chosen
+   from a disc model of the micro-images (``lfcam.calibrate.microimage``): a soft circle
+   window when discs have a dark gap; the micro-image model (disc fit, seam attribution)
+   when they touch or overlap; a separable cell window (p × p rect, brick p × √3p/2 hex)
+   when they are not disc-like.
 5. **Indices** — lattice indices (i, j) by rounding in the rough basis, re-fitted on a disc
    of lenses that doubles in radius, so mild distortion never skips a row.
 6. **Models** — least squares, robustly reweighted: similarity (pitch, rotation, offset) for
@@ -24,8 +22,8 @@ Pipeline (every step vectorised over all lenses; no Python loop per lens):
 7. **Rejections** — clipped by the image edge, dim (flux under 70 % of the local median of its
    lattice neighbours: partial or shadowed), window not converged, duplicate index,
    grid outlier (residual above max(0.25 px, 6 robust sigmas)). Rejected lenses are
-   reported with their reason, never silently dropped, and no lens is ever added from
-   the model: every returned centre is a measured micro-image.
+   reported with their reason, never silently dropped, and every returned centre is a
+   measured micro-image (the model only predicts where to measure).
 
 The returned centre is the **intensity centroid** of each micro-image (FIELD-NOTES item 2).
 """

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from lfcam.errors import CalibrationError
 
+CACHE_PIXELS = 8_000_000  # patch pixels kept between the two passes of a fit iteration
 CHUNK = 8192  # lenses per vectorised block (memory ≈ CHUNK × patch² × 8 doubles)
 Progress = Callable[[str, float], None]
 
@@ -91,17 +92,24 @@ class _Patches:
                                  (len(base), off.size, off.size))
         self.inside = (self.x >= 0) & (self.x < w) & (self.y >= 0) & (self.y < h)
         self.flat = np.where(self.inside, self.y * w + self.x, 0)
+        self.base = base
+        self.off = off.astype(np.float32)
 
 
 def _disc_terms(p: _Patches, centres: np.ndarray, coef: np.ndarray, model: DiscModel):
-    """Offsets, distance, coverage, edge-band mask and brightness of each patch pixel."""
-    dx = p.x - centres[:, 0, None, None]
-    dy = p.y - centres[:, 1, None, None]
-    d = np.hypot(dx, dy)
-    t = (model.radius_px + model.edge_px - d) / (2.0 * model.edge_px)
+    """Offsets, distance, coverage, edge-band mask and brightness of each patch pixel.
+
+    Float32 (offsets are taken from the patch's integer base first, so nothing is lost).
+    """
+    frac = (centres - p.base).astype(np.float32)
+    dx = p.off[None, None, :] - frac[:, 0, None, None]
+    dy = p.off[None, :, None] - frac[:, 1, None, None]
+    d = np.sqrt(dx * dx + dy * dy)
+    t = (np.float32(model.radius_px + model.edge_px) - d) * np.float32(0.5 / model.edge_px)
     cov = np.clip(t, 0.0, 1.0) * p.inside
     band = (t > 0.0) & (t < 1.0) & p.inside
-    b = coef[:, 0, None, None] + coef[:, 1, None, None] * dx + coef[:, 2, None, None] * dy
+    cf = coef.astype(np.float32)
+    b = cf[:, 0, None, None] + cf[:, 1, None, None] * dx + cf[:, 2, None, None] * dy
     return dx, dy, d, cov, band, b
 
 
@@ -277,31 +285,41 @@ def fit_discs(
         return out
 
     coef = planes()
+    cache_ok = len(c) * (2 * half + 1) ** 2 <= CACHE_PIXELS
     for it in range(iterations):
         if it % 4 == 3:
             coef = planes()
-        total = model_image(img.shape, c, coef, model)
-        new_c = c.copy()
+        total = np.zeros(img.size)
+        cache = []
         for sl in _chunks(len(c)):
             p = _Patches(img.shape, c[sl], half)
-            dx, dy, d, cov, band, b = _disc_terms(p, c[sl], coef[sl], model)
-            mk = np.maximum(b, 0.0) * cov
-            r = np.where(p.inside, flat_img[p.flat] - total[p.flat], 0.0)
+            terms = _disc_terms(p, c[sl], coef[sl], model)
+            mk = np.maximum(terms[5], 0.0) * terms[3]
+            total += np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=img.size)
+            cache.append((p, terms) if cache_ok else None)
+        new_c = c.copy()
+        for sl, hit in zip(_chunks(len(c)), cache, strict=True):
+            if hit is None:
+                p = _Patches(img.shape, c[sl], half)
+                hit = (p, _disc_terms(p, c[sl], coef[sl], model))
+            p, (dx, dy, d, cov, band, b) = hit
+            n = len(dx)
+            r = np.where(p.inside, flat_img[p.flat] - total[p.flat], 0.0).astype(np.float32)
             inv = np.where(band, b / (2.0 * model.edge_px * np.where(d > 0, d, 1.0)), 0.0)
-            jx = (-coef[sl, 1, None, None] * cov + dx * inv).reshape(len(dx), -1)
-            jy = (-coef[sl, 2, None, None] * cov + dy * inv).reshape(len(dx), -1)
-            rr = r.reshape(len(dx), -1)
-            axx = np.einsum("ij,ij->i", jx, jx) + 1e-12
-            ayy = np.einsum("ij,ij->i", jy, jy) + 1e-12
-            axy = np.einsum("ij,ij->i", jx, jy)
-            bx = np.einsum("ij,ij->i", jx, rr)
-            by = np.einsum("ij,ij->i", jy, rr)
+            cf = coef[sl].astype(np.float32)
+            jx = (-cf[:, 1, None, None] * cov + dx * inv).reshape(n, -1)
+            jy = (-cf[:, 2, None, None] * cov + dy * inv).reshape(n, -1)
+            rr = r.reshape(n, -1)
+            axx = np.einsum("ij,ij->i", jx, jx, dtype=np.float64) + 1e-12
+            ayy = np.einsum("ij,ij->i", jy, jy, dtype=np.float64) + 1e-12
+            axy = np.einsum("ij,ij->i", jx, jy, dtype=np.float64)
+            bx = np.einsum("ij,ij->i", jx, rr, dtype=np.float64)
+            by = np.einsum("ij,ij->i", jy, rr, dtype=np.float64)
             det = axx * ayy - axy * axy
             ok = det > 0
             sx = np.where(ok, (ayy * bx - axy * by) / np.where(ok, det, 1.0), 0.0)
             sy = np.where(ok, (axx * by - axy * bx) / np.where(ok, det, 1.0), 0.0)
             dc = damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
-            del mk
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
         new_c[hold] = c[hold]
