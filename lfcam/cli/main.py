@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "lfcam.cli.decode",
     "lfcam.cli.distance",
     "lfcam.cli.batch",
+    "lfcam.cli.calibrate",
 ]
 
 

@@ -1,0 +1,114 @@
+"""Calibration: microlens centres from white images, lattice model, d_in from a reference plane.
+
+See docs/calibration.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lfcam.calibrate.grid import GridFit, find_centres
+from lfcam.calibrate.image import prepare_white, read_raster
+from lfcam.calibrate.model import (
+    Calibration,
+    calibration_from_fit,
+    load_calibration,
+    save_calibration,
+    sha256_file,
+)
+
+__all__ = [
+    "Calibration", "GridFit", "calibrate_reference", "calibrate_reference_file",
+    "calibrate_white", "calibrate_white_file", "find_centres",
+    "load_calibration", "prepare_white", "read_raster", "save_calibration",
+]
+
+
+def calibrate_white(white, dark=None, bayer: str = "none", pitch_hint_px: float | None = None,
+                    progress=None, white_sha256: str | None = None,
+                    dark_sha256: str | None = None) -> Calibration:
+    """Calibrate from in-memory arrays (see :func:`lfcam.calibrate.grid.find_centres`)."""
+    img, n_hot = prepare_white(white, dark, bayer)
+    kwargs = {} if progress is None else {"progress": progress}
+    fit = find_centres(img, pitch_hint_px=pitch_hint_px, **kwargs)
+    cal = calibration_from_fit(fit, (img.shape[1], img.shape[0]), white_sha256, dark_sha256)
+    cal.diagnostics["hot_pixels_replaced"] = n_hot
+    return cal
+
+
+def calibrate_white_file(white_path, dark=None, profile=None, output=None,
+                         progress=None) -> Calibration:
+    """Read WHITE (and DARK), calibrate, optionally save atomically to ``output``.
+
+    WHITE and DARK may be anything :func:`lfcam.io.load_capture` reads (Lytro ``.lfp``/``.lfr``
+    containers and bare packed raws, camera raws, PNG/TIFF rasters). The capture's black
+    level is removed (when no dark frame is given) and its Bayer pattern, or else the
+    profile's, is equalised.
+    """
+    from lfcam.camera import load_profile
+    from lfcam.io import load_capture
+
+    prof = None if profile is None else load_profile(profile)
+    hint = None if prof is None else prof.mla.pitch_mm / prof.sensor.pixel_pitch_mm
+    cap = load_capture(white_path, prof)
+    white = np.asarray(cap.raw, dtype=np.float32)
+    bayer = cap.bayer if cap.bayer != "none" or prof is None else prof.sensor.bayer
+    if dark is None:
+        white = white - np.float32(cap.black_level)
+        dark_img = None
+    else:
+        dark_img = np.asarray(load_capture(dark, prof).raw, dtype=np.float32)
+    cal = calibrate_white(white, dark_img, bayer, hint, progress,
+                          sha256_file(white_path), None if dark is None else sha256_file(dark))
+    if output is not None:
+        save_calibration(cal, Path(output))
+    return cal
+
+
+def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
+                        **kwargs):
+    """Calibrate d_in from a dot-target capture; returns (calibration with d_in, DinResult).
+
+    ``profile`` is a :class:`~lfcam.camera.CameraProfile`; its d_in is only the solver's
+    start. The white calibration supplies the micro-image centroids, pitch and rotation
+    (see :func:`lfcam.calibrate.reference.measure_d_in`).
+    """
+    from lfcam.calibrate.reference import METHOD, measure_d_in
+
+    if tuple(cal.image_size_px) != (capture.shape[1], capture.shape[0]):
+        from lfcam.errors import CalibrationError
+
+        raise CalibrationError(
+            f"reference capture is {capture.shape[1]}×{capture.shape[0]} px but the white "
+            f"image was {cal.image_size_px[0]}×{cal.image_size_px[1]} px")
+    kwargs.setdefault("pitch_px", cal.pitch_px)
+    kwargs.setdefault("rotation_rad", cal.rotation_rad)
+    res = measure_d_in(capture, cal.centres_px, profile, distance_mm, **kwargs)
+    import math
+    from dataclasses import replace
+
+    def finite(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None
+
+    out = cal.with_d_in(res.d_in_mm, METHOD)
+    diagnostics = dict(cal.diagnostics)
+    diagnostics.update({
+        "d_in_sigma_mm": finite(res.sigma_mm), "d_in_paraxial_mm": finite(res.d_in_paraxial_mm),
+        "reference_distance_mm": res.distance_mm, "reference_dots": res.n_dots,
+    })
+    return replace(out, diagnostics=diagnostics), res
+
+
+def calibrate_reference_file(cal: Calibration, capture_path, profile, distance_mm: float):
+    """Read a grey dot-target raster and run :func:`calibrate_reference`."""
+    from lfcam.camera import load_profile
+    from lfcam.errors import CalibrationError
+
+    prof = load_profile(profile) if not hasattr(profile, "main_lens") else profile
+    if prof.sensor.bayer != "none":
+        raise CalibrationError(
+            f"profile {prof.name!r} has a {prof.sensor.bayer} colour filter: the reference "
+            "route needs a grey (un-mosaicked) capture")
+    return calibrate_reference(cal, read_raster(capture_path), prof, distance_mm)

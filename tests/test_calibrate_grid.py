@@ -1,0 +1,92 @@
+"""Centre detection and lattice fit against the independent synthetic generator's truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lfcam.calibrate import calibrate_white
+from lfcam.calibrate.grid import fit_similarity
+from lfcam.calibrate.synthetic import lattice_basis, make_white, rotation_matrix
+from lfcam.errors import CalibrationError
+
+
+def _score(sw, cal, w, h):
+    truth = sw.centres_px
+    hx = 0.5 * cal.pitch_px
+    hy = hx if sw.grid == "rect" else np.sqrt(3) * cal.pitch_px / 4
+    visible = ((truth[:, 0] - hx >= 0) & (truth[:, 0] + hx <= w - 1)
+               & (truth[:, 1] - hy >= 0) & (truth[:, 1] + hy <= h - 1))
+    d, i = cKDTree(cal.centres_px).query(truth)
+    found = d < 1.0
+    err = cal.centres_px[i[found]] - truth[found]
+    # every lattice position the generator drew (partial lenses included)
+    a = sw.pitch_px * rotation_matrix(sw.rotation_rad) @ lattice_basis(sw.grid)
+    ij = np.mgrid[-80:81, -80:81].reshape(2, -1).T
+    drawn = sw.offset_px + ij @ a.T
+    d2, _ = cKDTree(drawn).query(cal.centres_px)
+    _, pitch_t, rot_t, _ = fit_similarity(sw.indices, truth, sw.grid)
+    return {
+        "rms": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
+        "missed": int((visible & ~found).sum()),
+        "invented": int((d2 > 1.5).sum()),
+        "pitch_rel": abs(cal.pitch_px - pitch_t) / pitch_t,
+        "rot_err": abs(cal.rotation_rad - rot_t),
+    }
+
+
+@pytest.mark.parametrize("grid", ["rect", "hex"])
+@pytest.mark.parametrize("noisy", [False, True])
+def test_synthetic_white_accuracy(grid, noisy):
+    w, h = 640, 480
+    pitch = 16.0 if grid == "rect" else 14.3
+    sw = make_white(w, h, pitch, grid=grid, rotation_rad=np.deg2rad(-1.7 if noisy else 1.9),
+                    offset_px=(320.37, 240.81), radius_frac=0.42 if grid == "rect" else 0.40,
+                    cats_eye=0.3, vignetting=0.5, noise_electrons=noisy,
+                    read_noise=3.0 if noisy else 0.0, hot_pixel_fraction=1e-4 if noisy else 0.0,
+                    background=50.0 if noisy else 0.0, seed=3)
+    cal = calibrate_white(sw.image)
+    s = _score(sw, cal, w, h)
+    assert cal.grid == grid
+    assert s["rms"] <= (0.05 if noisy else 0.02), s
+    assert s["missed"] == 0 and s["invented"] == 0, s
+    assert s["pitch_rel"] <= 1e-4, s
+    assert s["rot_err"] <= 1e-4, s
+    assert cal.residual_rms_px < 0.05
+
+
+def test_symmetric_discs_recover_generator_lattice():
+    """Without vignetting the centroid lattice is the drawn lattice itself."""
+    sw = make_white(500, 400, 15.3, grid="rect", rotation_rad=np.deg2rad(0.7),
+                    offset_px=(250.23, 199.61), vignetting=0.0)
+    cal = calibrate_white(sw.image)
+    assert abs(cal.pitch_px - 15.3) / 15.3 < 1e-5
+    assert abs(cal.rotation_rad - np.deg2rad(0.7)) < 1e-5
+    # offset is the lattice point (0, 0) nearest the image centre: a lattice position
+    f = np.linalg.solve(15.3 * rotation_matrix(np.deg2rad(0.7)),
+                        np.array(cal.offset_px) - (250.23, 199.61))
+    assert np.abs(f - np.round(f)).max() < 1e-3
+
+
+def test_shadowed_lenses_rejected_not_invented():
+    w, h = 480, 480
+    sw = make_white(w, h, 16.0, vignetting=0.0, offset_px=(240.4, 240.2))
+    img = sw.image.copy()
+    img[:, :93] = 0.0  # a field stop cutting the column of discs at x = 96.4 ± 6.7
+    cal = calibrate_white(img)
+    cut = sum(v for k, v in cal.rejected.items() if k != "edge")
+    assert cut == 29  # the whole cut column (29 lenses) is rejected, with a reason
+    assert cal.centres_px[:, 0].min() > 105
+    d, _ = cKDTree(sw.disc_centres_px).query(cal.centres_px)
+    assert d.max() < 0.02  # every accepted centre is a real, unbiased lens
+
+
+def test_not_a_white_image():
+    rng = np.random.default_rng(0)
+    with pytest.raises(CalibrationError):
+        calibrate_white(rng.normal(100, 10, (200, 200)))
+    with pytest.raises(CalibrationError):
+        calibrate_white(np.zeros((100, 100)))
+    with pytest.raises(CalibrationError):
+        calibrate_white(np.full((100, 100), np.nan))
