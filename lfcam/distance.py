@@ -21,7 +21,6 @@ uncertainty) meets ``tolerance_pct`` (default: best available, i.e. ``exact``).
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -32,7 +31,7 @@ import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
-from lfcam.decode.grid import GridSpec, grid_from_dict
+from lfcam.decode.grid import MAX_CALIBRATION_BYTES, GridSpec, grid_from_dict
 from lfcam.errors import CalibrationError, InputFileError, LfcamError
 from lfcam.export import RegionResult, write_distance_png, write_distance_tiff, write_regions_csv
 from lfcam.measure.geometry import lenslet_centres_mm, regularise_to_lattice
@@ -48,6 +47,7 @@ from lfcam.measure.regions import Region, find_regions
 from lfcam.models import auto
 from lfcam.models.base import Status
 from lfcam.optics.trace import forward
+from lfcam.validate import read_json
 
 MODELS = ("auto", "exact", "offaxis", "onaxis", "thin", "refocus")
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
@@ -75,12 +75,7 @@ def load_calibration(path: str | Path) -> Calibration:
         Missing or unreadable file, invalid JSON, or invalid grid values.
     """
     p = Path(path)
-    if not p.is_file():
-        raise CalibrationError(f"calibration file not found: {p}")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{p}: not a valid JSON calibration ({exc})") from None
+    data = read_json(p, CalibrationError, "calibration", MAX_CALIBRATION_BYTES)
     grid = grid_from_dict(data)
     d_in = data.get("d_in_mm") if isinstance(data, dict) else None
     valid = isinstance(d_in, (int, float)) and math.isfinite(d_in) and d_in > 0

@@ -1,12 +1,31 @@
-"""Field validation for parsed TOML/JSON mappings (profiles, scenes): every failure names
-its key and raises the caller's :class:`~lfcam.errors.LfcamError` subclass."""
+"""Field validation for parsed TOML/JSON mappings (profiles, scenes, calibrations): every
+failure names its key and raises the caller's :class:`~lfcam.errors.LfcamError` subclass."""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import Any
 
 from lfcam.errors import LfcamError
+
+
+def read_json(path: str | Path, error: type[LfcamError], what: str,
+              max_bytes: int = 64 * 1024 * 1024) -> Any:
+    """Parse a JSON file; ``error`` with one line for a missing, oversized, non-UTF-8 or
+    malformed file (``what`` names the kind of file in the message)."""
+    p = Path(path)
+    if not p.is_file():
+        raise error(f"{what} file not found: {p}")
+    if p.stat().st_size > max_bytes:
+        raise error(f"{p}: {what} file larger than {max_bytes} bytes")
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise error(f"{p}: not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise error(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
 
 
 class Fields:

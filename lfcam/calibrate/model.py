@@ -35,6 +35,7 @@ import numpy as np
 
 from lfcam.calibrate.grid import REJECT_REASONS, GridFit, apply_homography
 from lfcam.errors import CalibrationError
+from lfcam.validate import read_json
 
 FORMAT = "lfcam-calibration"
 VERSION = 1
@@ -333,15 +334,5 @@ def load_calibration(path: str | Path) -> Calibration:
     CalibrationError
         Missing file, not JSON, or any invalid field (named in the message).
     """
-    p = Path(path)
-    if not p.is_file():
-        raise CalibrationError(f"calibration file not found: {p}")
-    if p.stat().st_size > MAX_FILE_BYTES:
-        raise CalibrationError(f"{p}: too large to be a calibration file")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise CalibrationError(f"{p}: not UTF-8 text") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-    return calibration_from_dict(data)
+    return calibration_from_dict(read_json(path, CalibrationError, "calibration",
+                                           MAX_FILE_BYTES))

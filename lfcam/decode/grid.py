@@ -15,7 +15,6 @@ half a pitch to the right of even ones.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 
 from lfcam.camera import GRIDS
 from lfcam.errors import CalibrationError
+from lfcam.validate import read_json
 
 MAX_PITCH_PX = 1000.0
 MAX_CALIBRATION_BYTES = 256 * 1024 * 1024
@@ -195,13 +195,5 @@ def grid_from_dict(data: Any) -> GridSpec:
 
 def load_grid(path: str | Path) -> GridSpec:
     """Read a calibration JSON file (CONTRACT §3) into a :class:`GridSpec`."""
-    p = Path(path)
-    if not p.is_file():
-        raise CalibrationError(f"calibration file not found: {p}")
-    if p.stat().st_size > MAX_CALIBRATION_BYTES:
-        raise CalibrationError(f"{p}: calibration file larger than {MAX_CALIBRATION_BYTES} bytes")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{p}: not a JSON calibration file ({exc})") from None
-    return grid_from_dict(data)
+    return grid_from_dict(read_json(path, CalibrationError, "calibration",
+                                    MAX_CALIBRATION_BYTES))

@@ -6,7 +6,6 @@ and raises :class:`~lfcam.errors.SceneError` naming the offending key.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,7 +13,7 @@ from typing import Any
 
 from lfcam.camera import BAYER_PATTERNS
 from lfcam.errors import SceneError
-from lfcam.validate import Fields
+from lfcam.validate import Fields, read_json
 
 MAX_RAYS = 500_000_000  # per source; bounds the work an untrusted scene can ask for
 MAX_SAMPLES = 4096
@@ -272,15 +271,4 @@ def scene_from_dict(data: Any) -> Scene:
 
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene JSON file."""
-    p = Path(path)
-    if not p.is_file():
-        raise SceneError(f"scene file not found: {p}")
-    if p.stat().st_size > 16 * 1024 * 1024:
-        raise SceneError(f"{p}: scene file larger than 16 MB")
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise SceneError(f"{p}: not UTF-8 text") from None
-    except json.JSONDecodeError as exc:
-        raise SceneError(f"{p}: invalid JSON: {exc}") from None
-    return scene_from_dict(data)
+    return scene_from_dict(read_json(path, SceneError, "scene", 16 * 1024 * 1024))
