@@ -326,7 +326,9 @@ def fit_discs(
         step[fixed] = 0.0
         c = new_c
         progress("micro-image fit", (it + 1) / iterations)
-        if float(step.max()) < tol_px:
+        # settled: nearly every disc moves < tol; a few edge pixels crossing the ramp's kinks
+        # keep some discs bouncing at a few thousandths of a pixel, harmlessly
+        if float(np.percentile(step, 99)) < tol_px and float(step.max()) < 5.0 * tol_px:
             break
     return c, planes(), step < 10.0 * tol_px
 
