@@ -90,3 +90,42 @@ def test_not_a_white_image():
         calibrate_white(np.zeros((100, 100)))
     with pytest.raises(CalibrationError):
         calibrate_white(np.full((100, 100), np.nan))
+
+
+def _lattice(radial, noise_px, seed=0):
+    """Points of a rotated, slightly projective hex lattice, optionally radially distorted."""
+    from lfcam.calibrate.grid import predict_lattice
+
+    rng = np.random.default_rng(seed)
+    ij = np.mgrid[-40:41, -30:31].reshape(2, -1).T
+    a = 14.3 * rotation_matrix(0.01) @ lattice_basis("hex")
+    h = np.array([[a[0, 0], a[0, 1], 1000.0], [a[1, 0], a[1, 1], 700.0], [2e-6, -1e-6, 1.0]])
+    pts = predict_lattice(h, radial, ij) + rng.normal(0.0, noise_px, (len(ij), 2))
+    return ij, pts, h
+
+
+def test_radial_term_recovered_and_only_when_warranted():
+    """The radial lattice term is fitted to a known distortion and rejected when absent
+    (truth: the generating parameters; the decision is the F-test plus a 0.01 px effect)."""
+    from lfcam.calibrate.grid import (
+        _richer_warranted,
+        _rss,
+        fit_projective,
+        fit_radial,
+        predict_lattice,
+    )
+
+    truth = (1010.0, 690.0, -2.0e-3, 1.5e-3)
+    for radial, expect in ((truth, True), (None, False)):
+        ij, pts, h = _lattice(radial, 0.01)
+        w = np.ones(len(ij))
+        h_p, w_p = fit_projective(ij, pts, w, h)
+        h_r, rad, _ = fit_radial(ij, pts, w_p, h_p, np.array([1000.0, 700.0]))
+        shift = float(np.abs(predict_lattice(h_r, rad, ij) - predict_lattice(h_p, None, ij)).max())
+        use, _ = _richer_warranted(_rss(h_p, ij, pts, w_p), _rss(h_r, ij, pts, w_p, rad), 8, 12,
+                                   float(w_p.sum()), shift)
+        assert use is expect
+        if expect:
+            # the distortion is recovered: predictions within the 0.01 px noise level
+            err = predict_lattice(h_r, rad, ij) - predict_lattice(h, truth, ij)
+            assert float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) < 0.005

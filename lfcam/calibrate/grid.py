@@ -48,6 +48,8 @@ from lfcam.calibrate.microimage import (
 from lfcam.calibrate.synthetic import lattice_basis, rotation_matrix
 from lfcam.errors import CalibrationError
 
+RADIAL_NORM_PX = 1000.0  # ρ unit of the radial lattice term
+RADIAL_FIT_LENSES = 5_000
 MIN_PERIOD_PX = 3.0
 MAX_PERIOD_PX = 120.0
 CHUNK_LENSES = 16384
@@ -79,7 +81,8 @@ class GridFit:
     offset_px : (2,) array
         Similarity-model position of index (0, 0) (the lens nearest the image centre).
     model : str
-        Model used for residuals: ``"similarity"``, ``"affine"`` or ``"projective"``.
+        Model used for residuals: ``"similarity"``, ``"affine"``, ``"projective"`` or
+        ``"projective+radial"``.
     matrix : (3, 3) array
         Homography of the chosen model: (x, y, 1) ∝ matrix @ (i, j, 1).
     centres_px : (N, 2) array
@@ -96,6 +99,8 @@ class GridFit:
         One reason per rejected candidate (see ``REJECT_REASONS``).
     diagnostics : dict
         Model-selection statistics and counts.
+    radial : tuple or None
+        (cx, cy, k1, k2) of the radial term (:func:`apply_radial`) when the model has one.
     """
 
     grid: str
@@ -111,10 +116,11 @@ class GridFit:
     rejected_px: np.ndarray
     rejected_reason: tuple[str, ...]
     diagnostics: dict = field(default_factory=dict)
+    radial: tuple | None = None
 
     def predict(self, indices: np.ndarray) -> np.ndarray:
         """Model position (x, y) of lattice ``indices`` (N×2)."""
-        return apply_homography(self.matrix, indices)
+        return predict_lattice(self.matrix, self.radial, indices)
 
     @property
     def residuals_px(self) -> np.ndarray:
@@ -132,6 +138,24 @@ def apply_homography(h: np.ndarray, ij: np.ndarray) -> np.ndarray:
     z = h[2, 0] * i + h[2, 1] * j + h[2, 2]
     return np.column_stack([(h[0, 0] * i + h[0, 1] * j + h[0, 2]) / z,
                             (h[1, 0] * i + h[1, 1] * j + h[1, 2]) / z])
+
+
+def apply_radial(pts: np.ndarray, radial) -> np.ndarray:
+    """Radial term of the lattice model: c + (q − c)(1 + k1 ρ² + k2 ρ⁴), ρ = |q − c| / 1000 px.
+
+    ``radial`` is (cx, cy, k1, k2) or None (no radial term).
+    """
+    if radial is None:
+        return pts
+    cx, cy, k1, k2 = (float(v) for v in radial)
+    d = pts - np.array([cx, cy])
+    rho2 = np.sum(d * d, axis=1) / RADIAL_NORM_PX**2
+    return np.array([cx, cy]) + d * (1.0 + k1 * rho2 + k2 * rho2 * rho2)[:, None]
+
+
+def predict_lattice(h: np.ndarray, radial, ij: np.ndarray) -> np.ndarray:
+    """Lattice-model position (x, y) of indices: homography, then the optional radial term."""
+    return apply_radial(apply_homography(h, ij), radial)
 
 
 def estimate_pitch(image: np.ndarray, crop: int = 768) -> float:
@@ -455,8 +479,38 @@ def fit_projective(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray,
     return hmat, wts
 
 
-def _rss(hmat: np.ndarray, idx: np.ndarray, pts: np.ndarray, wts: np.ndarray) -> float:
-    res = pts - apply_homography(hmat, idx)
+def fit_radial(idx: np.ndarray, pts: np.ndarray, weights: np.ndarray, start: np.ndarray,
+               centre: np.ndarray) -> tuple[np.ndarray, tuple, np.ndarray]:
+    """Projective lattice plus a radial term (k1, k2 about a fitted centre), robustly.
+
+    Two rounds of weighted least squares (``scipy.optimize.least_squares``), Tukey weights
+    recomputed in between; on at most ``RADIAL_FIT_LENSES`` lenses spread evenly over the
+    image (12 parameters are pinned long before that). Returns (homography,
+    (cx, cy, k1, k2), weights of the lenses used).
+    """
+    from scipy.optimize import least_squares
+
+    step = max(1, len(idx) // RADIAL_FIT_LENSES)
+    ij = idx[::step].astype(np.float64)
+    pts = pts[::step]
+    p = np.r_[(start / start[2, 2]).ravel()[:8], centre, 0.0, 0.0]
+    wts = weights[::step]
+
+    def resid(q: np.ndarray, sw: np.ndarray) -> np.ndarray:
+        pred = predict_lattice(np.append(q[:8], 1.0).reshape(3, 3), q[8:], ij)
+        return ((pred - pts) * sw[:, None]).ravel()
+
+    for _ in range(2):
+        sol = least_squares(resid, p, args=(np.sqrt(wts),), x_scale="jac", max_nfev=60)
+        p = sol.x
+        h = np.append(p[:8], 1.0).reshape(3, 3)
+        wts = _robust_weights(pts - predict_lattice(h, p[8:], ij))
+    return np.append(p[:8], 1.0).reshape(3, 3), tuple(float(v) for v in p[8:]), wts
+
+
+def _rss(hmat: np.ndarray, idx: np.ndarray, pts: np.ndarray, wts: np.ndarray,
+         radial=None) -> float:
+    res = pts - predict_lattice(hmat, radial, idx)
     return float(np.sum(wts[:, None] * res * res))
 
 
@@ -603,12 +657,23 @@ def find_centres(
             shift_p = float(np.abs(pred_p - pred_s).max())
             use_p, p_p = _richer_warranted(rss_s, rss_p, 4, 8, n_eff, shift_p)
         if use_p:
-            model, hmat = "projective", h_prj
+            model, hmat, k_base = "projective", h_prj, 8
         elif use_a:
-            model, hmat = "affine", h_aff
+            model, hmat, k_base = "affine", h_aff, 6
         else:
-            model, hmat = "similarity", h_sim
-        res_all = centres - apply_homography(hmat, idx_all)
+            model, hmat, k_base = "similarity", h_sim, 4
+        radial = None
+        # radial term (vignetted corners, relay distortion) on top of the projective model
+        mid = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+        h_rad, rad, _ = fit_radial(idx_k, pts_k, w_prj, h_prj, mid)
+        rss_r = _rss(h_rad, idx_k, pts_k, w_prj, rad)
+        shift_r = float(np.abs(predict_lattice(h_rad, rad, idx_k)
+                               - apply_homography(hmat, idx_k)).max())
+        use_r, p_r = _richer_warranted(_rss(hmat, idx_k, pts_k, w_prj), rss_r, k_base, 12,
+                                       n_eff, shift_r)
+        if use_r:
+            model, hmat, radial = "projective+radial", h_rad, rad
+        res_all = centres - predict_lattice(hmat, radial, idx_all)
         mag = np.hypot(res_all[:, 0], res_all[:, 1])
         sigma = 1.4826 * float(np.median(mag[keep]))
         outlier = (reason == "") & (mag > max(0.25, 6.0 * sigma))
@@ -619,9 +684,10 @@ def find_centres(
         "similarity_rms_rect_px": rms["rect"], "similarity_rms_hex_px": rms["hex"],
         "affine_p_value": p_a, "projective_p_value": p_p,
         "affine_max_shift_px": shift_a, "projective_max_shift_px": shift_p,
+        "radial_p_value": p_r, "radial_max_shift_px": shift_r,
     })
     keep = reason == ""
-    res = centres[keep] - apply_homography(hmat, idx_all[keep])
+    res = centres[keep] - predict_lattice(hmat, radial, idx_all[keep])
     rms_px = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
     rej = ~keep
     progress("fit", 1.0)
@@ -639,6 +705,7 @@ def find_centres(
         rejected_px=centres[rej],
         rejected_reason=tuple(str(r) for r in reason[rej]),
         diagnostics=diag,
+        radial=radial,
     )
 
 

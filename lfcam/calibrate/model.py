@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from lfcam.calibrate.grid import REJECT_REASONS, GridFit, apply_homography
+from lfcam.calibrate.grid import RADIAL_NORM_PX, REJECT_REASONS, GridFit, predict_lattice
 from lfcam.errors import CalibrationError
 from lfcam.validate import read_json
 
@@ -58,7 +58,7 @@ class Calibration:
     indices : (N, 2) int array
     residual_rms_px : float
     model : str
-        ``similarity``, ``affine`` or ``projective``.
+        ``similarity``, ``affine``, ``projective`` or ``projective+radial``.
     lattice_matrix : (3, 3) array
     image_size_px : tuple of int
         (width, height) of the white image.
@@ -71,6 +71,8 @@ class Calibration:
     d_in_method : str or None
     centre_definition : str
     diagnostics : dict
+    lattice_radial : tuple or None
+        (cx, cy, k1, k2) of the radial term of ``projective+radial`` (ρ in units of 1000 px).
     """
 
     grid: str
@@ -91,6 +93,7 @@ class Calibration:
     d_in_method: str | None = None
     centre_definition: str = "intensity-centroid"
     diagnostics: dict = field(default_factory=dict)
+    lattice_radial: tuple | None = None
 
     def __post_init__(self) -> None:
         for name in ("centres_px", "indices", "lattice_matrix"):
@@ -104,7 +107,7 @@ class Calibration:
 
     def predict(self, indices: np.ndarray) -> np.ndarray:
         """Model position (x, y) of lattice indices."""
-        return apply_homography(self.lattice_matrix, indices)
+        return predict_lattice(self.lattice_matrix, self.lattice_radial, indices)
 
     @property
     def residuals_px(self) -> np.ndarray:
@@ -159,6 +162,7 @@ def calibration_from_fit(
         rejected=counts,
         rejected_px=rej,
         diagnostics={k: _plain(v) for k, v in fit.diagnostics.items()},
+        lattice_radial=None if fit.radial is None else tuple(float(v) for v in fit.radial),
     )
 
 
@@ -182,6 +186,9 @@ def to_json_dict(cal: Calibration) -> dict:
         "residual_rms_px": cal.residual_rms_px,
         "model": cal.model,
         "lattice_matrix": cal.lattice_matrix.tolist(),
+        "lattice_radial": None if cal.lattice_radial is None else {
+            "centre_px": list(cal.lattice_radial[:2]), "k1": cal.lattice_radial[2],
+            "k2": cal.lattice_radial[3], "rho_unit_px": RADIAL_NORM_PX},
         "centre_definition": cal.centre_definition,
         "image_size_px": list(cal.image_size_px),
         "white_sha256": cal.white_sha256,
@@ -264,8 +271,12 @@ def calibration_from_dict(d: Any) -> Calibration:
     if grid not in ("rect", "hex"):
         raise CalibrationError(f"calibration file: grid must be 'rect' or 'hex', got {grid!r}")
     model = d.get("model")
-    if model not in ("similarity", "affine", "projective"):
+    if model not in ("similarity", "affine", "projective", "projective+radial"):
         raise CalibrationError(f"calibration file: unknown model {model!r}")
+    radial = _radial_from_dict(d.get("lattice_radial"))
+    if (radial is not None) != (model == "projective+radial"):
+        raise CalibrationError("calibration file: lattice_radial goes with (only) the "
+                               "projective+radial model")
     pitch = _num(d, "pitch_px", positive=True)
     rot = _num(d, "rotation_rad")
     rms = _num(d, "residual_rms_px")
@@ -323,7 +334,23 @@ def calibration_from_dict(d: Any) -> Calibration:
         d_in_method=d.get("d_in_method"),
         centre_definition=str(d.get("centre_definition", "intensity-centroid")),
         diagnostics=d.get("diagnostics", {}) if isinstance(d.get("diagnostics"), dict) else {},
+        lattice_radial=radial,
     )
+
+
+def _radial_from_dict(r: Any) -> tuple | None:
+    """Validate the ``lattice_radial`` entry (None or {centre_px, k1, k2, rho_unit_px})."""
+    if r is None:
+        return None
+    if not isinstance(r, dict):
+        raise CalibrationError("calibration file: lattice_radial must be an object or null")
+    c = r.get("centre_px")
+    if not (isinstance(c, list) and len(c) == 2):
+        raise CalibrationError("calibration file: lattice_radial.centre_px must be [x, y]")
+    if _num(r, "rho_unit_px", positive=True) != RADIAL_NORM_PX:
+        raise CalibrationError(f"calibration file: lattice_radial.rho_unit_px must be "
+                               f"{RADIAL_NORM_PX}")
+    return (_num({"x": c[0]}, "x"), _num({"y": c[1]}, "y"), _num(r, "k1"), _num(r, "k2"))
 
 
 def load_calibration(path: str | Path) -> Calibration:
