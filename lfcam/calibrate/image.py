@@ -1,7 +1,8 @@
 """Reading and preparing white images for calibration.
 
-:func:`read_raster` is the stop-gap reader (PNG/TIFF through tifffile/cv2) until
-``lfcam.io.load_capture`` lands; swap it there and nothing else changes.
+Files are read by :func:`lfcam.io.load_capture` (``lfcam.calibrate.calibrate_white_file``);
+:func:`read_raster` is a plain PNG/TIFF reader for in-memory work (tests, benchmarks, the
+microscope frames) that keeps the values exactly as stored.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ from lfcam.camera import CameraProfile
 from lfcam.errors import CalibrationError
 from lfcam.measure.geometry import lenslet_centres_mm, regularise_to_lattice
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
-from lfcam.measure.pointfit import _LocalLattice  # the fit's exact lattice lookup, reused
+from lfcam.measure.pointfit import LocalLattice
 from lfcam.optics.paraxial import image_distance_mm
 from lfcam.optics.trace import trace_source_fast
 
@@ -266,7 +266,7 @@ class DotModel:
         rho2 = (rx[ok] - x_mm) ** 2 + (ry[ok] - y_mm) ** 2 + along * along
         w = (along * along / rho2) ** 1.5  # solid angle of each rim-plane cell
         centres = self.centre_map(d_in_mm)[self.near]
-        lattice = _LocalLattice.fit(centres, p.mla.pitch_mm)
+        lattice = LocalLattice.fit(centres, p.mla.pitch_mm)
         if lattice is not None:  # exact Voronoi lookup on an affine lattice (fast)
             k = lattice.nearest(tr.x[ok], tr.y[ok])
         else:

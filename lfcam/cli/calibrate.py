@@ -14,7 +14,8 @@ from lfcam.errors import CalibrationError
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``calibrate`` sub-command."""
     p = sub.add_parser("calibrate", help="microlens grid from a white image")
-    p.add_argument("white", help="white image (PNG/TIFF raster)")
+    p.add_argument("white", help="white image: Lytro .lfp/.lfr or packed .raw, camera raw, "
+                   "PNG/TIFF")
     p.add_argument("--dark", help="dark frame subtracted from the white image")
     p.add_argument("--profile", help="camera profile (name or TOML path): Bayer pattern, "
                    "expected pitch")

@@ -282,7 +282,7 @@ class ImageFit:
 
 
 @dataclass(frozen=True)
-class _LocalLattice:
+class LocalLattice:
     """Exact nearest-lenslet lookup for centres that form an affine lattice."""
 
     origin: np.ndarray  # (2,)
@@ -294,7 +294,7 @@ class _LocalLattice:
     centres: np.ndarray
 
     @classmethod
-    def fit(cls, centres: np.ndarray, pitch_mm: float) -> _LocalLattice | None:
+    def fit(cls, centres: np.ndarray, pitch_mm: float) -> LocalLattice | None:
         """Fit the lattice through ``centres``; ``None`` if they are not one (→ k-d tree)."""
         c = np.asarray(centres, dtype=np.float64)
         if len(c) < 4:
@@ -357,7 +357,7 @@ class _Patch:
         self.norm = float(np.sqrt((self.data**2).sum()))
         self.tree = cKDTree(lens_centres_mm)
         self.centres = lens_centres_mm
-        self.lattice = _LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
+        self.lattice = LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
         self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
         self.evaluations = 0
 
