@@ -30,7 +30,6 @@ The returned centre is the **intensity centroid** of each micro-image (FIELD-NOT
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -40,6 +39,8 @@ from scipy.spatial import cKDTree
 
 from lfcam.calibrate.microimage import (
     DiscModel,
+    Progress,
+    _noop,
     circle_window_centroids,
     fit_disc_model,
     fit_discs,
@@ -60,13 +61,6 @@ DISC_LIKE_MAX = 0.065
 # the pitch (rounding of the start, the gradient shift of the centroid, the 1-px soft edge)
 GAP_MARGIN_PX = 0.75
 REJECT_REASONS = ("edge", "dim", "unconverged", "duplicate", "outlier")
-
-Progress = Callable[[str, float], None]
-
-
-def _noop(stage: str, frac: float) -> None:
-    return None
-
 
 @dataclass(frozen=True)
 class GridFit:
@@ -156,6 +150,15 @@ def apply_radial(pts: np.ndarray, radial) -> np.ndarray:
 def predict_lattice(h: np.ndarray, radial, ij: np.ndarray) -> np.ndarray:
     """Lattice-model position (x, y) of indices: homography, then the optional radial term."""
     return apply_radial(apply_homography(h, ij), radial)
+
+
+def within_sensor(pts: np.ndarray, reach_x: float, reach_y: float,
+                  shape: tuple[int, int]) -> np.ndarray:
+    """True where everything within (±reach_x, ±reach_y) px of a point lies on the sensor
+    (pixel edges at −0.5 and width/height − 0.5)."""
+    h, w = shape
+    return ((pts[:, 0] - reach_x >= -0.5) & (pts[:, 0] + reach_x <= w - 0.5)
+            & (pts[:, 1] - reach_y >= -0.5) & (pts[:, 1] + reach_y <= h - 0.5))
 
 
 def estimate_pitch(image: np.ndarray, crop: int = 768) -> float:
@@ -581,19 +584,13 @@ def find_centres(
         # a dark gap around every micro-image: a circle of half the pitch holds one whole
         centres, flux, conv = circle_window_centroids(img, cand, 0.5 * period,
                                                       progress=progress)
-        reach = disc.support_px + 0.5
-        at_edge = (
-            (centres[:, 0] - reach < -0.5) | (centres[:, 0] + reach > w - 0.5)
-            | (centres[:, 1] - reach < -0.5) | (centres[:, 1] + reach > h - 0.5)
-        )
+        at_edge = ~within_sensor(centres, disc.support_px + 0.5, disc.support_px + 0.5,
+                                 img.shape)
     else:
         # separated micro-images (or not disc-like): the cell window holds each one whole
         centres, flux, conv = refine_centroids(img, cand, hx, hy, progress=progress)
         # fully visible = the whole window (the lens's cell, edge ramp included) is on the sensor
-        at_edge = (
-            (centres[:, 0] - hx < 0.0) | (centres[:, 0] + hx > w - 1.0)
-            | (centres[:, 1] - hy < 0.0) | (centres[:, 1] + hy > h - 1.0)
-        )
+        at_edge = ~within_sensor(centres, hx + 0.5, hy + 0.5, img.shape)
     reason = np.full(len(centres), "", dtype=object)
     reason[at_edge] = "edge"
     reason[(reason == "") & ~conv] = "unconverged"
@@ -724,8 +721,7 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     reach = disc.support_px
 
     def inside(pts: np.ndarray) -> np.ndarray:
-        return ((pts[:, 0] - reach >= -0.5) & (pts[:, 0] + reach <= w - 0.5)
-                & (pts[:, 1] - reach >= -0.5) & (pts[:, 1] + reach <= h - 0.5))
+        return within_sensor(pts, reach, reach, img.shape)
 
     disc_c, _, _ = fit_discs(img, cand, disc, pitch, iterations=12, tol_px=5e-3)
     full = inside(disc_c)
