@@ -27,9 +27,10 @@ from scipy.spatial import cKDTree
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lfcam.calibrate import calibrate_white, read_raster  # noqa: E402
+from lfcam.calibrate import calibrate_white  # noqa: E402
 from lfcam.calibrate.grid import fit_similarity  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
+from lfcam.io import load_capture  # noqa: E402
 from lfcam.sim.capture import simulate  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
@@ -95,8 +96,8 @@ def main() -> None:
                  "white_system2_hex"):
         base = ROOT / "data" / "synthetic" / name
         truth = json.loads(base.with_suffix(".truth.json").read_text(encoding="utf-8"))
-        rows.append([name.removeprefix("white_")] + score(read_raster(base.with_suffix(".png")),
-                                                          truth))
+        white = load_capture(base.with_suffix(".png")).raw
+        rows.append([name.removeprefix("white_")] + score(white, truth))
         print(" | ".join(rows[-1]), flush=True)
     for label, *case in RENDERED:
         image, truth = render(*case)

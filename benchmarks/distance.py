@@ -23,10 +23,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
-from lfcam.decode.lightfield import to_grey  # noqa: E402
-from lfcam.distance import load_calibration, prepare_geometry, run_distance  # noqa: E402
+from lfcam.distance import run_distance  # noqa: E402
 from lfcam.io import load_capture  # noqa: E402
+from lfcam.measure import prepare_geometry  # noqa: E402
 
 DATA = ROOT / "data" / "synthetic"
 PICKS = [(300, 0), (900, 5), (1500, 10), (2200, 0), (2800, 5), (3500, 10), (600, 10),
@@ -46,7 +47,7 @@ def main() -> None:
         prof = load_profile(DATA / f"{name}.profile.toml")
         t0 = time.perf_counter()
         cap = load_capture(DATA / f"{name}.png", prof)
-        img = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+        img = cap.grey()
         t_load = time.perf_counter() - t0
         truth = json.loads((DATA / f"{name}.truth.json").read_text())["sources"][0]
         loaded.append((name, prof, img, truth, t_load))

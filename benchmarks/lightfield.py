@@ -23,7 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lfcam.decode import GridSpec, decode, focal_stack, refocus, to_grey  # noqa: E402
+from lfcam.calibrate import Calibration  # noqa: E402
+from lfcam.decode import decode, focal_stack, refocus, to_grey  # noqa: E402
 
 W, H, PITCH = 7728, 5368, 14.29
 
@@ -48,7 +49,7 @@ def main() -> None:
     yy, xx = np.mgrid[0:H:8, 0:W:8]
     white_small = (900 * (1 - 0.3 * ((xx / W - 0.5) ** 2 + (yy / H - 0.5) ** 2))).astype(np.float32)
     white16 = cv2.resize(white_small, (W, H)).astype(np.uint16)
-    grid = GridSpec("hex", PITCH, 0.002, (7.1, 6.4))
+    grid = Calibration.from_lattice("hex", PITCH, 0.002, (7.1, 6.4))
 
     t_grey, raw = best(lambda: to_grey(raw16, "RGGB", 64, 1023), args.repeat)
     white = to_grey(white16, "RGGB", 64, 1023)

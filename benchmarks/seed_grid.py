@@ -22,10 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
-from lfcam.decode.lightfield import to_grey  # noqa: E402
-from lfcam.distance import load_calibration, prepare_geometry, run_distance  # noqa: E402
+from lfcam.distance import run_distance  # noqa: E402
 from lfcam.io import load_capture  # noqa: E402
+from lfcam.measure import prepare_geometry  # noqa: E402
 
 DATA = ROOT / "data" / "synthetic"
 GRID = [3500, 3250, 3000, 2800, 2500, 2200, 2000, 1800, 1500, 1300, 1100, 900, 750, 600, 450,
@@ -36,7 +37,7 @@ def estimate(name: str, cal, geom_cache: dict, **kw) -> tuple[float, float, str]
     """(Ed, Ad, status) of one committed capture."""
     prof = load_profile(DATA / f"{name}.profile.toml")
     cap = load_capture(DATA / f"{name}.png", prof)
-    img = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    img = cap.grey()
     geom = geom_cache.setdefault(img.shape, prepare_geometry(prof, cal, img.shape))
     run = run_distance(img, prof, cal, geometry=geom, **kw)
     truth = json.loads((DATA / f"{name}.truth.json").read_text())["sources"][0]

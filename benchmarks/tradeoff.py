@@ -45,17 +45,16 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from models import SEED_AD, SEED_DH, seed_errors  # noqa: E402
 
+from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
-from lfcam.decode.lightfield import to_grey  # noqa: E402
-from lfcam.distance import (  # noqa: E402
-    _apply_model,
-    _noise_sigma,
-    load_calibration,
+from lfcam.distance import _apply_model  # noqa: E402
+from lfcam.io import load_capture  # noqa: E402
+from lfcam.measure import (  # noqa: E402
     measure_diameter,
     measure_lightfield,
+    noise_sigma,
     prepare_geometry,
 )
-from lfcam.io import load_capture  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
 
@@ -108,7 +107,7 @@ def load(system: str, source: str, dist: int, dh: int):
             else f"line_{system}_{dist}mm")
     prof = load_profile(DATA / f"{name}.profile.toml")
     cap = load_capture(DATA / f"{name}.png", prof)
-    img = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    img = cap.grey()
     truth = json.loads((DATA / f"{name}.truth.json").read_text(encoding="utf-8"))
     return img, prof, truth["sources"][0]
 
@@ -119,7 +118,7 @@ def run_capture(img, prof, geom, method: str) -> dict[str, tuple[float, str, flo
     t0 = time.perf_counter()
     stats = lenslet_stats(img, geom.lmap)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
-    noise = _noise_sigma(img, geom.lmap)
+    noise = noise_sigma(img)
     detect_s = time.perf_counter() - t0
     measured = []
     for reg in regions:

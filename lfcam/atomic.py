@@ -1,4 +1,5 @@
-"""Atomic file output: every file lfcam writes appears complete or not at all.
+"""File helpers: atomic output (every file lfcam writes appears complete or not at all) and
+content hashes.
 
 The content goes to a temporary file in the target's folder (same file system, same suffix so
 format-sniffing writers such as tifffile and OpenCV still work, ordinary permissions after the
@@ -8,6 +9,7 @@ is removed and the target is left as it was.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from collections.abc import Callable, Iterable
@@ -47,3 +49,12 @@ def atomic_write_bytes(path: str | Path, data: bytes | Iterable[bytes]) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write UTF-8 text to ``path`` atomically (newlines as given)."""
     return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8", newline=""))
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file's bytes, read in ``chunk``-byte blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()

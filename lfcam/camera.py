@@ -1,7 +1,7 @@
 """Camera description: one frozen dataclass per physical part, and the TOML profile loader.
 
-Conventions (CONTRACT §1): lengths in millimetres, optical axis z, origin at the main-lens
-centre (mid-thickness), +z toward the sensor. The profile schema is CONTRACT §2; keys this
+Conventions (docs/conventions.md): lengths in millimetres, optical axis z, origin at the main-lens
+centre (mid-thickness), +z toward the sensor. The profile schema is docs/profiles.md; keys this
 module adds where the contract is silent are documented in ``docs/profiles.md``.
 """
 
@@ -13,7 +13,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from lfcam.errors import ProfileError
+import numpy as np
+
+from lfcam.errors import OpticsError, ProfileError
 from lfcam.validate import Fields
 
 if sys.version_info >= (3, 11):
@@ -23,7 +25,7 @@ else:  # pragma: no cover - exercised on 3.10 only
 
 GRIDS = ("rect", "hex")
 BAYER_PATTERNS = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
-FOCAL_LENGTH_RTOL = 1e-4  # CONTRACT §2: a stated focal length must agree to 0.01 %
+FOCAL_LENGTH_RTOL = 1e-4  # docs/profiles.md: a stated focal length must agree to 0.01 %
 
 
 @dataclass(frozen=True)
@@ -109,6 +111,48 @@ class MainLens:
     def f_number(self) -> float:
         """Working f-number at infinity focus, f / D."""
         return self.focal_length_mm / self.pupil_diameter_mm
+
+    def image_distance_mm(self, distance_mm: np.ndarray | float) -> np.ndarray | float:
+        """Paraxial image distance behind H2 for an object ``distance_mm`` before the front
+        vertex.
+
+        Infinite distances give f. Objects at or inside the front focal plane give ``inf`` or a
+        negative (virtual) image distance.
+        """
+        f = self.focal_length_mm
+        s = np.asarray(distance_mm, dtype=np.float64) + self.principal_depth_mm
+        with np.errstate(divide="ignore"):
+            out = 1.0 / (1.0 / f - 1.0 / s)
+        return out if out.ndim else float(out)
+
+    def d_in_for_focus(self, focus_mm: float) -> float:
+        """MLA distance d_in (lens centre → MLA) that paraxially focuses an object at
+        ``focus_mm`` (from the front vertex; ``math.inf`` for infinity focus).
+
+        Raises
+        ------
+        OpticsError
+            If the object is at or inside the front focal point (no real image).
+        """
+        focus = float(focus_mm)
+        if math.isnan(focus) or focus <= 0:
+            raise OpticsError(f"focus distance must be positive, got {focus_mm}")
+        s_img = self.image_distance_mm(focus)
+        if not math.isfinite(s_img) or s_img <= 0:
+            raise OpticsError(
+                f"focus {focus} mm is at or inside the front focal point "
+                f"(f = {self.focal_length_mm:.3f} mm): no real image to put the MLA at"
+            )
+        return self.back_principal_z_mm + s_img
+
+    def focus_for_d_in(self, d_in_mm: float) -> float:
+        """Object distance (from the front vertex) in paraxial focus on an MLA at ``d_in_mm``;
+        ``inf`` when the MLA sits at the back focal plane or closer."""
+        s_img = float(d_in_mm) - self.back_principal_z_mm
+        f = self.focal_length_mm
+        if s_img <= f:
+            return math.inf
+        return 1.0 / (1.0 / f - 1.0 / s_img) - self.principal_depth_mm
 
 
 @dataclass(frozen=True)
@@ -204,9 +248,7 @@ class CameraProfile:
         if self.mla.distance_mm is not None:
             return self.mla.distance_mm
         if self.mla.focus_mm is not None:
-            from lfcam.optics.paraxial import d_in_for_focus
-
-            return d_in_for_focus(self.main_lens, self.mla.focus_mm)
+            return self.main_lens.d_in_for_focus(self.mla.focus_mm)
         raise ProfileError(
             f"profile {self.name!r}: mla.distance_mm (d_in) is unknown: set mla.distance_mm or "
             "mla.focus_mm, or calibrate it from a reference-plane capture"
@@ -224,9 +266,7 @@ class CameraProfile:
 
     def with_focus(self, focus_mm: float) -> CameraProfile:
         """Return a copy focused at ``focus_mm`` (object distance from the front vertex)."""
-        from lfcam.optics.paraxial import d_in_for_focus
-
-        return self.with_d_in(d_in_for_focus(self.main_lens, focus_mm))
+        return self.with_d_in(self.main_lens.d_in_for_focus(focus_mm))
 
 
 # ----------------------------------------------------------------------------- loading
@@ -263,7 +303,7 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
     Parameters
     ----------
     data : dict
-        Parsed TOML (CONTRACT §2).
+        Parsed TOML (docs/profiles.md).
     source : str
         Where it came from, for messages.
 
@@ -399,9 +439,7 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
     )
     profile = CameraProfile(name=name, main_lens=lens, mla=mla, sensor=sensor, source=source)
     if distance is not None and focus is not None:
-        from lfcam.optics.paraxial import d_in_for_focus
-
-        derived = d_in_for_focus(lens, focus)
+        derived = lens.d_in_for_focus(focus)
         if abs(derived - float(distance)) > 1e-3:
             raise ProfileError(
                 f"mla.distance_mm ({distance}) and mla.focus_mm ({focus}) disagree: focus "
@@ -445,3 +483,21 @@ def load_profile(name_or_path: str | Path) -> CameraProfile:
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: invalid TOML: {exc}") from None
     return profile_from_dict(data, source=str(path))
+
+
+def profile_for_capture(capture: str | Path, profile: str | Path | None) -> CameraProfile:
+    """``profile`` (a name or path) if given, else the ``<stem>.profile.toml`` beside the
+    capture (what ``lfcam simulate`` writes).
+
+    Raises
+    ------
+    ProfileError
+        No profile given and no sidecar, or an invalid profile.
+    """
+    if profile:
+        return load_profile(profile)
+    capture = Path(capture)
+    sidecar = capture.with_name(capture.stem + ".profile.toml")
+    if sidecar.is_file():
+        return load_profile(sidecar)
+    raise ProfileError(f"no --profile given and no {sidecar.name} beside the capture")

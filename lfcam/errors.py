@@ -14,6 +14,10 @@ class ProfileError(LfcamError):
     """A camera profile is missing a key, has an invalid value, or is inconsistent."""
 
 
+class UsageError(LfcamError):
+    """Command-line flags that do not fit together."""
+
+
 class OpticsError(LfcamError):
     """An optics request is outside what the lens can do (e.g. focus closer than f)."""
 

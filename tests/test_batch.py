@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from lfcam.batch import SUMMARY_COLUMNS, discover_captures, run_batch
+from lfcam.calibrate import load_calibration
 from lfcam.camera import load_profile
 from lfcam.cli.main import main
-from lfcam.decode.lightfield import to_grey
-from lfcam.distance import load_calibration, prepare_geometry, run_distance
+from lfcam.distance import run_distance
 from lfcam.io import load_capture
+from lfcam.measure import prepare_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "synthetic"
@@ -68,7 +69,7 @@ def _reference_rows(path: Path) -> list:
     prof = load_profile(path.with_name(path.name.rsplit(".", 1)[0] + ".profile.toml"))
     cal = load_calibration(CALIB)
     cap = load_capture(path, prof)
-    img = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    img = cap.grey()
     geom = _GEOM.get(prof) or _GEOM.setdefault(prof, prepare_geometry(prof, cal, img.shape))
     run = run_distance(img, prof, cal, fast=True, geometry=geom)
     return run.regions

@@ -8,8 +8,9 @@ from scipy.spatial import cKDTree
 
 from lfcam.calibrate import calibrate_white
 from lfcam.calibrate.grid import fit_similarity
-from lfcam.calibrate.synthetic import lattice_basis, make_white, rotation_matrix
+from lfcam.calibrate.synthetic import make_white
 from lfcam.errors import CalibrationError
+from lfcam.optics.mla import lattice_basis, rotation_matrix
 
 
 def _score(sw, cal, w, h):

@@ -9,10 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from lfcam.calibrate import calibrate_white, load_calibration, read_raster, save_calibration
+from lfcam.calibrate import calibrate_white, load_calibration, save_calibration
 from lfcam.calibrate.synthetic import make_white
 from lfcam.cli.main import main
 from lfcam.errors import CalibrationError
+from lfcam.io import load_capture
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "microscope"
 REAL = REAL if REAL.is_dir() else Path("/work/shared/realdata/microscope")
@@ -94,8 +95,8 @@ def _fft_period(img: np.ndarray) -> float:
     ("seaurchin", "radiometry_frame.tif", "dark_frame.tif", 125 / 7.4, (119, 118)),
 ])
 def test_real_microscope(folder, white, dark, nominal, shape):
-    w = read_raster(REAL / folder / white)
-    d = read_raster(REAL / folder / dark)
+    w = np.asarray(load_capture(REAL / folder / white).raw, np.float32)
+    d = np.asarray(load_capture(REAL / folder / dark).raw, np.float32)
     cal = calibrate_white(w, d)
     assert cal.grid == "rect"
     ref = _fft_period(w - d)

@@ -3,7 +3,7 @@
 Each case renders a white image through the exact thick-lens / MLA / sensor trace with a
 rotated, sub-pixel-offset lenslet array, calibrates it, and compares every accepted centre
 with the intensity centroid of that lenslet's own traced light (``truth.lenses``). System 1's
-micro-images touch, system 2's overlap by about 10 % (FIELD-NOTES items 2 and 3): neither can
+micro-images touch, system 2's overlap by about 10 % (docs/calibration.md): neither can
 be measured by a window alone. Pitch and rotation are compared with a similarity fit of the
 truth centroids (same definition, independent of the detector).
 """

@@ -10,7 +10,6 @@ import pytest
 from lfcam import load_profile
 from lfcam.camera import profile_from_dict
 from lfcam.errors import OpticsError, ProfileError
-from lfcam.optics.paraxial import d_in_for_focus, focus_for_d_in
 
 
 def _abcd_thick_lens(r, t, n):
@@ -40,25 +39,25 @@ def test_principal_planes_match_matrix_optics(name):
 
 
 def test_contract_d_in_for_system1_focus_3500():
-    # CONTRACT §2 example: focus 3500 mm ↔ distance_mm = 104.743
+    # docs/profiles.md example: focus 3500 mm ↔ distance_mm = 104.743
     assert load_profile("system1").d_in_mm == pytest.approx(104.743, abs=5e-4)
 
 
 @pytest.mark.parametrize("focus", [300.0, 1000.0, 3500.0, 1e5])
 def test_focus_round_trip(focus):
     lens = load_profile("system2").main_lens
-    assert focus_for_d_in(lens, d_in_for_focus(lens, focus)) == pytest.approx(focus, rel=1e-10)
+    assert lens.focus_for_d_in(lens.d_in_for_focus(focus)) == pytest.approx(focus, rel=1e-10)
 
 
 def test_infinity_focus_puts_mla_at_back_focal_plane():
     lens = load_profile("system1").main_lens
-    d_in = d_in_for_focus(lens, math.inf)
+    d_in = lens.d_in_for_focus(math.inf)
     assert d_in == pytest.approx(lens.back_principal_z_mm + lens.focal_length_mm, rel=1e-15)
 
 
 def test_focus_inside_focal_length_is_an_error():
     with pytest.raises(OpticsError, match="front focal point"):
-        d_in_for_focus(load_profile("system1").main_lens, 50.0)
+        load_profile("system1").main_lens.d_in_for_focus(50.0)
 
 
 BASE = {

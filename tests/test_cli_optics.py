@@ -22,7 +22,7 @@ def test_forward_json_matches_library():
               "--json")
     assert out.returncode == 0, out.stderr
     data = json.loads(out.stdout)
-    assert data["diameter_mm"] == pytest.approx(10.7, rel=0.01)  # FIELD-NOTES 4
+    assert data["diameter_mm"] == pytest.approx(10.7, rel=0.01)  # docs/distance.md
     assert data["y1_mm"] == pytest.approx(-data["y2_mm"], abs=1e-12)
 
 

@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lfcam.calibrate import load_calibration
 from lfcam.camera import load_profile
-from lfcam.decode.lightfield import to_grey
-from lfcam.distance import load_calibration, prepare_geometry, run_distance
+from lfcam.distance import run_distance
 from lfcam.errors import CalibrationError
 from lfcam.io import load_capture
+from lfcam.measure import prepare_geometry
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
 CASES = [
@@ -30,7 +31,7 @@ def _run(system, dist, dh, **kw):
     prof = load_profile(DATA / f"{name}.profile.toml")
     cal = load_calibration(DATA / f"calib_{system}.json")
     cap = load_capture(DATA / f"{name}.png", prof)
-    img = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    img = cap.grey()
     geom = _GEOMETRY.setdefault(system, prepare_geometry(prof, cal, img.shape))
     truth = json.loads((DATA / f"{name}.truth.json").read_text())["sources"][0]
     return run_distance(img, prof, cal, geometry=geom, **kw), truth

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -11,7 +12,8 @@ import tifffile
 from lfcam.export import (
     REGION_COLUMNS,
     RegionResult,
-    distance_map,
+    paint_region,
+    write_csv,
     write_distance_png,
     write_distance_tiff,
     write_regions_csv,
@@ -26,11 +28,21 @@ def _regions():
     ]
 
 
+def test_paint_region_fills_its_lenslets_and_the_gaps_between_them():
+    # two 4-px micro-images of lenslets 0 and 1 with a 2-px gap, a third lenslet 2 not painted
+    labels = np.full((20, 30), -1, np.int64)
+    labels[5:9, 5:9], labels[5:9, 11:15], labels[5:9, 20:24] = 0, 1, 2
+    region = SimpleNamespace(box_px=(0, 0, 30, 20), lenslets=np.array([0, 1]))
+    dmap = np.full((20, 30), np.nan, np.float32)
+    paint_region(dmap, region, SimpleNamespace(labels=labels), 5.0, 1500.0)
+    assert dmap[6, 6] == np.float32(1500.0) and dmap[6, 13] == np.float32(1500.0)
+    assert dmap[6, 10] == np.float32(1500.0)  # the gap between the two is closed
+    assert np.isnan(dmap[6, 21]) and np.isnan(dmap[15, 6])  # other lenslets, background
+
+
 def test_distance_map_tiff_round_trip(tmp_path):
-    regions = _regions()
-    dmap = distance_map((64, 64), regions)
-    assert np.isnan(dmap[0, 0]) and dmap[20, 10] == np.float32(1500.0)
-    assert np.isnan(dmap[40, 40])  # not-ok region leaves NaN
+    dmap = np.full((64, 64), np.nan, np.float32)
+    dmap[15:26, 5:17] = 1500.0
     write_distance_tiff(tmp_path / "distance.tiff", dmap)
     back = tifffile.imread(tmp_path / "distance.tiff")
     assert back.dtype == np.float32 and back.shape == (64, 64)
@@ -56,3 +68,11 @@ def test_preview_png_has_colours_outline_and_bar(tmp_path):
     near, far = img[25, 25].astype(int), img[75, 80].astype(int)
     assert near[0] > near[2] and far[2] > far[0]  # turbo: near blue, far red
     assert tuple(img[0, 0]) == (40, 40, 40)  # NaN background
+
+
+def test_csv_cells_with_commas_and_quotes_round_trip(tmp_path):
+    rows = [("a,b", 'say "x"', 1.5, float("nan")), ("plain", "failed: ValueError", 2.0, 3.0)]
+    write_csv(tmp_path / "t.csv", ("c1", "c2", "c3", "c4"), rows)
+    back = list(csv.reader((tmp_path / "t.csv").open(newline="")))
+    assert back[1] == ["a,b", 'say "x"', "1.5", ""]
+    assert back[2] == ["plain", "failed: ValueError", "2.0", "3.0"]

@@ -46,7 +46,7 @@ def test_exact_round_trip_over_the_domain(name, focus):
 
 
 def test_field_note_1_offaxis_reproduces_seed_level_errors():
-    """FIELD-NOTES 1: eqs. 1–17 on exact heights, focus 3.5 m: 5.55 % (sys 1), 2.16 % (sys 2)."""
+    """docs/models.md: eqs. 1–17 on exact heights, focus 3.5 m: 5.55 % (sys 1), 2.16 % (sys 2)."""
     e1 = _seed_errors(load_profile("system1"), offaxis.invert)
     e2 = _seed_errors(load_profile("system2"), offaxis.invert)
     assert e1.mean() == pytest.approx(5.55, abs=0.01)

@@ -60,7 +60,7 @@ def test_paraxial_limit_matches_thin_lens_model():
 
 
 def test_field_note_blur_sizes_system2_focus_infinity():
-    """FIELD-NOTES 4: rim spread 10.7 mm at 300 mm, 0.41 at 1500, 2.04 at 3500 (crossed)."""
+    """docs/distance.md: rim spread 10.7 mm at 300 mm, 0.41 at 1500, 2.04 at 3500 (crossed)."""
     p = load_profile("system2").with_focus(math.inf)
     fw = forward(p, None, np.array([300.0, 1500.0, 3500.0]), 0.0)
     spread = fw.y1_mm - fw.y2_mm

@@ -9,20 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
+from lfcam.atomic import sha256_file
 from lfcam.calibrate.grid import GridFit, find_centres
-from lfcam.calibrate.image import prepare_white, read_raster
+from lfcam.calibrate.image import prepare_white
 from lfcam.calibrate.model import (
     Calibration,
     calibration_from_fit,
     load_calibration,
     save_calibration,
-    sha256_file,
 )
 
 __all__ = [
     "Calibration", "GridFit", "calibrate_reference", "calibrate_reference_file",
     "calibrate_white", "calibrate_white_file", "find_centres",
-    "load_calibration", "prepare_white", "read_raster", "save_calibration",
+    "load_calibration", "prepare_white", "save_calibration",
 ]
 
 
@@ -77,14 +77,10 @@ def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
     """
     from lfcam.calibrate.reference import METHOD, measure_d_in
 
-    if tuple(cal.image_size_px) != (capture.shape[1], capture.shape[0]):
-        from lfcam.errors import CalibrationError
-
-        raise CalibrationError(
-            f"reference capture is {capture.shape[1]}×{capture.shape[0]} px but the white "
-            f"image was {cal.image_size_px[0]}×{cal.image_size_px[1]} px")
+    cal.check_image(capture.shape)
     kwargs.setdefault("pitch_px", cal.pitch_px)
     kwargs.setdefault("rotation_rad", cal.rotation_rad)
+    kwargs.setdefault("indices", cal.indices)
     res = measure_d_in(capture, cal.centres_px, profile, distance_mm, **kwargs)
     import math
     from dataclasses import replace
@@ -102,13 +98,16 @@ def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
 
 
 def calibrate_reference_file(cal: Calibration, capture_path, profile, distance_mm: float):
-    """Read a grey dot-target raster and run :func:`calibrate_reference`."""
+    """Read a grey dot-target capture (:func:`lfcam.io.load_capture`, values as stored) and
+    run :func:`calibrate_reference`."""
     from lfcam.camera import load_profile
     from lfcam.errors import CalibrationError
+    from lfcam.io import load_capture
 
     prof = load_profile(profile) if not hasattr(profile, "main_lens") else profile
     if prof.sensor.bayer != "none":
         raise CalibrationError(
             f"profile {prof.name!r} has a {prof.sensor.bayer} colour filter: the reference "
             "route needs a grey (un-mosaicked) capture")
-    return calibrate_reference(cal, read_raster(capture_path), prof, distance_mm)
+    raw = np.asarray(load_capture(capture_path, prof).raw, dtype=np.float32)
+    return calibrate_reference(cal, raw, prof, distance_mm)

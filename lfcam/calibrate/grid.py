@@ -25,7 +25,7 @@ Pipeline (every step vectorised over all lenses; no Python loop per lens):
    reported with their reason, never silently dropped, and every returned centre is a
    measured micro-image (the model only predicts where to measure).
 
-The returned centre is the **intensity centroid** of each micro-image (FIELD-NOTES item 2).
+The returned centre is the **intensity centroid** of each micro-image (docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ from lfcam.calibrate.microimage import (
     fit_discs,
     own_light_centroids,
 )
-from lfcam.calibrate.synthetic import lattice_basis, rotation_matrix
 from lfcam.errors import CalibrationError
+from lfcam.optics.mla import lattice_basis, rotation_matrix
 
 RADIAL_NORM_PX = 1000.0  # ρ unit of the radial lattice term
 RADIAL_FIT_LENSES = 5_000
@@ -166,7 +166,7 @@ def estimate_pitch(image: np.ndarray, crop: int = 768) -> float:
 
     The autocorrelation of a periodic image peaks at every lattice vector whatever the
     micro-image looks like, so this works where the power spectrum's strongest peak does
-    not: with overlapping micro-images (FIELD-NOTES item 3) the fundamental harmonic nearly
+    not: with overlapping micro-images (docs/calibration.md) the fundamental harmonic nearly
     vanishes (a disc of radius ≈ 0.55·pitch) and the spectrum peaks at a diagonal harmonic.
     The nearest peak reaching half the zero-lag value (normalised by the overlap area) is
     refined to sub-pixel by a parabola in x and y.

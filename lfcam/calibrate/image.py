@@ -1,70 +1,14 @@
-"""Reading and preparing white images for calibration.
-
-Files are read by :func:`lfcam.io.load_capture` (``lfcam.calibrate.calibrate_white_file``);
-:func:`read_raster` is a plain PNG/TIFF reader for in-memory work (tests, benchmarks, the
-microscope frames) that keeps the values exactly as stored.
-"""
+"""Preparing white images for calibration (files are read by :func:`lfcam.io.load_capture`)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
+from scipy.stats import median_abs_deviation
 
-from lfcam.errors import CalibrationError, InputFileError
+from lfcam.errors import CalibrationError
 
 MAX_PIXELS = 200_000_000  # refuse absurd rasters before allocating float copies
-
-
-def read_raster(path: str | Path) -> np.ndarray:
-    """Read a grey or mosaicked PNG/TIFF raster as a 2-D float32 array (values unchanged).
-
-    Raises
-    ------
-    InputFileError
-        Missing file, unsupported or unreadable content, or not a single-channel image.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise InputFileError(f"file not found: {p}")
-    suffix = p.suffix.lower()
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
-
-            with tifffile.TiffFile(p) as tf:
-                page = tf.pages[0]
-                n = int(np.prod(page.shape))
-                if n > MAX_PIXELS:
-                    raise InputFileError(f"{p}: {page.shape} is too large ({n} samples)")
-                data = page.asarray()
-        elif suffix == ".png":
-            data = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            if data is None:
-                raise InputFileError(f"{p}: not a readable PNG")
-        else:
-            raise InputFileError(
-                f"{p}: unsupported file type {suffix!r} for calibration (PNG or TIFF raster)"
-            )
-    except InputFileError:
-        raise
-    except Exception as exc:  # tifffile raises many types on damaged files
-        raise InputFileError(f"{p}: cannot read raster ({type(exc).__name__}: {exc})") from None
-    data = np.asarray(data)
-    if data.ndim == 3 and data.shape[2] in (3, 4):
-        if not (np.array_equal(data[..., 0], data[..., 1]) and
-                np.array_equal(data[..., 1], data[..., 2])):
-            raise InputFileError(
-                f"{p}: colour raster {data.shape}; calibration needs a single-channel (grey or "
-                "Bayer-mosaicked) white image"
-            )
-        data = data[..., 0]
-    if data.ndim != 2:
-        raise InputFileError(f"{p}: expected a 2-D raster, got shape {data.shape}")
-    if data.dtype.kind not in "uif":
-        raise InputFileError(f"{p}: unsupported sample type {data.dtype}")
-    return data.astype(np.float32)
 
 
 def bayer_to_grey(image: np.ndarray, pattern: str) -> np.ndarray:
@@ -107,7 +51,7 @@ def remove_hot_pixels(image: np.ndarray) -> tuple[np.ndarray, int]:
     h, w = img.shape
     crop = img[h // 2 - min(h, 512) // 2:, w // 2 - min(w, 512) // 2:][:512, :512]
     step = (crop - cv2.medianBlur(np.ascontiguousarray(crop), 3)).ravel()
-    sigma = 1.4826 * float(np.median(np.abs(step - np.median(step))))
+    sigma = float(median_abs_deviation(step, scale="normal"))
     hot = img > nb_max + 0.5 * np.abs(nb_max) + 6.0 * sigma
     n_hot = int(hot.sum())
     if n_hot:

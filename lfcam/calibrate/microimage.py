@@ -2,10 +2,10 @@
 
 Why a model
 -----------
-A micro-image's centre (FIELD-NOTES item 2; the renderer's truth) is the intensity centroid of
+A micro-image's centre (docs/calibration.md; the renderer's truth) is the intensity centroid of
 the light *that lenslet* puts on the sensor. When micro-images are separated by a dark gap, a
 window that holds one whole micro-image measures it exactly. When they touch (the seed's
-system 1: disc radius 7.98 px in a 16.4 px lattice) or overlap (system 2, FIELD-NOTES item 3),
+system 1: disc radius 7.98 px in a 16.4 px lattice) or overlap (system 2, docs/calibration.md),
 the pixels along each seam hold light of two lenslets, and no window can separate it: the
 cell-window centroid is then biased by the brightness gradient across the micro-image (cos⁴
 and vignetting make the side nearer the optical axis brighter), 0.07 px RMS on system 1 and

@@ -38,13 +38,17 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.stats import median_abs_deviation
 
 from lfcam.camera import CameraProfile
 from lfcam.errors import CalibrationError
-from lfcam.measure.geometry import lenslet_centres_mm, regularise_to_lattice
+from lfcam.measure.geometry import (
+    lenslet_centres_mm,
+    nominal_indices,
+    regularise_to_lattice,
+)
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
-from lfcam.measure.pointfit import LocalLattice
-from lfcam.optics.paraxial import image_distance_mm
+from lfcam.measure.pointfit import LocalLattice, pupil_pattern
 from lfcam.optics.trace import trace_source_fast
 
 METHOD = "reference-dots-exact"  # Calibration.d_in_method of this route
@@ -100,7 +104,7 @@ class DinResult:
 def paraxial_image_z_mm(profile: CameraProfile, distance_mm: float) -> float:
     """z of the paraxial image of a plane ``distance_mm`` before the front vertex."""
     lens = profile.main_lens
-    return lens.back_principal_z_mm + float(image_distance_mm(lens, distance_mm))
+    return lens.back_principal_z_mm + float(lens.image_distance_mm(distance_mm))
 
 
 def check_distance(profile: CameraProfile, distance_mm: float) -> float:
@@ -132,11 +136,12 @@ class CentreMap:
     """
 
     def __init__(self, profile: CameraProfile, centres_px: np.ndarray,
-                 rotation_rad: float | None = None) -> None:
+                 rotation_rad: float | None = None, indices: np.ndarray | None = None) -> None:
         self.profile = profile
         self.centres_px = np.asarray(centres_px, dtype=np.float64)
         self.rotation_rad = (profile.mla.rotation_rad if rotation_rad is None
                              else float(rotation_rad))
+        self.indices = None if indices is None else np.asarray(indices, dtype=np.int64)
         self._nodes: dict[int, np.ndarray] = {}
 
     def _node(self, k: int) -> np.ndarray:
@@ -156,8 +161,10 @@ class CentreMap:
     def __call__(self, d_in_mm: float) -> np.ndarray:
         """Regularised lenslet centres (mm) at ``d_in_mm``."""
         mla = self.profile.mla
-        c, _ = regularise_to_lattice(self.raw(d_in_mm), mla.pitch_mm, mla.grid,
-                                     self.rotation_rad)
+        raw = self.raw(d_in_mm)
+        if self.indices is None:
+            self.indices = nominal_indices(raw, mla.pitch_mm, mla.grid, self.rotation_rad)
+        c, _ = regularise_to_lattice(raw, self.indices, mla.pitch_mm)
         return c
 
 
@@ -186,7 +193,7 @@ def find_dots(capture: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     # relative to the brightest lenslet.
     dim = np.sort(energy)[: max(1, len(energy) // 2)]
     bg = float(np.median(dim))
-    noise = 1.4826 * float(np.median(np.abs(dim - bg)))
+    noise = float(median_abs_deviation(dim, scale="normal"))
     top = float(energy.max())
     thr = bg + max(8.0 * noise, DOT_THRESHOLD * (top - bg))
     lit = np.flatnonzero(energy > thr)
@@ -222,13 +229,6 @@ def find_dots(capture: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     return lmap, dots
 
 
-def _pupil_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
-    g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
-    u, v = np.meshgrid(g, g)
-    inside = u * u + v * v <= 1.0
-    return u[inside], v[inside]
-
-
 class DotModel:
     """Exact forward model of one dot, summarised like the data (per-cell energy, centroid)."""
 
@@ -240,7 +240,7 @@ class DotModel:
         self.dot = dot
         self.centre_map = centre_map
         self.z_source = profile.main_lens.front_vertex_z_mm - distance_mm
-        self.pattern = _pupil_pattern(pupil_samples)
+        self.pattern = pupil_pattern(pupil_samples)
         n = lmap.count
         self.slot = np.full(n + 1, -1, dtype=np.int64)  # label (−1 → last) → cell slot
         self.slot[dot.cells] = np.arange(len(dot.cells))
@@ -457,6 +457,7 @@ def measure_d_in(
     black_level: float | None = None,
     pupil_samples: int = PUPIL_SAMPLES,
     max_dots: int = 25,
+    indices: np.ndarray | None = None,
 ) -> DinResult:
     """d_in from a dot-target capture and the white-image micro-image centroids.
 
@@ -478,6 +479,9 @@ def measure_d_in(
         MLA rotation (default: the profile's).
     black_level : float, optional
         Subtracted from the capture (default: the profile's).
+    indices : (N, 2) int array, optional
+        Lattice indices of the centres (the calibration's); default: rounded on the nominal
+        lattice.
 
     Raises
     ------
@@ -504,7 +508,7 @@ def measure_d_in(
     black = profile.sensor.black_level if black_level is None else black_level
     lmap, dots = find_dots(img, centres, float(pitch_px), black)
     dots = sorted(dots, key=lambda t: -t.energy.sum())[:max_dots]
-    centre_map = CentreMap(profile, centres, rotation_rad)
+    centre_map = CentreMap(profile, centres, rotation_rad, indices)
     fits = [fit_dot_exact(profile, lmap, dot, centre_map, distance_mm, d0, pupil_samples)
             for dot in dots]
     # clean dots fit to ~0.01 px; merged blurs, stuck fits and a wrong distance leave more

@@ -8,10 +8,8 @@ unambiguous: the **intensity centroid** of each lens's own noise-free pixels, co
 ``np.bincount`` over the pixels that lens painted. That truth does not depend on how the
 calibration detects or refines centres.
 
-Lattice (same convention as the camera profile): ``u = (i, j)`` integer indices; rect basis
-``B = [[1, 0], [0, 1]]``, hex basis ``B = [[1, 1/2], [0, √3/2]]`` (rows offset by half a pitch);
-lens centre = ``offset + pitch · R(rotation) · B · u`` in pixel coordinates (x = column,
-y = row, pixel centres at integers).
+Lattice: the one convention of :func:`lfcam.optics.mla.lattice_basis`, in pixel coordinates
+(x = column, y = row, pixel centres at integers).
 """
 
 from __future__ import annotations
@@ -20,19 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-HEX_BASIS = np.array([[1.0, 0.5], [0.0, np.sqrt(3.0) / 2.0]])
-RECT_BASIS = np.eye(2)
-
-
-def lattice_basis(grid: str) -> np.ndarray:
-    """Unit-pitch lattice basis (columns = the two lattice vectors) for ``grid``."""
-    return HEX_BASIS if grid == "hex" else RECT_BASIS
-
-
-def rotation_matrix(angle_rad: float) -> np.ndarray:
-    """2×2 rotation by ``angle_rad`` (x toward y; in image coordinates y points down)."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[c, -s], [s, c]])
+from lfcam.optics.mla import lattice_basis, rotation_matrix
 
 
 @dataclass(frozen=True)

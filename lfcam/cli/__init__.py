@@ -1,1 +1,2 @@
-"""Command-line interface (CONTRACT §3). One module per subcommand, each with ``register``."""
+"""Command-line interface (docs/conventions.md): one module per subcommand, each with
+``register``."""

@@ -6,6 +6,9 @@ import argparse
 import json
 import sys
 
+from lfcam.measure import METHODS
+from lfcam.models import DISTANCE_MODELS
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``batch`` sub-command."""
@@ -18,8 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True,
                    help="output folder: summary.csv, failures.csv, captures/<path>/")
     p.add_argument("--model", default="auto",
-                   choices=("auto", "exact", "offaxis", "onaxis", "thin"))
-    p.add_argument("--method", default="lightfield", choices=("lightfield", "diameter"))
+                   choices=DISTANCE_MODELS)
+    p.add_argument("--method", default="lightfield", choices=METHODS)
     p.add_argument("--tolerance", type=float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
     p.add_argument("--fast", action="store_true",

@@ -1,4 +1,4 @@
-"""Helpers shared by the sub-commands: profiles, CSV batches, JSON output, atomic writes."""
+"""Helpers shared by the sub-commands: profiles, CSV batch input, JSON output."""
 
 from __future__ import annotations
 
@@ -6,12 +6,11 @@ import argparse
 import csv
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from lfcam.atomic import atomic_write_text  # noqa: F401 - re-exported for the CLI modules
 from lfcam.camera import CameraProfile, load_profile
 from lfcam.errors import InputFileError
 
@@ -71,20 +70,6 @@ def read_csv_columns(path: str | Path, columns: Sequence[str]) -> dict[str, np.n
     if not values[columns[0]]:
         raise InputFileError(f"{path}: no data rows")
     return {c: np.asarray(v, dtype=np.float64) for c, v in values.items()}
-
-
-def format_cell(value: object) -> str:
-    """CSV cell: empty for NaN, repr-precision floats, strings as they are."""
-    if isinstance(value, (float, np.floating)):
-        return "" if math.isnan(value) else repr(float(value))
-    return str(value)
-
-
-def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
-    """Write a CSV atomically."""
-    lines = [",".join(header)]
-    lines += [",".join(format_cell(v) for v in row) for row in rows]
-    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def json_value(value: object) -> object:

@@ -1,4 +1,4 @@
-"""``lfcam decode`` and ``lfcam refocus`` (CONTRACT §3)."""
+"""``lfcam decode`` and ``lfcam refocus`` (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -40,18 +40,19 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _load(args: argparse.Namespace):
+    from lfcam.calibrate import load_calibration
     from lfcam.camera import load_profile
-    from lfcam.decode import decode, load_grid, to_grey
+    from lfcam.decode import decode
     from lfcam.io import load_capture
 
     profile = load_profile(args.profile) if args.profile else None
-    grid = load_grid(args.calibration)
+    grid = load_calibration(args.calibration)
     cap = load_capture(args.capture, profile)
-    raw = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    raw = cap.grey()
     white = None
     if args.white:
         wcap = load_capture(args.white, profile)
-        white = to_grey(wcap.raw, wcap.bayer, wcap.black_level, wcap.white_level)
+        white = wcap.grey()
     lf = decode(raw, grid, white=white, n_views=args.views)
     return lf, profile if profile is not None else cap.profile
 

@@ -84,8 +84,9 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Render, calibrate, measure; print the table; write the outputs."""
-    from lfcam.decode.lightfield import to_grey
-    from lfcam.distance import load_calibration, run_distance, write_outputs
+    from lfcam.calibrate import load_calibration
+    from lfcam.distance import run_distance, write_outputs
+    from lfcam.io.grey import to_grey
     from lfcam.models import line as line_model
     from lfcam.models import offaxis
     from lfcam.sim.capture import simulate, write_capture

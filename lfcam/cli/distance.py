@@ -1,4 +1,4 @@
-"""``lfcam distance``: per-region metric distances of a capture (CONTRACT §3)."""
+"""``lfcam distance``: per-region metric distances of a capture (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ import json
 import sys
 from pathlib import Path
 
-from lfcam.camera import CameraProfile, load_profile
+from lfcam.camera import profile_for_capture
 from lfcam.cli.common import json_value
-from lfcam.errors import ProfileError
+from lfcam.measure import METHODS
+from lfcam.models import DISTANCE_MODELS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,9 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calibration", required=True, help="calibration JSON (lfcam calibrate)")
     p.add_argument("--profile", help="camera profile (default: CAPTURE's .profile.toml sidecar)")
     p.add_argument("--model", default="auto",
-                   choices=("auto", "exact", "offaxis", "onaxis", "thin", "refocus"),
+                   choices=DISTANCE_MODELS,
                    help="refocus = Hahne et al.'s depth from refocus (the seed's baseline)")
-    p.add_argument("--method", default="lightfield", choices=("lightfield", "diameter"),
+    p.add_argument("--method", default="lightfield", choices=METHODS,
                    help="blur measurement: exact light-field fit, or the seed's diameter")
     p.add_argument("--tolerance", type=float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
@@ -32,16 +33,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def resolve_profile(capture: Path, name: str | None) -> CameraProfile:
-    """``--profile`` if given, else the ``<stem>.profile.toml`` written beside the capture."""
-    if name:
-        return load_profile(name)
-    sidecar = capture.with_name(capture.stem + ".profile.toml")
-    if sidecar.is_file():
-        return load_profile(sidecar)
-    raise ProfileError(f"no --profile given and no {sidecar.name} beside the capture")
-
-
 def _progress(done: int, total: int) -> None:
     if sys.stderr.isatty():
         print(f"\rregions {done}/{total}", end="" if done < total else "\n", file=sys.stderr,
@@ -50,15 +41,15 @@ def _progress(done: int, total: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the distance pipeline and write the outputs."""
-    from lfcam.decode.lightfield import to_grey
-    from lfcam.distance import load_calibration, run_distance, write_outputs
+    from lfcam.calibrate import load_calibration
+    from lfcam.distance import run_distance, write_outputs
     from lfcam.io import load_capture
 
     capture_path = Path(args.capture)
-    profile = resolve_profile(capture_path, args.profile)
+    profile = profile_for_capture(capture_path, args.profile)
     calibration = load_calibration(args.calibration)
     cap = load_capture(capture_path, profile)
-    image = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
+    image = cap.grey()
     result = run_distance(image, profile, calibration, model=args.model, method=args.method,
                           tolerance_pct=args.tolerance, fast=args.fast, progress=_progress)
     write_outputs(args.output, result)

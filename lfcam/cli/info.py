@@ -1,4 +1,4 @@
-"""``lfcam info FILE [--json]``: what a capture is (CONTRACT §3)."""
+"""``lfcam info FILE [--json]``: what a capture is (docs/conventions.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``lfcam optics forward | inverse | refocus-distance`` (CONTRACT §3)."""
+"""``lfcam optics forward | inverse | refocus-distance`` (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -13,15 +13,11 @@ from lfcam.cli.common import (
     print_json,
     profile_from_args,
     read_csv_columns,
-    write_csv,
 )
-from lfcam.errors import LfcamError
+from lfcam.errors import LfcamError, UsageError
+from lfcam.export import write_csv
 from lfcam.models import POINT_MODELS, hahne, point_model
 from lfcam.optics.trace import TraceStatus, forward
-
-
-class UsageError(LfcamError):
-    """Flags that do not fit together."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -1,4 +1,4 @@
-"""``lfcam simulate``: render a synthetic raw capture and its ground truth (CONTRACT §3)."""
+"""``lfcam simulate``: render a synthetic raw capture and its ground truth (docs/conventions.md)."""
 
 from __future__ import annotations
 

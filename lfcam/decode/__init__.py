@@ -1,6 +1,5 @@
 """Light-field decoding (raw + calibration → ``L[v, u, t, s]``), view export and refocusing."""
 
-from lfcam.decode.grid import GridSpec, grid_from_dict, load_grid
 from lfcam.decode.lightfield import LightField, decode, default_n_views, to_grey
 from lfcam.decode.refocus import (
     Refocused,
@@ -12,7 +11,7 @@ from lfcam.decode.refocus import (
 )
 
 __all__ = [
-    "GridSpec", "LightField", "Refocused", "decode", "default_n_views", "distance_for_shift",
-    "focal_stack", "grid_from_dict", "load_grid", "refocus", "refocus_distance",
+    "LightField", "Refocused", "decode", "default_n_views", "distance_for_shift",
+    "focal_stack", "refocus", "refocus_distance",
     "shift_for_distance", "to_grey",
 ]

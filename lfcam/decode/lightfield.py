@@ -25,18 +25,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lfcam.camera import BAYER_PATTERNS
-from lfcam.decode.grid import GridSpec
+from lfcam.calibrate.model import Calibration
 from lfcam.errors import InputFileError
+from lfcam.io.grey import to_grey  # noqa: F401 - part of the decode API
 
-# OpenCV names a Bayer pattern after the second row's 2nd/3rd pixels; these map our
-# pattern (colours of pixels (0,0), (0,1), (1,0), (1,1)) to the code giving BGR output.
-_CV_BAYER = {
-    "RGGB": cv2.COLOR_BayerBG2BGR,
-    "BGGR": cv2.COLOR_BayerRG2BGR,
-    "GRBG": cv2.COLOR_BayerGB2BGR,
-    "GBRG": cv2.COLOR_BayerGR2BGR,
-}
 MAX_VIEWS = 64
 MAX_SAMPLES = 400_000_000  # nv·nu·T·S: ~1.6 GB per float32 array
 
@@ -52,8 +44,8 @@ class LightField:
         was given, else black/white-level normalised raw), 0 where ``weight`` is 0.
     weight : numpy.ndarray
         float32 ``(nv, nu, T, S)`` in [0, 1]: relative vignetting; 0 = invalid sample.
-    grid : GridSpec
-        The microlens grid it was decoded with.
+    grid : Calibration
+        The microlens calibration it was decoded with.
     spacing_px : tuple of float
         (x, y) sensor-pixel distance between neighbouring spatial samples (s, t).
     first_t, first_s : int
@@ -62,7 +54,7 @@ class LightField:
 
     data: np.ndarray
     weight: np.ndarray
-    grid: GridSpec
+    grid: Calibration
     spacing_px: tuple[float, float]
     first_t: int = 0
     first_s: int = 0
@@ -84,43 +76,7 @@ def default_n_views(pitch_px: float) -> int:
     return 2 * int(math.floor(pitch_px / 2.0)) + 1
 
 
-def to_grey(raw: np.ndarray, bayer: str = "none", black_level: float = 0.0,
-            white_level: float | None = None) -> np.ndarray:
-    """Linear grey float32 image from a raw mosaic: demosaic (OpenCV) and level-normalise.
-
-    Parameters
-    ----------
-    raw : 2-D array
-    bayer : str
-        ``"none"`` or a CFA pattern (CONTRACT §2).
-    black_level, white_level : float
-        Raw value of no light and of saturation (``None``: the dtype maximum, or 1 for floats).
-    """
-    if raw.ndim != 2 or raw.shape[0] < 2 or raw.shape[1] < 2:
-        raise InputFileError(f"raw image must be 2-D and at least 2×2, got shape {raw.shape}")
-    if bayer not in BAYER_PATTERNS:
-        raise InputFileError(f"unknown Bayer pattern {bayer!r} (expected one of {BAYER_PATTERNS})")
-    if white_level is None:
-        white_level = float(np.iinfo(raw.dtype).max) if raw.dtype.kind in "ui" else 1.0
-    span = float(white_level) - float(black_level)
-    if not math.isfinite(span) or span <= 0:
-        raise InputFileError(f"white level {white_level} must exceed black level {black_level}")
-    if bayer != "none":
-        src = raw
-        if src.dtype not in (np.uint8, np.uint16):
-            src = np.clip(raw, 0, 65535).astype(np.uint16)
-        bgr = cv2.cvtColor(np.ascontiguousarray(src), _CV_BAYER[bayer])
-        grey = cv2.cvtColor(bgr.astype(np.float32), cv2.COLOR_BGR2GRAY)
-    else:
-        grey = raw.astype(np.float32, copy=True)
-    if not np.all(np.isfinite(grey)):
-        raise InputFileError("raw image contains NaN or infinite values")
-    grey -= np.float32(black_level)
-    grey *= np.float32(1.0 / span)
-    return grey
-
-
-def decode(raw: np.ndarray, grid: GridSpec, white: np.ndarray | None = None,
+def decode(raw: np.ndarray, grid: Calibration, white: np.ndarray | None = None,
            n_views: int | None = None, hex_to_rect: bool = True,
            white_threshold: float = 0.1) -> LightField:
     """Decode a (grey, level-normalised) raw into a light field.
@@ -129,8 +85,9 @@ def decode(raw: np.ndarray, grid: GridSpec, white: np.ndarray | None = None,
     ----------
     raw : 2-D float array
         Linear sensor image (see :func:`to_grey` for Bayer / levels).
-    grid : GridSpec
-        Microlens grid from calibration.
+    grid : Calibration
+        Microlens grid: every lens on the sensor sits at its measured centre, else where the
+        calibration's fitted lattice model puts it (:meth:`Calibration.lens_centres`).
     white : 2-D array, optional
         White (flat-field) image of the same size, already linear (see :func:`to_grey`).
     n_views : int, optional
@@ -162,6 +119,7 @@ def decode(raw: np.ndarray, grid: GridSpec, white: np.ndarray | None = None,
         wmax = float(np.max(white32))
         if not math.isfinite(wmax) or wmax <= 0 or not np.all(np.isfinite(white32)):
             raise InputFileError("white image is black or not finite")
+    grid.check_image((h, w))
     lens = grid.lens_centres((h, w))
     t_count, s_count = lens.x.shape
     if n * n * t_count * s_count > MAX_SAMPLES:
@@ -223,7 +181,3 @@ def _hex_rows_to_rect(data: np.ndarray, weight: np.ndarray, odd: np.ndarray) -> 
     data[odd] = np.where(good, d_new / np.where(good, w_new, 1.0), 0.0)
     weight[odd] = w_new
 
-
-def view(lf: LightField, v: int, u: int) -> np.ndarray:
-    """Sub-aperture view ``(v, u)`` as a float32 (T, S) image (0 where invalid)."""
-    return lf.data[v, u]

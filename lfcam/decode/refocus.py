@@ -52,7 +52,7 @@ def shift_for_distance(profile: CameraProfile, distance_mm, d_in_mm: float | Non
     ----------
     profile : CameraProfile
     distance_mm : array_like
-        Object distance from the main lens's front vertex (CONTRACT §1); ``inf`` allowed.
+        Object distance from the main lens's front vertex (docs/conventions.md); ``inf`` allowed.
     d_in_mm : float, optional
         MLA distance (default the profile's).
 

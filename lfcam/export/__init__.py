@@ -1,4 +1,5 @@
-"""Outputs of a distance run (CONTRACT §3): ``regions.csv``, ``distance.tiff``, ``distance.png``.
+"""Outputs of a distance run (docs/distance.md): ``regions.csv``, ``distance.tiff``,
+``distance.png``, and the one CSV writer of lfcam (:func:`write_csv`).
 
 Every file is written atomically (temporary file in the target folder, then a rename), so a
 reader or an interrupted batch never sees half a file.
@@ -6,7 +7,10 @@ reader or an interrupted batch never sees half a file.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import csv
+import io
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,13 +18,28 @@ import cv2
 import numpy as np
 import tifffile
 
-from lfcam.atomic import atomic_write, atomic_write_bytes
-from lfcam.cli.common import write_csv
+from lfcam.atomic import atomic_write, atomic_write_bytes, atomic_write_text
 
 REGION_COLUMNS = (
     "region_id", "x_px", "y_px", "kind", "model", "distance_mm", "offset_mm", "diameter_mm",
     "uncertainty_mm", "status",
 )
+
+
+def format_cell(value: object) -> str:
+    """CSV cell text: empty for NaN, repr-precision floats, everything else as ``str``."""
+    if isinstance(value, (float, np.floating)):
+        return "" if math.isnan(value) else repr(float(value))
+    return str(value)
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
+    """Write a CSV atomically (``csv`` module quoting, ``\\n`` line ends)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows([format_cell(v) for v in row] for row in rows)
+    atomic_write_text(path, buf.getvalue())
 
 
 @dataclass(frozen=True)
@@ -114,16 +133,21 @@ def write_distance_png(path: str | Path, distance_mm: np.ndarray,
     atomic_write_bytes(path, buf.tobytes())
 
 
-def distance_map(shape: tuple[int, int], regions: Sequence[RegionResult],
-                 masks: Sequence[np.ndarray] | None = None) -> np.ndarray:
-    """Paint each ok region's distance over its footprint (mask or bounding box); NaN elsewhere."""
-    out = np.full(shape, np.nan, dtype=np.float32)
-    for k, r in enumerate(regions):
-        if r.status != "ok" or not np.isfinite(r.distance_mm):
-            continue
-        if masks is not None:
-            out[masks[k]] = r.distance_mm
-        else:
-            x0, y0, x1, y1 = r.bbox_px
-            out[y0:y1, x0:x1] = r.distance_mm
-    return out
+def paint_region(distance_map: np.ndarray, region, lmap, pitch_px: float,
+                 distance_mm: float) -> None:
+    """Paint ``distance_mm`` in place over a region's footprint: the pixels of its lenslets,
+    morphologically closed over one pitch so the map has no holes between micro-images.
+
+    Parameters
+    ----------
+    distance_map : (H, W) float32 array
+    region : lfcam.measure.Region
+    lmap : lfcam.measure.LensletMap
+    pitch_px : float
+    distance_mm : float
+    """
+    x0, y0, x1, y1 = region.box_px
+    m = np.isin(lmap.labels[y0:y1, x0:x1], region.lenslets).astype(np.uint8)
+    k = max(3, int(pitch_px) | 1)
+    m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)).astype(bool)
+    distance_map[y0:y1, x0:x1][m] = distance_mm

@@ -84,6 +84,13 @@ class Capture:
         """(height_px, width_px)."""
         return (int(self.raw.shape[0]), int(self.raw.shape[1]))
 
+    def grey(self) -> np.ndarray:
+        """Linear grey float32 image: demosaicked, black level 0, white level 1
+        (:func:`lfcam.io.grey.to_grey`)."""
+        from lfcam.io.grey import to_grey
+
+        return to_grey(self.raw, self.bayer, self.black_level, self.white_level)
+
 
 def _freeze(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a)

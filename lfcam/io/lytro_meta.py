@@ -1,6 +1,6 @@
 """Lytro metadata: find the frame records, read the raw format, map the optics.
 
-Two key layouts exist in the wild (both seen in ``/work/shared/realdata/lytro``):
+Two key layouts exist in the wild (both seen in public Lytro test files):
 
 * **F01 / picture schema 1** (and Illum caldata ``MOD_*.TXT``): the container's master JSON
   has ``picture.frameArray[i].frame`` (or ``master.picture.frameArray`` in caldata text files);

@@ -1,7 +1,7 @@
 """Lenslet centres on the MLA plane from calibrated white-image micro-image centroids.
 
 A calibration returns where each micro-image's light lands on the sensor (intensity centroid
-of the white image, FIELD-NOTES 2). The distance fits need the lenslet itself: light crossing
+of the white image, docs/calibration.md). The distance fits need the lenslet itself: light crossing
 lenslet k with slope σ lands at ``C_k + f_x·σ`` (ideal lenslet), so the white centroid is
 ``C_k + f_x·⟨σ⟩_white(C_k)``, where ⟨σ⟩ is the mean slope, weighted by cos⁴ of the angle at
 which the light of each lenslet point reaches the sensor, of the light that
@@ -12,12 +12,20 @@ over a grid of slopes, then invert ``r_white = r + f_x·g(r)`` by interpolation.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lfcam.camera import CameraProfile
+from lfcam.errors import CalibrationError
+from lfcam.measure.lenslets import LensletMap, build_lenslet_map
+from lfcam.optics.mla import lattice_basis, rotation_matrix
 from lfcam.optics.trace import trace_backward_fast
+
+if TYPE_CHECKING:  # the calibration stage sits above measure: its type only
+    from lfcam.calibrate.model import Calibration
 
 RADII = 48
 SLOPE_GRID = 96
@@ -75,16 +83,36 @@ def lenslet_centres_mm(
 LATTICE_MAX_RMS_PITCH = 0.02  # a regular MLA explains its centres to better than this
 
 
+def nominal_indices(centres_mm: np.ndarray, pitch_mm: float, grid: str,
+                    rotation_rad: float) -> np.ndarray:
+    """Lattice indices of lenslet centres by rounding on the nominal lattice
+    (:func:`lfcam.optics.mla.lattice_basis`) about the centre nearest the axis; for centres
+    that come without the calibration's indices."""
+    c = np.asarray(centres_mm, dtype=np.float64)
+    ref = c[np.argmin(np.hypot(c[:, 0], c[:, 1]))]
+    basis = pitch_mm * rotation_matrix(rotation_rad) @ lattice_basis(grid)
+    return np.round(np.linalg.solve(basis, (c - ref).T).T).astype(np.int64)
+
+
 def regularise_to_lattice(
-    centres_mm: np.ndarray, pitch_mm: float, grid: str, rotation_rad: float
+    centres_mm: np.ndarray, indices: np.ndarray, pitch_mm: float
 ) -> tuple[np.ndarray, float]:
     """Replace lenslet centres by a least-squares affine lattice through them.
 
-    The MLA is one rigid part: an affine lattice ``C = o + i·a1 + j·a2`` averages the
-    per-lenslet errors of the white-centroid inversion away (system 1: 1.6 → 0.9 µm RMS).
-    Integer coordinates come from the nominal basis about the centre nearest the axis. When
-    the fit leaves more than ``LATTICE_MAX_RMS_PITCH`` pitch RMS, the lattice does not describe
-    the array and the centres are returned unchanged.
+    The MLA is one rigid part: an affine lattice ``C = o + i·a1 + j·a2`` over the
+    calibration's lattice indices averages the per-lenslet errors of the white-centroid
+    inversion away (system 1: 1.6 → 0.9 µm RMS). When the fit leaves more than
+    ``LATTICE_MAX_RMS_PITCH`` pitch RMS, the lattice does not describe the array and the
+    centres are returned unchanged.
+
+    Parameters
+    ----------
+    centres_mm : (N, 2) array
+        Lenslet centres on the MLA plane.
+    indices : (N, 2) int array
+        Their lattice indices (:func:`lfcam.optics.mla.lattice_basis`).
+    pitch_mm : float
+        Lenslet pitch (scales the acceptance limit).
 
     Returns
     -------
@@ -92,18 +120,67 @@ def regularise_to_lattice(
     rms_pitch : float
         RMS residual of the lattice fit, in pitches.
     """
-    from lfcam.optics.mla import MlaGrid
-
     c = np.asarray(centres_mm, dtype=np.float64)
     if len(c) < 8:
         return c, float("nan")
-    ref = c[np.argmin(np.hypot(c[:, 0], c[:, 1]))]
-    basis = MlaGrid(pitch_mm=pitch_mm, grid=grid, rotation_rad=rotation_rad).basis_mm
-    ij = np.round(np.linalg.solve(basis, (c - ref).T).T)
-    a = np.column_stack([np.ones(len(ij)), ij])
+    a = np.column_stack([np.ones(len(c)), np.asarray(indices, dtype=np.float64)])
     coef, *_ = np.linalg.lstsq(a, c, rcond=None)
     fitted = a @ coef
     rms = float(np.sqrt(((fitted - c) ** 2).sum(axis=1).mean())) / pitch_mm
     if not rms <= LATTICE_MAX_RMS_PITCH:
         return c, rms
     return fitted, rms
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Per-calibration data reused for every capture.
+
+    Attributes
+    ----------
+    lmap : LensletMap
+        Which lenslet's micro-image each sensor pixel belongs to.
+    lens_centres_mm : (N, 2) array
+        Lenslet centres on the MLA plane (mm from the axis), in the order of ``lmap``.
+    pitch_px : float
+        Micro-image pitch on the sensor.
+    d_in_mm : float
+        Main lens → MLA distance used by every fit.
+    """
+
+    lmap: LensletMap
+    lens_centres_mm: np.ndarray
+    pitch_px: float
+    d_in_mm: float
+
+
+def prepare_geometry(profile: CameraProfile, calibration: Calibration,
+                     shape: tuple[int, int]) -> Geometry:
+    """Lenslet map and lenslet centres for one calibration and sensor size.
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    calibration : Calibration
+        Measured micro-image centres; its ``d_in_mm`` (when set) overrides the profile's.
+    shape : tuple of int
+        (rows, cols) of the captures.
+
+    Returns
+    -------
+    Geometry
+
+    Raises
+    ------
+    CalibrationError
+        The calibration was made on a white image of another size, or holds no centre.
+    """
+    calibration.check_image(shape)
+    if not calibration.n_lenses:
+        raise CalibrationError(f"{calibration.source or 'calibration'}: no measured centres")
+    centres = np.asarray(calibration.centres_px, dtype=np.float64)
+    d_in = calibration.d_in_mm if calibration.d_in_mm is not None else profile.d_in_mm
+    lmap = build_lenslet_map(centres, shape, 0.5 * calibration.pitch_px * 1.08)
+    lens_mm = lenslet_centres_mm(profile, d_in, centres)
+    lens_mm, _ = regularise_to_lattice(lens_mm, calibration.indices, profile.mla.pitch_mm)
+    return Geometry(lmap, lens_mm, float(calibration.pitch_px), d_in)

@@ -2,7 +2,7 @@
 
 Every pixel belongs to the micro-image whose (calibrated) centre is nearest, if it lies within
 ``radius_px`` of it; pixels further out (seams between micro-images, where neighbours overlap
-in fast systems, FIELD-NOTES 3) are ignored. The assignment is computed once per calibration
+in fast systems, docs/calibration.md) are ignored. The assignment is computed once per calibration
 (a k-d tree query over the pixel grid) and reused for every capture.
 """
 

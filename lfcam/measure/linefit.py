@@ -26,8 +26,8 @@ from lfcam.measure.pointfit import (
     _centroid_px,
     _match_centroid,
     _Patch,
-    _pupil_pattern,
     chief_ray_offset,
+    pupil_pattern,
 )
 
 LINE_POINTS = 24
@@ -75,7 +75,7 @@ def fit_line_image(
     lens = profile.main_lens
     z_front = lens.front_vertex_z_mm
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
-    pattern = _pupil_pattern(LINE_PUPIL)
+    pattern = pupil_pattern(LINE_PUPIL)
     nan3 = np.full(3, np.nan)
     if patch.norm <= 0:
         return LineFit(nan3, nan3, 1.0, np.nan, 0, False, "empty")

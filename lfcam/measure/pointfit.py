@@ -7,7 +7,7 @@ that lenslet (ideal thin lenslets). Traced *backward* through the exact main len
 the lenslet size, through the source. The source is the intensity-weighted least-squares point
 closest to all those lines — a 3×3 linear solve, no model error, no iterations.
 
-Spots near the seam of two micro-images (fast systems overlap by ~10 %, FIELD-NOTES 3) are
+Spots near the seam of two micro-images (fast systems overlap by ~10 %, docs/calibration.md) are
 ambiguous between two lenslets; they are assigned with the smoothness of the slope field:
 a robust affine model ``offset = a + B·C`` of spot offset against lenslet centre is fitted on
 unambiguous spots, then every spot goes to the candidate lenslet that model explains best.
@@ -42,14 +42,6 @@ class PointFit:
     rms_miss_mm: float  # weighted RMS distance of the lines from the source
     ok: bool
     reason: str = ""
-
-
-def to_distance(profile: CameraProfile, fit: PointFit) -> tuple[float, float, float]:
-    """(distance_mm, offset_mm, sigma_distance_mm) of a fit."""
-    z_front = profile.main_lens.front_vertex_z_mm
-    distance = z_front - fit.source_mm[2]
-    offset = float(np.hypot(fit.source_mm[0], fit.source_mm[1]))
-    return float(distance), offset, float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
 
 
 def find_spots(image: np.ndarray, mask: np.ndarray, threshold: float):
@@ -154,7 +146,7 @@ def _statistic(lens, d_in_mm, fx, centres_mm, energy, landing_mm):
     return triangulate_lines(pts, dirs, w)
 
 
-def _pupil_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
+def pupil_pattern(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Stratified points of the unit disc (cell centres of an n×n grid inside the disc)."""
     g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
     u, v = np.meshgrid(g, g)
@@ -244,7 +236,7 @@ def fit_point(
         lens_centres_mm[lit], 3.0 * profile.mla.pitch_mm)))
     centres = lens_centres_mm[near]
     tree = cKDTree(centres)
-    pattern = _pupil_pattern(PUPIL_SAMPLES)
+    pattern = pupil_pattern(PUPIL_SAMPLES)
     source = t_meas.copy()
     for _ in range(MAX_ITERATIONS):
         e_sim, land_sim = simulate_lenslets(profile, d_in_mm, source, tree, centres, pattern)
@@ -358,7 +350,7 @@ class _Patch:
         self.tree = cKDTree(lens_centres_mm)
         self.centres = lens_centres_mm
         self.lattice = LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
-        self.pattern = _pupil_pattern(IMAGE_PUPIL_SAMPLES)
+        self.pattern = pupil_pattern(IMAGE_PUPIL_SAMPLES)
         self.evaluations = 0
 
     def render(self, source_mm, pattern=None):
@@ -409,7 +401,8 @@ class _Patch:
         wt = np.concatenate([(1 - fxr) * (1 - fyr), fxr * (1 - fyr), (1 - fxr) * fyr,
                              fxr * fyr]) * np.tile(weight, 4)
         inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
-        img = np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w)
+        img = np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w).astype(
+            np.float64)  # no ray inside: bincount returns int64, which GaussianBlur refuses
         return cv2.GaussianBlur(img.reshape(h, w), (0, 0), MATCH_BLUR_PX)
 
     def residual(self, source_mm, pattern=None) -> np.ndarray:
@@ -515,7 +508,9 @@ def fit_point_image(
     """Match the exact forward model of a point source to the pixels inside ``box``.
 
     Without a start, a coarse scan over distance (lateral position from the chief ray through
-    the light's centroid) picks the basin; Nelder–Mead then refines (log distance, x, y).
+    the light's centroid) picks the basin; a trust-region least-squares fit
+    (``scipy.optimize.least_squares``) then refines (log distance, x, y), and a parabolic
+    polish along the line of sight finishes.
     """
     lens = profile.main_lens
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
@@ -535,9 +530,6 @@ def fit_point_image(
     def source_of(params):
         return np.array([params[1], params[2], z_front - np.exp(params[0])])
 
-    def cost(params):
-        return patch.misfit(source_of(params))
-
     f = lens.focal_length_mm
     from scipy.optimize import least_squares
 
@@ -554,7 +546,7 @@ def fit_point_image(
     if best is None or best[0] > GOOD_MISFIT:
         # no (good) start: scan the distance, lateral position from the chief ray
         # the scan only has to find the basin: a coarse pupil sample (~1/6 of the rays) will do
-        coarse = _pupil_pattern(SCAN_PUPIL_SAMPLES)
+        coarse = pupil_pattern(SCAN_PUPIL_SAMPLES)
 
         def scan_cost(params):
             return patch.misfit(source_of(params), coarse)

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.stats import median_abs_deviation
 
 from lfcam.measure.lenslets import LensletMap, LensletStats
 
@@ -45,7 +46,7 @@ class Region:
 def lit_threshold(energy: np.ndarray) -> float:
     """Energy above which a lenslet counts as lit: median + ``NOISE_SIGMAS``·(robust σ)."""
     med = float(np.median(energy))
-    mad = float(np.median(np.abs(energy - med))) * 1.4826
+    mad = float(median_abs_deviation(energy, scale="normal"))
     floor = 1e-6 * float(energy.max()) if energy.size else 0.0
     return max(med + NOISE_SIGMAS * mad, med + floor)
 

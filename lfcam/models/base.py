@@ -9,7 +9,8 @@ import numpy as np
 
 
 class Status(IntEnum):
-    """Per-element outcome of an inversion (CONTRACT §3 ``status`` strings via :func:`name`)."""
+    """Per-element outcome of an inversion (``status`` strings of docs/conventions.md via
+    :attr:`label`)."""
 
     OK = 0
     NO_SOLUTION = 1  # the rim rays do not meet in front of the lens (no real source)

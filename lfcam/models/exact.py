@@ -113,7 +113,7 @@ def invert(profile: CameraProfile, d_in_mm: float | None, y1_mm, y2_mm) -> Inver
     d_in_mm : float or None
         MLA distance (``None``: the profile's).
     y1_mm, y2_mm : array_like
-        Signed sensor heights of the upper- and lower-rim rays (CONTRACT §1).
+        Signed sensor heights of the upper- and lower-rim rays (docs/conventions.md).
 
     Returns
     -------

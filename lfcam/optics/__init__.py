@@ -1,6 +1,8 @@
-"""Optics shared by every stage: paraxial thick-lens helpers and the exact ray trace."""
+"""Optics shared by every stage: the exact ray trace through the main lens and the MLA grid.
 
-from lfcam.optics.paraxial import d_in_for_focus, focus_for_d_in
+Paraxial properties of the main lens are methods of :class:`lfcam.camera.MainLens`.
+"""
+
 from lfcam.optics.trace import TraceStatus, forward, trace_rays
 
-__all__ = ["TraceStatus", "d_in_for_focus", "focus_for_d_in", "forward", "trace_rays"]
+__all__ = ["TraceStatus", "forward", "trace_rays"]

@@ -1,7 +1,7 @@
 """Microlens-array grid geometry: lenslet centres, nearest lenslet, clear apertures.
 
 All coordinates are lateral (x, y) in millimetres on the MLA plane, origin on the optical
-axis (CONTRACT §1). The lattice is ``C(i, j) = offset + i·a1 + j·a2`` with
+axis (docs/conventions.md). The lattice is ``C(i, j) = offset + i·a1 + j·a2`` with
 
 * rect: ``a1 = p·(cos θ, sin θ)``, ``a2 = p·(−sin θ, cos θ)``;
 * hex: ``a1`` as above and ``a2 = p·(cos(θ+60°), sin(θ+60°))`` — rows along the rotated x axis,
@@ -20,6 +20,44 @@ import numpy as np
 
 from lfcam.camera import GRIDS, MicrolensArray
 from lfcam.errors import ProfileError
+
+HEX_BASIS = np.array([[1.0, 0.5], [0.0, math.sqrt(3.0) / 2.0]])
+RECT_BASIS = np.eye(2)
+
+
+def lattice_basis(grid: str) -> np.ndarray:
+    """Unit-pitch lattice basis (columns = the two lattice vectors) for ``grid``.
+
+    The one lattice convention of lfcam: lens ``(i, j)`` sits at
+    ``offset + pitch · R(θ) · B · (i, j)`` with ``B = [[1, 0], [0, 1]]`` (rect) or
+    ``B = [[1, 1/2], [0, √3/2]]`` (hex), in millimetres on the MLA plane (:class:`MlaGrid`) and
+    in pixels on the sensor (:class:`lfcam.calibrate.Calibration`).
+    """
+    return HEX_BASIS if grid == "hex" else RECT_BASIS
+
+
+def rotation_matrix(angle_rad: float) -> np.ndarray:
+    """2×2 rotation by ``angle_rad`` (x toward y; in image coordinates y points down)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+def row_column(grid: str, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lens row ``t`` and column ``s`` of lattice index ``(i, j)``.
+
+    Rows run along the first lattice vector; in a hex lattice odd rows sit half a pitch to
+    the right of even ones, so ``s = i + ⌊j/2⌋`` (rect: ``s = i``) and ``t = j``.
+    """
+    i = np.asarray(i, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    return j, (i + np.floor_divide(j, 2) if grid == "hex" else i)
+
+
+def lattice_index(grid: str, t: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice index ``(i, j)`` of lens row ``t``, column ``s`` (inverse of :func:`row_column`)."""
+    t = np.asarray(t, dtype=np.int64)
+    s = np.asarray(s, dtype=np.int64)
+    return (s - np.floor_divide(t, 2) if grid == "hex" else s), t
 
 
 @dataclass(frozen=True)
@@ -69,13 +107,7 @@ class MlaGrid:
     @property
     def basis_mm(self) -> np.ndarray:
         """2×2 matrix whose columns are the lattice vectors a1, a2 (mm)."""
-        p, t = self.pitch_mm, self.rotation_rad
-        a1 = (p * math.cos(t), p * math.sin(t))
-        if self.grid == "rect":
-            a2 = (-p * math.sin(t), p * math.cos(t))
-        else:
-            a2 = (p * math.cos(t + math.pi / 3), p * math.sin(t + math.pi / 3))
-        return np.array([[a1[0], a2[0]], [a1[1], a2[1]]])
+        return self.pitch_mm * rotation_matrix(self.rotation_rad) @ lattice_basis(self.grid)
 
     @property
     def cell_area_mm2(self) -> float:

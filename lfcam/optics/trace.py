@@ -159,7 +159,7 @@ def forward(
     offset_mm: np.ndarray | float = 0.0,
     z_plane_mm: float | None = None,
 ) -> ForwardResult:
-    """Sensor heights (y1, y2) of a point source's two meridional rim rays (CONTRACT §1).
+    """Sensor heights (y1, y2) of a point source's two meridional rim rays (docs/conventions.md).
 
     Parameters
     ----------

@@ -33,7 +33,7 @@ TRUTH_VERSION = 1
 
 
 def profile_to_dict(profile: CameraProfile) -> dict:
-    """Profile as a CONTRACT §2 mapping, with ``mla.distance_mm`` made explicit."""
+    """Profile as a docs/profiles.md mapping, with ``mla.distance_mm`` made explicit."""
     ml, mla, s = profile.main_lens, profile.mla, profile.sensor
     sensor = {k: v for k, v in asdict(s).items() if v is not None}
     if "axis_px" in sensor:

@@ -138,7 +138,7 @@ class Renderer:
 
     # ------------------------------------------------------------------ helpers
     def mm_to_px(self, x_mm, y_mm):
-        """Sensor-plane millimetres → pixel coordinates (CONTRACT §1)."""
+        """Sensor-plane millimetres → pixel coordinates (docs/conventions.md)."""
         return np.asarray(x_mm) / self.pp + self.ax, np.asarray(y_mm) / self.pp + self.ay
 
     def px_to_mm(self, x_px, y_px):

@@ -9,7 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lfcam.decode import GridSpec, decode, grid_from_dict, load_grid, to_grey
+from lfcam.calibrate import Calibration, load_calibration
+from lfcam.calibrate.model import calibration_from_dict
+from lfcam.decode import decode, to_grey
 from lfcam.errors import CalibrationError, InputFileError
 from tests.decode.synth import encode, lattice
 
@@ -24,7 +26,7 @@ def test_decode_recovers_linear_field_at_subpixel_rotated_centres(grid):
     pitch, rot, off = 11.37, 0.013, (7.31, 6.62)
     cx, cy, sp, tp = lattice(grid, pitch, rot, off, 24, 24)
     raw = encode(_linear_field, (230, 240), cx, cy, sp, tp, rot, 0.5 * pitch)
-    lf = decode(raw, GridSpec(grid, pitch, rot, off), n_views=9, hex_to_rect=False)
+    lf = decode(raw, Calibration.from_lattice(grid, pitch, rot, off), n_views=9, hex_to_rect=False)
     assert lf.first_t == 0 and lf.first_s == (-1 if grid == "hex" else 0)
     vc, uc = lf.angular_centre
     checked = 0
@@ -53,8 +55,9 @@ def test_measured_centres_override_the_lattice():
     jx, jy = cx + rng.uniform(-0.4, 0.4, cx.size), cy + rng.uniform(-0.4, 0.4, cy.size)
     raw = encode(_linear_field, (200, 200), jx, jy, sp, tp, rot, 5.0)
     truth_c = _linear_field(0.0, 0.0, sp, tp).reshape(20, 20)
-    plain = decode(raw, GridSpec("rect", pitch, rot, off), n_views=5)
-    measured = decode(raw, GridSpec("rect", pitch, rot, off, np.column_stack([jx, jy])), n_views=5)
+    plain = decode(raw, Calibration.from_lattice("rect", pitch, rot, off), n_views=5)
+    cal = Calibration.from_lattice("rect", pitch, rot, off, np.column_stack([jx, jy]))
+    measured = decode(raw, cal, n_views=5)
     err_plain = np.abs(plain.data[2, 2] - truth_c).max()
     err_meas = np.abs(measured.data[2, 2] - truth_c).max()
     assert err_meas < 1e-5
@@ -66,7 +69,7 @@ def test_hex_to_rect_aligns_odd_rows():
     cx, cy, sp, tp = lattice("hex", pitch, 0.0, (5.0, 5.0), 20, 20)
     raw = encode(lambda du, dv, s, t: 0.1 + 0.02 * s + 0.01 * t, (180, 210), cx, cy, sp, tp,
                  0.0, 5.0)
-    lf = decode(raw, GridSpec("hex", pitch, 0.0, (5.0, 5.0)), n_views=5)
+    lf = decode(raw, Calibration.from_lattice("hex", pitch, 0.0, (5.0, 5.0)), n_views=5)
     assert lf.spacing_px == pytest.approx((10.0, 10.0 * math.sqrt(3) / 2))
     c = lf.data[2, 2]
     ok = lf.weight[2, 2] > 0
@@ -85,7 +88,8 @@ def test_white_image_devignettes_and_weights():
                     sp, tp, 0.0, 5.0)
     scene = encode(lambda du, dv, s, t: 0.2 + 0.01 * s + 0 * du, (160, 160), cx, cy, sp, tp,
                    0.0, 5.0)
-    lf = decode(scene * vignet, GridSpec("rect", pitch, 0.0, (5.0, 5.0)), white=vignet,
+    grid = Calibration.from_lattice("rect", pitch, 0.0, (5.0, 5.0))
+    lf = decode(scene * vignet, grid, white=vignet,
                 n_views=7, white_threshold=0.5)
     ok = lf.weight > 0
     truth = np.broadcast_to(0.2 + 0.01 * np.arange(16.0), lf.data.shape)
@@ -124,23 +128,24 @@ def test_to_grey_demosaics_rggb():
 )
 def test_bad_calibration_is_a_calibration_error(data, msg):
     with pytest.raises(CalibrationError, match=msg):
-        grid_from_dict(data)
+        calibration_from_dict(data)
 
 
-def test_load_grid_reads_contract_keys(tmp_path):
+def test_minimal_calibration_form_reads_contract_keys(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"grid": "hex", "pitch_px": 14.3, "rotation_rad": 0.001,
                              "offset_px": [3.0, 4.0], "centres_px": [[3.0, 4.0]],
                              "residual_rms_px": 0.01}))
-    g = load_grid(p)
+    g = load_calibration(p)
     assert (g.grid, g.pitch_px, g.offset_px) == ("hex", 14.3, (3.0, 4.0))
+    assert g.model == "similarity" and g.indices.tolist() == [[0, 0]]
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(CalibrationError, match="JSON"):
-        load_grid(tmp_path / "bad.json")
+        load_calibration(tmp_path / "bad.json")
 
 
 def test_bad_raw_inputs():
-    g = GridSpec("rect", 10.0, 0.0, (5.0, 5.0))
+    g = Calibration.from_lattice("rect", 10.0, 0.0, (5.0, 5.0))
     with pytest.raises(InputFileError, match="2-D"):
         decode(np.zeros((4, 4, 3)), g)
     with pytest.raises(InputFileError, match="differ"):

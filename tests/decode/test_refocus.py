@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from lfcam.calibrate import Calibration
 from lfcam.camera import load_profile
 from lfcam.decode import (
-    GridSpec,
     LightField,
     decode,
     distance_for_shift,
@@ -81,7 +81,7 @@ def test_bad_refocus_requests():
     with pytest.raises(OpticsError, match="positive"):
         shift_for_distance(PROFILE, -5.0)
     lf = LightField(np.zeros((3, 3, 4, 4), np.float32), np.ones((3, 3, 4, 4), np.float32),
-                    GridSpec("rect", 10.0), (10.0, 10.0))
+                    Calibration.from_lattice("rect", 10.0), (10.0, 10.0))
     with pytest.raises(OpticsError, match="finite"):
         refocus(lf, float("nan"))
 
@@ -97,7 +97,7 @@ def test_integer_shift_realigns_views_exactly():
                                  indexing="ij")
     c = (n - 1) / 2
     data = _texture(ss + a * (uu - c), tt + a * (vv - c)).astype(np.float32)
-    lf = LightField(data, np.ones_like(data), GridSpec("rect", 10.0), (10.0, 10.0))
+    lf = LightField(data, np.ones_like(data), Calibration.from_lattice("rect", 10.0), (10.0, 10.0))
     out = refocus(lf, a)
     inner = (slice(8, 32), slice(8, 32))
     truth = _texture(*np.meshgrid(np.arange(size, dtype=float), np.arange(size, dtype=float),
@@ -127,7 +127,7 @@ def test_textured_plane_views_shift_by_the_traced_disparity():
         return _texture(s - k * du, t - k * dv)  # view (du, dv) sees the plane shifted
 
     raw, _ = _raw_of(f, off=(9.37, 8.81), rot=0.004)
-    lf = decode(raw, GridSpec("rect", 18.0, 0.004, (9.37, 8.81)), n_views=9)
+    lf = decode(raw, Calibration.from_lattice("rect", 18.0, 0.004, (9.37, 8.81)), n_views=9)
     vc, uc = lf.angular_centre
     inner = (slice(4, 34), slice(4, 34))
     tt, ss = np.meshgrid(np.arange(lf.data.shape[2]) + lf.first_t,
@@ -176,7 +176,8 @@ def test_point_source_refocus_blur_is_the_traced_blur(profile):
     raw, (cx, cy, sp, tp, shape) = _raw_of(f)
     white = encode(lambda du, dv, s, t: (np.hypot(du, dv) <= r_pupil).astype(float), shape,
                    cx, cy, sp, tp, 0.0, 9.0)
-    lf = decode(raw, GridSpec("rect", 18.0, 0.0, (9.0, 9.0)), white=white, n_views=17)
+    grid = Calibration.from_lattice("rect", 18.0, 0.0, (9.0, 9.0))
+    lf = decode(raw, grid, white=white, n_views=17)
     vc, uc = lf.angular_centre
     vv, uu = np.meshgrid(np.arange(17) - vc, np.arange(17) - uc, indexing="ij")
     in_pupil = np.hypot(uu, vv) <= r_pupil

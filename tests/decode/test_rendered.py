@@ -14,8 +14,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lfcam.calibrate import Calibration
 from lfcam.camera import load_profile
-from lfcam.decode import GridSpec, decode, focal_stack, shift_for_distance, to_grey
+from lfcam.decode import decode, focal_stack, shift_for_distance, to_grey
 from lfcam.sim import scene_from_dict, simulate
 from tests.decode.test_refocus import _second_moment, view_positions
 
@@ -38,7 +39,7 @@ def test_rendered_point_source_refocus_blur(pupil_mm):
     assert prof.main_lens.pupil_diameter_mm == pupil_mm
     g = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
     axis = 0.5 * (SIZE_PX - 1)
-    grid = GridSpec("rect", prof.mla.pitch_mm * g / prof.sensor.pixel_pitch_mm, 0.0,
+    grid = Calibration.from_lattice("rect", prof.mla.pitch_mm * g / prof.sensor.pixel_pitch_mm, 0.0,
                     (axis, axis))
     lf = decode(to_grey(raw), grid, white=to_grey(white), white_threshold=0.5)
     vc, uc = lf.angular_centre

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from distributed import WorkerPlugin
 
+from lfcam.batch.worker import init_worker
+
 
 class CalibrationPlugin(WorkerPlugin):
     """Parse the batch's calibration once per worker process, when the worker starts."""
@@ -13,6 +15,4 @@ class CalibrationPlugin(WorkerPlugin):
 
     def setup(self, worker) -> None:
         """Dask hook: called once on every current and future worker."""
-        from lfcam.batch import init_worker
-
         init_worker(self.calibration_bytes)

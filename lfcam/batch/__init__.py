@@ -26,27 +26,37 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import json
 import os
 import shutil
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lfcam.cli.common import atomic_write_text, write_csv
+from lfcam.atomic import sha256_file
+from lfcam.batch.worker import (
+    DONE_FILE,
+    OUTPUT_FILES,
+    Job,
+    Settings,
+    init_worker,
+    is_finished,
+    process_capture,
+    write_done,
+)
+from lfcam.calibrate.model import load_calibration
+from lfcam.camera import load_profile
 from lfcam.errors import BatchError, InputFileError
-from lfcam.export import REGION_COLUMNS
+from lfcam.export import REGION_COLUMNS, write_csv
 from lfcam.io.capture import RAW_EXTENSIONS
+from lfcam.measure import METHODS
+from lfcam.models import check_distance_model
 
 SUMMARY_COLUMNS = ("capture", "duplicate_of", *REGION_COLUMNS)
 FAILURE_COLUMNS = ("capture", "error_class", "message")
-OUTPUT_FILES = ("regions.csv", "distance.tiff", "distance.png")
-DONE_FILE = "done.json"
 CAPTURES_DIR = "captures"
 # files with these extensions are reported as failures when their content is not a capture;
 # files with any other extension are silently skipped unless their content is a capture
@@ -57,29 +67,6 @@ _FLOAT_COLUMNS = {"x_px", "y_px", "distance_mm", "offset_mm", "diameter_mm", "un
 
 
 # ----------------------------------------------------------------------------- jobs
-
-
-@dataclass(frozen=True)
-class Settings:
-    """Pipeline options shared by every capture of a batch (recorded in ``done.json``)."""
-
-    model: str = "auto"
-    method: str = "lightfield"
-    tolerance_pct: float | None = None
-    fast: bool = False
-    profile: str | None = None  # name or path; None: each capture's .profile.toml sidecar
-
-
-@dataclass(frozen=True)
-class Job:
-    """One capture to compute (picklable; sent to the workers)."""
-
-    capture: str  # absolute path
-    rel: str  # path relative to the input folder (posix), as written in the CSVs
-    outdir: str
-    sha256: str
-    calibration_sha256: str
-    settings: Settings
 
 
 @dataclass(frozen=True)
@@ -107,14 +94,6 @@ class BatchResult:
     duplicates: dict[str, str] = field(default_factory=dict)
     worker_stats: list[dict] = field(default_factory=list)
     elapsed_s: float = 0.0
-
-
-def _sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ()) -> list[Path]:
@@ -152,143 +131,7 @@ def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ())
     return sorted(found, key=lambda q: q.relative_to(root).as_posix())
 
 
-# ----------------------------------------------------------------------------- worker side
-
-_STATE_LOCK = threading.Lock()
-_CALIBRATIONS: dict[str, Any] = {}  # calibration sha256 -> Calibration (one per process)
-_GEOMETRIES: dict[tuple, Any] = {}  # (calibration sha, profile, shape) -> Geometry
-_STATS = {"calibration_loads": 0, "geometry_builds": 0}
-
-
-def init_worker(calibration_bytes: bytes, single_thread: bool = True) -> None:
-    """Parse the calibration once in this process (pool initializer / Dask worker plugin).
-
-    With ``single_thread`` OpenCV runs on one thread: a worker is one core, parallelism comes
-    from running several workers.
-    """
-    import cv2
-
-    from lfcam.distance import load_calibration
-
-    if single_thread:
-        cv2.setNumThreads(1)
-    _undo_malloc_trim()
-
-    key = hashlib.sha256(calibration_bytes).hexdigest()
-    with _STATE_LOCK:
-        if key in _CALIBRATIONS:
-            return
-        fd, tmp = tempfile.mkstemp(suffix=".json", prefix="lfcam-calib-")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(calibration_bytes)
-            _CALIBRATIONS[key] = load_calibration(tmp)
-        finally:
-            Path(tmp).unlink(missing_ok=True)
-        _STATS["calibration_loads"] += 1
-
-
-def _undo_malloc_trim() -> None:
-    """Undo a small ``MALLOC_TRIM_THRESHOLD_`` (Dask sets 65536 in its workers by default).
-
-    With it, glibc returns every large freed block to the system and maps it again on the
-    next allocation; the pipeline allocates many full-frame temporaries and ran 3× slower
-    (measured: 2.0 → 6.0 s a capture). Restores large fixed thresholds, glibc only.
-    """
-    if "MALLOC_TRIM_THRESHOLD_" not in os.environ or not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD: full frames stay on the heap
-        libc.mallopt(-1, 64 << 20)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):  # not glibc: nothing to undo
-        pass
-
-
-def _geometry(cal_key: str, profile, shape: tuple[int, int]):
-    from lfcam.distance import prepare_geometry
-
-    key = (cal_key, profile, shape)
-    with _STATE_LOCK:
-        geom = _GEOMETRIES.get(key)
-        if geom is None:
-            geom = prepare_geometry(profile, _CALIBRATIONS[cal_key], shape)
-            _GEOMETRIES[key] = geom
-            _STATS["geometry_builds"] += 1
-    return geom
-
-
-def _write_done(outdir: Path, job: Job, duplicate_of: str = "") -> None:
-    outputs = {}
-    for name in OUTPUT_FILES:
-        p = outdir / name
-        outputs[name] = {"bytes": p.stat().st_size, "sha256": _sha256_file(p)}
-    record = {
-        "capture": job.rel, "sha256": job.sha256, "calibration_sha256": job.calibration_sha256,
-        "settings": job.settings.__dict__, "duplicate_of": duplicate_of, "outputs": outputs,
-    }
-    atomic_write_text(outdir / DONE_FILE, json.dumps(record, indent=1) + "\n")
-
-
-def process_capture(job: Job) -> dict:
-    """Compute one capture and write its outputs; never raises for a bad capture.
-
-    Returns a dict with ``status`` (``ok`` | ``failed``), the capture's ``rel`` path, the
-    worker's ``pid``, its calibration-load and geometry-build counters, and for a failure
-    ``error_class`` and ``message``.
-    """
-    t0 = time.perf_counter()
-    out = {"rel": job.rel, "pid": os.getpid()}
-    try:
-        from lfcam.cli.distance import resolve_profile
-        from lfcam.decode.lightfield import to_grey
-        from lfcam.distance import run_distance, write_outputs
-        from lfcam.io import load_capture
-
-        if job.calibration_sha256 not in _CALIBRATIONS:
-            raise BatchError("this worker has no calibration (worker not initialised)")
-        s = job.settings
-        path = Path(job.capture)
-        profile = resolve_profile(path, s.profile)
-        cap = load_capture(path, profile)
-        image = to_grey(cap.raw, cap.bayer, cap.black_level, cap.white_level)
-        geom = _geometry(job.calibration_sha256, profile, image.shape)
-        run = run_distance(image, profile, _CALIBRATIONS[job.calibration_sha256],
-                           model=s.model, method=s.method, tolerance_pct=s.tolerance_pct,
-                           fast=s.fast, geometry=geom)
-        outdir = Path(job.outdir)
-        (outdir / DONE_FILE).unlink(missing_ok=True)
-        write_outputs(outdir, run)
-        _write_done(outdir, job)
-        out.update(status="ok", regions=len(run.regions))
-    except Exception as exc:  # noqa: BLE001 - one bad capture must never stop the batch
-        msg = " ".join(str(exc).split()) or repr(exc)
-        out.update(status="failed", error_class=type(exc).__name__, message=msg)
-    out.update(seconds=time.perf_counter() - t0, **_STATS)
-    return out
-
-
 # ----------------------------------------------------------------------------- coordinator
-
-
-def is_finished(job: Job) -> bool:
-    """Whether ``job``'s outputs are complete for this capture, calibration and settings."""
-    outdir = Path(job.outdir)
-    try:
-        rec = json.loads((outdir / DONE_FILE).read_text(encoding="utf-8"))
-        if (rec["sha256"] != job.sha256 or rec["calibration_sha256"] != job.calibration_sha256
-                or rec["settings"] != job.settings.__dict__):
-            return False
-        for name in OUTPUT_FILES:
-            want = rec["outputs"][name]
-            p = outdir / name
-            if p.stat().st_size != want["bytes"] or _sha256_file(p) != want["sha256"]:
-                return False
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-    return True
 
 
 def _copy_outputs(src: Job, dst: Job) -> None:
@@ -305,7 +148,7 @@ def _copy_outputs(src: Job, dst: Job) -> None:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
-    _write_done(ddir, dst, duplicate_of=src.rel)
+    write_done(ddir, dst, duplicate_of=src.rel)
 
 
 def _profile_fingerprint(capture: Path, profile: str | None) -> str:
@@ -314,7 +157,7 @@ def _profile_fingerprint(capture: Path, profile: str | None) -> str:
         return "profile:" + profile
     side = capture.with_name(capture.stem + ".profile.toml")
     try:
-        return "sidecar:" + _sha256_file(side)
+        return "sidecar:" + sha256_file(side)
     except OSError:
         return "sidecar:none"
 
@@ -337,12 +180,6 @@ def _typed(row: list[str]) -> dict[str, Any]:
         else:
             d[k] = v
     return d
-
-
-def _csv_cell(v: str) -> str:
-    if any(c in v for c in ',"\n\r'):
-        return '"' + v.replace('"', '""') + '"'
-    return v
 
 
 class _Progress:
@@ -433,7 +270,7 @@ def _run_dask(jobs: list[Job], cal_bytes: bytes, scheduler: str | None, client, 
         except (OSError, TimeoutError, ValueError) as exc:
             raise BatchError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
     try:
-        from lfcam._dask_plugin import CalibrationPlugin
+        from lfcam.batch.dask_plugin import CalibrationPlugin
 
         plugin = CalibrationPlugin(cal_bytes)
         name = f"lfcam-calibration-{jobs[0].calibration_sha256[:16]}"
@@ -512,11 +349,8 @@ def run_batch(
     CalibrationError
         Unreadable or invalid calibration (checked once, before any capture runs).
     """
-    from lfcam.distance import METHODS, MODELS, load_calibration
-
     t0 = time.perf_counter()
-    if model not in MODELS:
-        raise BatchError(f"unknown model {model!r} (choose from {', '.join(MODELS)})")
+    check_distance_model(model)
     if method not in METHODS:
         raise BatchError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     root = Path(input_dir).resolve()
@@ -525,8 +359,6 @@ def run_batch(
     cal_bytes = Path(calibration).read_bytes()
     cal_sha = hashlib.sha256(cal_bytes).hexdigest()
     if profile is not None:
-        from lfcam.camera import load_profile
-
         load_profile(profile)  # a wrong --profile is a usage error, not N failures
     settings = Settings(model, method, tolerance_pct, bool(fast), profile)
     paths = discover_captures(root, exclude=[out])
@@ -537,7 +369,7 @@ def run_batch(
     for p in paths:
         rel = p.relative_to(root).as_posix()
         try:
-            sha = _sha256_file(p)
+            sha = sha256_file(p)
         except OSError as exc:
             failures.append(Failure(rel, type(exc).__name__, str(exc.strerror or exc)))
             continue
@@ -605,10 +437,9 @@ def run_batch(
             rows += _read_rows(j, src.rel if src else "")
         except (OSError, InputFileError) as exc:
             failures.append(Failure(j.rel, type(exc).__name__, str(exc)))
-    atomic_write_text(out / "summary.csv", "\n".join(
-        [",".join(SUMMARY_COLUMNS)] + [",".join(_csv_cell(c) for c in r) for r in rows]) + "\n")
+    write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
     write_csv(out / "failures.csv", FAILURE_COLUMNS,
-              ([_csv_cell(f.capture), f.error_class, _csv_cell(f.message)] for f in failures))
+              ([f.capture, f.error_class, f.message] for f in failures))
     return BatchResult(
         summary=[_typed(r) for r in rows], failures=failures, captures=[j.rel for j in jobs],
         computed=sorted(computed), skipped=skipped, duplicates=duplicates,

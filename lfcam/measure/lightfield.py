@@ -1,0 +1,135 @@
+"""The exact light-field fit: the forward model of a point (or line) source fitted to a
+region's pixels, started from a triangulation of the lenslet spots (docs/distance.md).
+
+It locates the source in 3-D; the signed rim-ray heights (y1, y2) follow from the exact trace.
+``fast=True`` keeps the triangulation alone. A blur spread over more than
+``TRIANGULATION_ENOUGH`` lenslets is always triangulated (to a few 0.01 %): the per-pixel fit
+would only re-render a huge patch a hundred times.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.measure.base import Measurement, neighbours, region_pixels_mask
+from lfcam.measure.geometry import Geometry
+from lfcam.measure.linefit import fit_line_image
+from lfcam.measure.pointfit import find_spots, fit_point, fit_point_image
+from lfcam.measure.regions import Region
+from lfcam.optics.trace import forward
+
+TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
+LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
+LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
+
+
+def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                       region: Region, noise: float, fast: bool = False) -> Measurement:
+    """Exact forward-model fit of a point-like region (module docstring).
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    geom : Geometry
+        Lenslet map and centres (:func:`lfcam.measure.prepare_geometry`).
+    image : (H, W) float array
+        Linear grey capture.
+    region : Region
+        One region of :func:`lfcam.measure.find_regions`.
+    noise : float
+        Pixel noise σ (:func:`lfcam.measure.noise_sigma`).
+    fast : bool, optional
+        Keep the triangulation of lenslet spots, skip the per-pixel fit.
+
+    Returns
+    -------
+    Measurement
+        Source distance, offset and rim heights; a line measurement (``kind="line"``) when
+        the line model explains the pixels clearly better than a point.
+    """
+    x0, y0, x1, y1 = region.box_px
+    sub = image[y0:y1, x0:x1]
+    mask = region_pixels_mask(region, geom.lmap) | (geom.lmap.labels[y0:y1, x0:x1] < 0)
+    peak = float(sub[mask].max()) if mask.any() else 0.0
+    thr = max(6.0 * noise, 0.03 * peak)
+    spots, energy = find_spots(sub, mask, thr)
+    spots = spots + np.array([x0, y0])
+    fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm)
+    nan = float("nan")
+    # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
+    # the per-pixel fit would only re-render a huge patch a hundred times.
+    if not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH:
+        fast = True
+    if fast:
+        if not fit.ok:
+            return Measurement.failed(fit.reason, geom.d_in_mm)
+        source = fit.source_mm
+        sigma_d = float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
+    else:
+        near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region)]))
+        pad = int(math.ceil(0.5 * geom.pitch_px))
+        h, w = image.shape
+        box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
+        fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
+                             fit.source_mm if fit.ok else None)
+        if not fi.ok:
+            return Measurement.failed(fi.reason or "no-solution", geom.d_in_mm)
+        source, sigma_d = fi.source_mm, fi.sigma_distance_mm
+        if fi.misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
+            line = measure_line(profile, geom, image, box, near)
+            if line.status == "ok" and line.misfit < LINE_GAIN * fi.misfit:
+                return line
+    distance = profile.main_lens.front_vertex_z_mm - float(source[2])
+    offset = float(np.hypot(source[0], source[1]))
+    fw = forward(profile, geom.d_in_mm, distance, offset)
+    if fw.status != 0:
+        return Measurement(nan, nan, nan, distance, offset, sigma_d, "out-of-domain",
+                           geom.d_in_mm)
+    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
+    # height uncertainty equivalent to the distance uncertainty (for model selection)
+    fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
+    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
+    sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
+    misfit = float("nan") if fast else float(fi.misfit)
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+                       misfit=misfit)
+
+
+def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                 box: tuple[int, int, int, int], near: np.ndarray) -> Measurement:
+    """Exact forward-model fit of a line source (:mod:`lfcam.measure.linefit`).
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    geom : Geometry
+    image : (H, W) float array
+    box : tuple of int
+        (x0, y0, x1, y1) pixel box to fit.
+    near : (K,) int array
+        Lenslets (indices into ``geom``) whose light may fall in the box.
+
+    Returns
+    -------
+    Measurement
+        ``kind="line"``, with the rim heights of both endpoints in ``endpoints``.
+    """
+    nan = float("nan")
+    lf = fit_line_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near])
+    if not lf.ok:
+        return Measurement.failed(lf.reason or "no-solution", geom.d_in_mm, kind="line")
+    z_front = profile.main_lens.front_vertex_z_mm
+    distance = z_front - float(lf.start_mm[2])
+    ends = []
+    for pt in (lf.start_mm, lf.end_mm):
+        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
+        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
+    mid = 0.5 * (lf.start_mm + lf.end_mm)
+    y1 = 0.5 * (ends[0][0] + ends[1][0])
+    y2 = 0.5 * (ends[0][1] + ends[1][1])
+    return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
+                       lf.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       misfit=lf.misfit, endpoints=tuple(ends))
