@@ -14,6 +14,10 @@ class ProfileError(LfcamError):
     """A camera profile is missing a key, has an invalid value, or is inconsistent."""
 
 
+class ZmxError(ProfileError):
+    """A Zemax ``.zmx`` lens file is unreadable or uses something lfcam does not support."""
+
+
 class OpticsError(LfcamError):
     """An optics request is outside what the lens can do (e.g. focus closer than f)."""
 

@@ -35,7 +35,9 @@ class Surface:
         Vertex radius of curvature; positive when the centre of curvature lies at larger z.
         ``math.inf`` (either sign) is a flat surface.
     thickness_mm : float
-        Axial distance from this vertex to the next one (ignored on the last surface).
+        Axial distance from this vertex to the next one (ignored on the last surface). Zero
+        and negative values are allowed (Zemax-style dummy surfaces, a stop placed behind a
+        lens); rays follow the surface sequence regardless.
     refractive_index : float
         Refractive index of the medium AFTER the surface.
     semi_diameter_mm : float
@@ -168,9 +170,8 @@ class Prescription:
     Raises
     ------
     ProfileError
-        When there are no surfaces, the stop count is not one, an entry is not a
-        :class:`Surface`, or an inner thickness is not positive; messages name the surface
-        index (0-based, front first).
+        When there are no surfaces, the stop count is not one, or an entry is not a
+        :class:`Surface`; messages name the surface index (0-based, front first).
     """
 
     surfaces: tuple[Surface, ...]
@@ -184,12 +185,6 @@ class Prescription:
         for i, s in enumerate(surfaces):
             if not isinstance(s, Surface):
                 raise ProfileError(f"main_lens.surfaces[{i}]: expected a Surface, got {s!r}")
-        for i, s in enumerate(surfaces[:-1]):
-            if s.thickness_mm <= 0.0:
-                raise ProfileError(
-                    f"main_lens.surfaces[{i}]: thickness_mm to the next surface must be "
-                    f"positive, got {s.thickness_mm}"
-                )
         stops = [i for i, s in enumerate(surfaces) if s.stop]
         if len(stops) != 1:
             where = f" (surfaces {stops})" if stops else ""

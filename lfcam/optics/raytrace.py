@@ -309,9 +309,12 @@ def _stop_hits(prescription: Prescription, origins: np.ndarray, directions: np.n
 
 
 def _start_plane_z(prescription: Prescription) -> float:
-    """A plane in front of every point of the first surface (where aimed rays start)."""
-    s0 = prescription.surfaces[0]
-    return min(0.0, float(s0.sag_mm(s0.semi_diameter_mm))) - 1.0
+    """A plane 1 mm in front of every surface point (where aimed rays start)."""
+    lowest = min(
+        z + min(0.0, float(s.sag_mm(s.semi_diameter_mm)))
+        for z, s in zip(prescription.vertex_z_mm, prescription.surfaces, strict=True)
+    )
+    return min(0.0, lowest) - 1.0
 
 
 def _field_direction(field_angle_deg) -> np.ndarray:
