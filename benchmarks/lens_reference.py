@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
-import rayoptics
-from opticalglass.opticalmedium import Air, ConstantIndex
-from rayoptics.environment import open_model
-from rayoptics.raytr import raytrace
+
+# ray-optics' zmx reader opens a log file in the cwd when imported: import it (in main) from
+# a scratch directory.
 
 ROOT = Path(__file__).resolve().parents[1]
 LENSES = {
@@ -55,6 +56,8 @@ FINITE_OBJECTS_MM = [500.0, 3500.0]
 
 def _constant_indices(sm) -> list[float]:
     """Replace catalogue media by constant nd; return the indices after each surface."""
+    from opticalglass.opticalmedium import Air, ConstantIndex
+
     out = []
     for gap in sm.gaps:
         med = gap.medium
@@ -67,6 +70,9 @@ def _constant_indices(sm) -> list[float]:
 
 
 def reference(name: str, fields_deg: list[float]) -> dict:
+    from rayoptics.environment import open_model
+    from rayoptics.raytr import raytrace
+
     opm = open_model(str(ROOT / "tests" / "data" / "lenses" / f"{name}.zmx"))
     sm, osp = opm["seq_model"], opm["optical_spec"]
     stop = sm.stop_surface  # read before any update_model
@@ -144,6 +150,9 @@ def reference(name: str, fields_deg: list[float]) -> dict:
 
 
 def main() -> None:
+    os.chdir(tempfile.mkdtemp())
+    import rayoptics
+
     out = {
         "generator": "benchmarks/lens_reference.py",
         "package": f"rayoptics {rayoptics.__version__}",
@@ -154,9 +163,9 @@ def main() -> None:
     path.write_text(json.dumps(out, indent=1) + "\n")
     for name, data in out["lenses"].items():
         fo = data["first_order"]
-        print(f"{name:14s} efl {fo['efl_mm']:.6f} bfl {fo['bfl_mm']:.6f} "
-              f"enp z {fo['entrance_pupil_z_mm']:.6f} ⌀ {fo['entrance_pupil_diameter_mm']:.6f} "
-              f"exp z {fo['exit_pupil_z_mm']:.6f} ⌀ {fo['exit_pupil_diameter_mm']:.6f}")  # fmt: skip
+        keys = ("efl_mm", "bfl_mm", "entrance_pupil_z_mm", "entrance_pupil_diameter_mm",
+                "exit_pupil_z_mm", "exit_pupil_diameter_mm")  # fmt: skip
+        print(f"{name:14s} " + " ".join(f"{k[:-3]} {fo[k]:.6f}" for k in keys))
     print(f"wrote {path.relative_to(ROOT)}")
 
 
