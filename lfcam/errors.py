@@ -14,6 +14,10 @@ class ProfileError(LfcamError):
     """A camera profile is missing a key, has an invalid value, or is inconsistent."""
 
 
+class ZmxError(ProfileError):
+    """A Zemax ``.zmx`` lens file is unreadable or uses something lfcam does not support."""
+
+
 class UsageError(LfcamError):
     """Command-line flags that do not fit together."""
 
