@@ -189,7 +189,8 @@ def main() -> int:
         os.link(tmp / "cap.png", tmp / "hard.png")
         os.unlink(tmp / "sym.png")
         (tmp / "sym.png").symlink_to(tmp / "cap.png")
-        print("| case | command | result | stderr (last line) / stdout | s | peak RSS MB | inputs |")
+        print("| case | command | result | stderr (last line) / stdout | s | peak RSS MB "
+              "| inputs |")
         print("|---|---|---|---|---|---|---|")
         for cid, argv, inputs in CASES:
             if args.only and not any(cid.startswith(o) for o in args.only):

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from lfcam.errors import CalibrationError, InputFileError
+from lfcam.io.limits import check_raster
 
 MAX_PIXELS = 200_000_000  # refuse absurd rasters before allocating float copies
 
@@ -29,6 +30,8 @@ def read_raster(path: str | Path) -> np.ndarray:
     if not p.is_file():
         raise InputFileError(f"file not found: {p}")
     suffix = p.suffix.lower()
+    if suffix in (".tif", ".tiff", ".png"):
+        check_raster(p, "png" if suffix == ".png" else "tiff")  # header-only size limits
     try:
         if suffix in (".tif", ".tiff"):
             import tifffile

@@ -32,6 +32,7 @@ from lfcam.errors import (
 )
 from lfcam.io import lytro_meta as lm
 from lfcam.io.lfp import LFP_MAGIC, merged_metadata, read_lfp
+from lfcam.io.limits import check_raster
 from lfcam.io.packing import check_dimensions, packed_size, unpack
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -281,10 +282,15 @@ def _raster_levels(img: np.ndarray, profile: CameraProfile | None, p: Path):
 
 
 def _from_raster(p: Path, kind: str, profile: CameraProfile | None) -> Capture:
+    check_raster(p, kind)  # header only: refuse oversized / forged sizes before decoding
     if kind == "png":
         import cv2
 
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        try:
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        except cv2.error as exc:
+            raise UnsupportedFormatError(f"{p}: PNG could not be decoded "
+                                         f"({str(exc).strip().splitlines()[-1]})") from None
         if img is None:
             raise UnsupportedFormatError(f"{p}: PNG could not be decoded (damaged?)")
     else:
