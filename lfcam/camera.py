@@ -444,4 +444,7 @@ def load_profile(name_or_path: str | Path) -> CameraProfile:
         raise ProfileError(f"{path}: not UTF-8 text ({exc.reason})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: invalid TOML: {exc}") from None
-    return profile_from_dict(data, source=str(path))
+    try:
+        return profile_from_dict(data, source=str(path))
+    except ProfileError as exc:  # name the file: the key alone does not say which profile
+        raise ProfileError(f"{path}: {exc}") from None

@@ -84,6 +84,7 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Render, calibrate, measure; print the table; write the outputs."""
+    from lfcam.atomic import check_output_dir
     from lfcam.decode.lightfield import to_grey
     from lfcam.distance import load_calibration, run_distance, write_outputs
     from lfcam.models import line as line_model
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     from lfcam.sim.scene import scene_from_dict
 
     out = Path(args.output)
+    check_output_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     profile = load_profile("system1")
     t0 = time.perf_counter()

@@ -7,7 +7,8 @@ import importlib
 import sys
 import traceback
 
-from lfcam.errors import LfcamError
+from lfcam.cli.common import ArgumentParser
+from lfcam.errors import ChecksumError, LfcamError
 
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
@@ -24,7 +25,7 @@ COMMAND_MODULES = [
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the top-level parser with every sub-command registered."""
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="lfcam",
         description="Metric distance maps from plenoptic 1.0 camera captures.",
     )
@@ -34,7 +35,21 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    _describe(sub)
     return parser
+
+
+def _describe(sub: argparse._SubParsersAction) -> None:
+    """Give every sub-command (recursively) a description: its one-line help, if it has
+    none of its own, so ``lfcam CMD --help`` always says what CMD does."""
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    for name, parser in sub.choices.items():
+        if not parser.description and helps.get(name):
+            text = helps[name]
+            parser.description = text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                _describe(action)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,7 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     except LfcamError as exc:
         if args.debug:
             traceback.print_exc()
-        print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
+        msg = " ".join(str(exc).split("\n"))
+        if isinstance(exc, ChecksumError) and hasattr(args, "no_verify"):
+            msg += " (pass --no-verify to load it anyway)"
+        print(f"lfcam {args.command}: error: {msg}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `lfcam demo | head`: the reader left, nothing to report
         sys.stderr.close()

@@ -28,6 +28,7 @@ from lfcam.errors import (
     InputFileError,
     MetadataError,
     RawDataError,
+    SaturatedCaptureError,
     UnsupportedFormatError,
 )
 from lfcam.io import lytro_meta as lm
@@ -319,6 +320,35 @@ def _from_raster(p: Path, kind: str, profile: CameraProfile | None) -> Capture:
     return Capture(raw=_freeze(img), bayer=bayer, black_level=black, white_level=white,
                    metadata={"dtype": str(np.asarray(img).dtype)}, source_kind=kind,
                    path=str(p), profile=profile)
+
+
+MAX_SATURATED_FRACTION = 0.5
+
+
+def check_saturation(cap: Capture, max_fraction: float = MAX_SATURATED_FRACTION) -> float:
+    """Refuse a capture with more than ``max_fraction`` of its pixels at the white level.
+
+    Such a frame (over-exposed, or a white image passed as a capture) has no measurable
+    blur: the pipeline would report "0 regions" as if the scene were empty.
+
+    Returns
+    -------
+    float
+        The saturated fraction.
+
+    Raises
+    ------
+    SaturatedCaptureError
+        Naming the file, the fraction and the white level.
+    """
+    raw = cap.raw
+    frac = float(np.count_nonzero(raw >= cap.white_level)) / max(raw.size, 1)
+    if frac > max_fraction:
+        raise SaturatedCaptureError(
+            f"{cap.path}: {100 * frac:.1f} % of the pixels sit at the white level "
+            f"{cap.white_level:g} (over {100 * max_fraction:g} %): over-exposed, nothing "
+            "can be measured")
+    return frac
 
 
 def load_capture(path: str | Path, profile: CameraProfile | None = None,
