@@ -6,9 +6,11 @@ import argparse
 import importlib
 import sys
 import traceback
+import warnings
 
 from lfcam.cli.common import ArgumentParser
 from lfcam.errors import ChecksumError, LfcamError
+from lfcam.io.lfp import CHECKSUM_HINT
 
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
@@ -56,14 +58,24 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 1 failed input, 2 bad usage)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    old_format = warnings.formatwarning  # warnings (e.g. --no-verify's) as one line each
+    warnings.formatwarning = lambda message, *a, **k: f"lfcam {args.command}: warning: {message}\n"
+    try:
+        return _run(args)
+    finally:
+        warnings.formatwarning = old_format
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
     except LfcamError as exc:
         if args.debug:
             traceback.print_exc()
         msg = " ".join(str(exc).split("\n"))
-        if isinstance(exc, ChecksumError) and hasattr(args, "no_verify"):
-            msg += " (pass --no-verify to load it anyway)"
+        if isinstance(exc, ChecksumError):  # name a flag only where the command has it
+            hint = "; pass --no-verify to load it anyway" if hasattr(args, "no_verify") else ""
+            msg = msg.replace(CHECKSUM_HINT, hint)
         print(f"lfcam {args.command}: error: {msg}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `lfcam demo | head`: the reader left, nothing to report
@@ -72,6 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"lfcam {args.command}: interrupted", file=sys.stderr)
         return 130
+    except MemoryError:
+        if args.debug:
+            traceback.print_exc()
+        print(f"lfcam {args.command}: error: out of memory (input too large for this machine)",
+              file=sys.stderr)
+        return 1
     except OSError as exc:
         if args.debug:
             traceback.print_exc()

@@ -17,6 +17,10 @@ none (``.raw``/``.RAW``)     bare Lytro packed raw + ``.json``/``.txt`` sidecar
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -282,18 +286,46 @@ def _raster_levels(img: np.ndarray, profile: CameraProfile | None, p: Path):
     return "none", 0.0, float(np.iinfo(img.dtype).max)
 
 
+@contextmanager
+def native_stderr():
+    """Collect what native decoders (libpng, OpenCV) print on file descriptor 2.
+
+    Yields a list that holds the captured text once the block ends, so a damaged file gives
+    lfcam's one-line error instead of stray ``libpng error:`` lines. Falls back to doing
+    nothing where fd 2 cannot be redirected.
+    """
+    said: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield said
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            said.append(tmp.read(64 * 1024).decode("utf-8", "replace"))
+
+
 def _from_raster(p: Path, kind: str, profile: CameraProfile | None) -> Capture:
     check_raster(p, kind)  # header only: refuse oversized / forged sizes before decoding
     if kind == "png":
         import cv2
 
-        try:
-            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        except cv2.error as exc:
-            raise UnsupportedFormatError(f"{p}: PNG could not be decoded "
-                                         f"({str(exc).strip().splitlines()[-1]})") from None
+        with native_stderr() as said:
+            try:
+                img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            except cv2.error as exc:
+                raise UnsupportedFormatError(f"{p}: PNG could not be decoded "
+                                             f"({str(exc).strip().splitlines()[-1]})") from None
         if img is None:
-            raise UnsupportedFormatError(f"{p}: PNG could not be decoded (damaged?)")
+            why = said[0].strip().splitlines()[-1] if said and said[0].strip() else "damaged?"
+            raise UnsupportedFormatError(f"{p}: PNG could not be decoded ({why})")
     else:
         import tifffile
 

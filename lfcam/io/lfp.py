@@ -48,6 +48,7 @@ NAME_BYTES = 80
 HEADER_BYTES = 16
 ALIGN = 16
 MAX_JSON_BYTES = 64 * 1024 * 1024
+CHECKSUM_HINT = "; verify='warn' loads it anyway"  # the CLI swaps in its own flag
 
 
 class ChecksumWarning(UserWarning):
@@ -232,7 +233,7 @@ def _read_sections(data: bytes, where: str, verify: str) -> tuple[int, list[LfpS
             if digest != name[5:].lower():
                 msg = f"{where}: sha1 mismatch in section {name} (data hashes to sha1-{digest})"
                 if verify == "error":
-                    raise ChecksumError(msg + "; verify='warn' loads it anyway")
+                    raise ChecksumError(msg + CHECKSUM_HINT)
                 if verify == "warn":
                     warnings.warn(msg, ChecksumWarning, stacklevel=3)
                 failures.append(name)

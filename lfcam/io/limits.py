@@ -108,13 +108,40 @@ def png_header(path: str | Path) -> RasterHeader:
                           2 if depth == 16 else 1)
     _check_limits(p, header)
     inflated = height * (1 + (width * file_samples * depth + 7) // 8)
-    size = p.stat().st_size
+    size = _png_chunks(p)
     if inflated > PNG_MAX_INFLATE_RATIO * size:
         raise RawDataError(
             f"{p}: PNG header announces {width}x{height} px ({inflated} bytes of pixel data) but "
-            f"the file has only {size} bytes, more than deflate can compress (forged or "
-            "truncated)")
+            f"the file holds only {size} bytes of it, more than deflate can compress (forged "
+            "or truncated)")
     return header
+
+
+def _png_chunks(p: Path) -> int:
+    """Walk the chunk list (lengths only, no data read); returns the IDAT bytes.
+
+    A chunk length pointing past the end of the file makes decoders allocate that much
+    before noticing (OpenCV: gigabytes for a flipped bit), so it is refused here.
+    """
+    size = p.stat().st_size
+    idat = 0
+    with p.open("rb") as fh:
+        pos = 8
+        while pos + 8 <= size:
+            fh.seek(pos)
+            length, tag = struct.unpack(">I4s", fh.read(8))
+            if length > 2**31 - 1 or pos + 12 + length > size:
+                raise UnsupportedFormatError(
+                    f"{p}: PNG could not be decoded (chunk {tag!r} at offset {pos} announces "
+                    f"{length} bytes, past the end of the {size}-byte file)")
+            if tag == b"IDAT":
+                idat += length
+            if tag == b"IEND":
+                break
+            pos += 12 + length
+    if idat == 0:
+        raise UnsupportedFormatError(f"{p}: PNG could not be decoded (no image data)")
+    return idat
 
 
 def tiff_header(path: str | Path) -> RasterHeader:
