@@ -361,6 +361,7 @@ def _sha1_mismatch_lfp(path: Path) -> Path:
     return path
 
 
+@pytest.mark.filterwarnings("ignore::lfcam.io.lfp.ChecksumWarning")
 def test_checksum_message_names_only_existing_flags(work, capsys):
     _sha1_mismatch_lfp(work / "bad.lfp")
     flags = {n: {o for a in p._actions for o in a.option_strings} for n, p in _all_parsers()}
