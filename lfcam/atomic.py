@@ -58,3 +58,79 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
         while block := fh.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def _same(a: Path, b: Path) -> bool:
+    """Same file: equal resolved paths (symlinks followed), or one inode (hard links)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either does not exist (yet)
+        return False
+
+
+def refuse_overwrite(inputs: Iterable[str | Path | None],
+                     outputs: Iterable[str | Path | None]) -> None:
+    """Refuse to run when any output path names one of the inputs.
+
+    Paths are compared resolved (``..``, symlinks) and, for existing files, with
+    :func:`os.path.samefile`, so a hard link or a symlink to an input counts as the input.
+    ``None`` entries are skipped. Call it before any heavy work.
+
+    Raises
+    ------
+    OutputPathError
+        One line naming the output and the input it would replace.
+    """
+    from lfcam.errors import OutputPathError
+
+    ins = [Path(p) for p in inputs if p is not None]
+    for out in outputs:
+        if out is None:
+            continue
+        o = Path(out)
+        for i in ins:
+            if _same(o, i):
+                raise OutputPathError(f"output {o} would overwrite input {i}; choose another "
+                                      "output name")
+
+
+def check_output_dir(folder: str | Path) -> None:
+    """Fail early unless ``folder`` is, or can be created as, a directory lfcam can write.
+
+    Tried for real (permission bits say nothing for root or read-only mounts): missing
+    folders are created, a temporary file is made and removed, then the folders this call
+    created are removed again, so nothing is left behind.
+
+    Raises
+    ------
+    OutputPathError
+        When the folder (or an ancestor) is a file, cannot be created, or is not writable.
+    """
+    from lfcam.errors import OutputPathError
+
+    p = Path(folder)
+    created: list[Path] = []
+    probe = p
+    while not probe.exists() and probe.parent != probe:
+        created.append(probe)
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        what = "is" if probe == p else f"is inside {probe}, which is"
+        raise OutputPathError(f"output folder {folder} {what} not a directory")
+    try:
+        for d in reversed(created):
+            d.mkdir()
+        fd, tmp = tempfile.mkstemp(dir=p, prefix=".lfcam-write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise OutputPathError(f"output folder {folder} is not writable "
+                              f"({exc.strerror or exc})") from None
+    finally:
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:
+                pass

@@ -279,8 +279,14 @@ _pair = _FIELDS.pair
 _known_keys = _FIELDS.known_keys
 
 
+MAX_VALUE = 1e9  # no length (mm), index or count of a camera comes near; keeps the optics finite
+
+
 def _check_positive(key: str, value: Any) -> float:
-    return _FIELDS.number(key, value, positive=True)
+    v = _FIELDS.number(key, value, positive=True)
+    if v > MAX_VALUE:
+        raise ProfileError(f"{key}: implausibly large, got {value!r} (at most {MAX_VALUE:g})")
+    return v
 
 
 def _table(data: dict, key: str) -> dict:
@@ -482,7 +488,14 @@ def load_profile(name_or_path: str | Path) -> CameraProfile:
         raise ProfileError(f"{path}: not UTF-8 text ({exc.reason})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: invalid TOML: {exc}") from None
-    return profile_from_dict(data, source=str(path))
+    try:
+        return profile_from_dict(data, source=str(path))
+    except ProfileError as exc:  # name the file: the key alone does not say which profile
+        raise ProfileError(f"{path}: {exc}") from None
+    except (ArithmeticError, ValueError) as exc:  # values valid alone, impossible together
+        raise ProfileError(f"{path}: the optics of these values cannot be computed "
+                           f"({type(exc).__name__}: {exc})") from None
+
 
 
 def profile_for_capture(capture: str | Path, profile: str | Path | None) -> CameraProfile:

@@ -42,6 +42,10 @@ class CalibrationError(LfcamError):
     """A calibration could not be computed or a calibration file is invalid."""
 
 
+class OutputPathError(LfcamError):
+    """An output path would overwrite an input, or its folder cannot be written."""
+
+
 # ----------------------------------------------------------------------------- loaders (lfcam.io)
 
 
@@ -71,6 +75,14 @@ class RawDataError(FormatError):
 
 class NoRawFrameError(InputFileError):
     """A well-formed container holds no raw sensor frame (e.g. a processed Lytro picture)."""
+
+
+class ResourceLimitError(InputFileError):
+    """A file announces more pixels or bytes than lfcam will decode (limits in docs)."""
+
+
+class SaturatedCaptureError(InputFileError):
+    """Most pixels of a capture sit at the white level: nothing can be measured."""
 
 
 class WhiteImageNotFoundError(InputFileError):

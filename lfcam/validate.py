@@ -5,27 +5,80 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lfcam.errors import LfcamError
+
+MAX_JSON_DEPTH = 64  # lfcam's own files nest at most 4 deep; json.loads recurses per level
+_JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
+_BRACKET_STEP = np.zeros(256, dtype=np.int8)
+_BRACKET_STEP[[ord("["), ord("{")]] = 1
+_BRACKET_STEP[[ord("]"), ord("}")]] = -1
+
+
+def json_depth(raw: bytes) -> int:
+    """Deepest ``[``/``{`` nesting of a JSON text, ignoring brackets inside strings.
+
+    Linear and non-recursive (a numpy cumulative sum), so it is safe on hostile input; an
+    unterminated string only makes the estimate larger.
+    """
+    if raw.count(b"[") + raw.count(b"{") <= 1:
+        return raw.count(b"[") + raw.count(b"{")
+    body = np.frombuffer(_JSON_STRING.sub(b'""', raw), dtype=np.uint8)
+    if body.size == 0:
+        return 0
+    return int(max(0, np.cumsum(_BRACKET_STEP[body], dtype=np.int32).max()))
+
+
+def parse_json_bytes(raw: bytes, error: type[LfcamError], where: str,
+                     max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """Parse JSON bytes: UTF-8, nesting at most ``max_depth``, finite numbers only.
+
+    Raises
+    ------
+    LfcamError
+        ``error`` with one line starting with ``where`` for non-UTF-8 text, nesting deeper
+        than ``max_depth``, ``NaN``/``Infinity`` constants or malformed JSON.
+    """
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise error(f"{where}: not UTF-8 text") from None
+    opened = raw.count(b"[") + raw.count(b"{")
+    depth = json_depth(raw) if opened > max_depth else opened
+    if depth > max_depth:
+        raise error(f"{where}: JSON nested {depth} levels deep (limit {max_depth})")
+
+    def constant(name: str) -> Any:
+        raise error(f"{where}: {name} is not a JSON number (use a finite value)")
+
+    try:
+        return json.loads(text, parse_constant=constant)
+    except RecursionError:  # pragma: no cover - the depth scan refuses these first
+        raise error(f"{where}: JSON nested too deeply") from None
+    except json.JSONDecodeError as exc:
+        raise error(f"{where}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
 
 
 def read_json(path: str | Path, error: type[LfcamError], what: str,
-              max_bytes: int = 64 * 1024 * 1024) -> Any:
-    """Parse a JSON file; ``error`` with one line for a missing, oversized, non-UTF-8 or
-    malformed file (``what`` names the kind of file in the message)."""
+              max_bytes: int = 64 * 1024 * 1024, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """Parse a JSON file; ``error`` with one line for a missing, oversized, non-UTF-8,
+    too deeply nested (> ``max_depth``), non-finite (``NaN``) or malformed file (``what``
+    names the kind of file in the message)."""
     p = Path(path)
     if not p.is_file():
         raise error(f"{what} file not found: {p}")
     if p.stat().st_size > max_bytes:
         raise error(f"{p}: {what} file larger than {max_bytes} bytes")
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise error(f"{p}: not UTF-8 text") from None
-    except json.JSONDecodeError as exc:
-        raise error(f"{p}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise error(f"{p}: cannot read {what} file ({exc.strerror or exc})") from None
+    return parse_json_bytes(raw, error, str(p), max_depth)
 
 
 class Fields:

@@ -8,8 +8,6 @@ from scipy.stats import median_abs_deviation
 
 from lfcam.errors import CalibrationError
 
-MAX_PIXELS = 200_000_000  # refuse absurd rasters before allocating float copies
-
 
 def bayer_to_grey(image: np.ndarray, pattern: str) -> np.ndarray:
     """Equalise the four colour planes of a Bayer mosaic so a white image looks grey.

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
+from lfcam.atomic import check_output_dir, refuse_overwrite
+from lfcam.cli.common import positive_float, positive_int, profile_file
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
 
@@ -23,11 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="auto",
                    choices=DISTANCE_MODELS)
     p.add_argument("--method", default="lightfield", choices=METHODS)
-    p.add_argument("--tolerance", type=float, metavar="PCT",
+    p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
-    p.add_argument("--workers", type=_positive_int, metavar="N",
+    p.add_argument("--workers", type=positive_int, metavar="N",
                    help="local worker processes (default: all cores)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler, e.g. tcp://host:8786 (needs lfcam[dask])")
@@ -36,20 +39,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError("must be at least 1")
-    return n
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the batch; exit 1 when at least one capture failed (listed in failures.csv)."""
     from lfcam.batch import run_batch
 
+    out = Path(args.output)
+    refuse_overwrite([args.calibration, profile_file(args.profile)],
+                     [out / "summary.csv", out / "failures.csv"])
+    check_output_dir(out)
     res = run_batch(args.input, args.calibration, args.output, args.profile,
                     model=args.model, method=args.method, tolerance_pct=args.tolerance,
                     fast=args.fast, workers=args.workers, scheduler=args.scheduler,

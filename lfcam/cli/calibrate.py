@@ -5,15 +5,28 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import math
 from pathlib import Path
 
+from lfcam.atomic import check_output_dir, refuse_overwrite
+from lfcam.cli.common import (
+    add_quiet,
+    capture_files,
+    json_value,
+    positive_float,
+    profile_file,
+)
 from lfcam.errors import CalibrationError
+from lfcam.progress import fractions, terminal_progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``calibrate`` sub-command."""
-    p = sub.add_parser("calibrate", help="microlens grid from a white image")
+    p = sub.add_parser(
+        "calibrate", help="microlens grid from a white image",
+        description="Find the microlens centres of a white image and fit the lattice model "
+        "(grid, pitch, rotation, offset, distortion); with a dot-target --reference capture at "
+        "a known distance, also calibrate d_in. Writes one calibration JSON.")
     p.add_argument("white", help="white image: Lytro .lfp/.lfr or packed .raw, camera raw, "
                    "PNG/TIFF")
     p.add_argument("--dark", help="dark frame subtracted from the white image")
@@ -22,28 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reference", metavar="CAPTURE",
                    help="dot-target capture (PNG/TIFF, grey): isolated point sources on a plane "
                    "at --reference-distance; d_in is then calibrated and stored (needs --profile)")
-    p.add_argument("--reference-distance", metavar="MM", type=float,
+    p.add_argument("--reference-distance", metavar="MM", type=positive_float,
                    help="dot plane → front vertex of the main lens, mm")
     p.add_argument("-o", "--output", required=True, help="calibration JSON to write")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_quiet(p)
     p.set_defaults(func=run)
-
-
-class _Bar:
-    """Minimal progress bar on stderr; silent when stderr is not a terminal."""
-
-    def __init__(self) -> None:
-        self.tty = sys.stderr.isatty()
-
-    def __call__(self, stage: str, frac: float) -> None:
-        if self.tty:
-            n = int(30 * min(max(frac, 0.0), 1.0))
-            sys.stderr.write(f"\r{stage:<11} [{'#' * n}{'.' * (30 - n)}] {100 * frac:5.1f}%")
-            sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            sys.stderr.write("\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,12 +56,13 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError("--reference and --reference-distance go together")
     if ref is not None and args.profile is None:
         raise CalibrationError("--reference needs --profile (main lens, MLA and sensor)")
-    bar = _Bar()
-    try:
+    refuse_overwrite([*capture_files(args.white), *capture_files(args.dark),
+                      profile_file(args.profile), ref], [out])
+    check_output_dir(out.parent)
+    with terminal_progress(args.quiet) as bar:
         cal = calibrate_white_file(args.white, dark=args.dark, profile=args.profile,
-                                   output=None if ref is not None else out, progress=bar)
-    finally:
-        bar.close()
+                                   output=None if ref is not None else out,
+                                   progress=fractions(bar))
     din = None
     if ref is not None:
         from lfcam.calibrate import calibrate_reference_file, save_calibration
@@ -81,14 +79,17 @@ def run(args: argparse.Namespace) -> int:
         summary.update(d_in_sigma_mm=din.sigma_mm, d_in_paraxial_mm=din.d_in_paraxial_mm,
                        reference_dots=din.n_dots)
     if args.json:
-        print(json.dumps(summary))
+        print(json.dumps({k: json_value(v) for k, v in summary.items()}))
     else:
         rej = ", ".join(f"{k} {v}" for k, v in sorted(cal.rejected.items())) or "none"
         print(f"{cal.n_lenses} lenses, {cal.grid} grid, pitch {cal.pitch_px:.5f} px, rotation "
               f"{cal.rotation_rad:.6f} rad, {cal.model} model, residual RMS "
               f"{cal.residual_rms_px:.4f} px; rejected: {rej} -> {out}")
         if din is not None:
-            print(f"d_in {din.d_in_mm:.4f} ± {din.sigma_mm:.4f} mm from {din.n_dots} dots at "
-                  f"{din.distance_mm:g} mm (paraxial seed eqs. 10-12: "
-                  f"{din.d_in_paraxial_mm:.3f} mm)")
+            # σ needs at least two dots; the paraxial seed may not exist: print only numbers
+            sigma = f" ± {din.sigma_mm:.4f}" if math.isfinite(din.sigma_mm) else ""
+            seed = (f" (paraxial seed eqs. 10-12: {din.d_in_paraxial_mm:.3f} mm)"
+                    if math.isfinite(din.d_in_paraxial_mm) else "")
+            print(f"d_in {din.d_in_mm:.4f}{sigma} mm from {din.n_dots} dots at "
+                  f"{din.distance_mm:g} mm{seed}")
     return 0

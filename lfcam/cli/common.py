@@ -6,6 +6,7 @@ import argparse
 import csv
 import json
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,13 +18,128 @@ from lfcam.errors import InputFileError
 MAX_CSV_ROWS = 50_000_000
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with negative numbers as values everywhere: ``--y1 -1e-12``, ``--a -.5``,
+    ``--offset -inf`` are values, not unknown flags (argparse's own pattern only knows
+    ``-12`` and ``-1.5``). lfcam has no option that looks like a number, so this is safe."""
+
+    NEGATIVE_NUMBER = re.compile(
+        r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = self.NEGATIVE_NUMBER
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (no nan/inf)."""
+    v = _number(text)
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    v = finite_float(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return v
+
+
+def positive_or_inf(text: str) -> float:
+    """argparse type: a number > 0, ``inf`` allowed (focus at infinity), nan refused."""
+    v = _number(text)
+    if math.isnan(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive (inf allowed), got {text!r}")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    """argparse type: a finite number ≥ 0."""
+    v = finite_float(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer ≥ 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
+def nonneg_int(text: str) -> int:
+    """argparse type: an integer ≥ 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {n}")
+    return n
+
+
+def add_quiet(p: argparse.ArgumentParser) -> None:
+    """``--quiet``: no progress line (it is only drawn when stderr is a terminal anyway)."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress line on stderr (shown only on a terminal)")
+
+
+def add_no_verify(p: argparse.ArgumentParser) -> None:
+    """``--no-verify`` for commands that load captures (LFP sha1 checks)."""
+    p.add_argument("--no-verify", action="store_true",
+                   help="warn instead of failing on LFP sha1 mismatches")
+
+
+def verify_mode(args: argparse.Namespace) -> str:
+    """``verify=`` for :func:`lfcam.io.load_capture` from ``--no-verify``."""
+    return "warn" if getattr(args, "no_verify", False) else "error"
+
+
+def profile_file(name: str | Path | None) -> Path | None:
+    """The TOML file ``--profile`` names (shipped names resolved), for overwrite checks."""
+    if name is None:
+        return None
+    path = Path(name)
+    if not path.suffix and not path.exists():
+        from lfcam.camera import shipped_profile_dir
+
+        return shipped_profile_dir() / f"{name}.toml"
+    return path
+
+
+def capture_files(path: str | Path | None) -> list[Path]:
+    """A capture and the metadata sidecar a bare ``.raw`` is read with."""
+    if path is None:
+        return []
+    from lfcam.io.capture import find_sidecar
+
+    p = Path(path)
+    side = find_sidecar(p) if p.suffix.lower() == ".raw" else None
+    return [p] if side is None else [p, side]
+
+
 def add_profile_args(p: argparse.ArgumentParser, focus: bool = True) -> None:
     """``--profile`` and, optionally, the ``--d-in | --focus`` pair."""
     p.add_argument("--profile", required=True, help="profile name (system1, system2) or TOML path")
     if focus:
         g = p.add_mutually_exclusive_group()
-        g.add_argument("--d-in", type=float, help="main-lens centre → MLA distance, mm")
-        g.add_argument("--focus", type=float, help="object distance in focus, mm (inf allowed)")
+        g.add_argument("--d-in", type=positive_float, help="main-lens centre → MLA distance, mm")
+        g.add_argument("--focus", type=positive_or_inf,
+                       help="object distance in focus, mm (inf allowed)")
 
 
 def profile_from_args(args: argparse.Namespace) -> CameraProfile:

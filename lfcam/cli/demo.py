@@ -84,6 +84,7 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Render, calibrate, measure; print the table; write the outputs."""
+    from lfcam.atomic import check_output_dir
     from lfcam.calibrate import load_calibration
     from lfcam.distance import run_distance, write_outputs
     from lfcam.io.grey import to_grey
@@ -93,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from lfcam.sim.scene import scene_from_dict
 
     out = Path(args.output)
+    check_output_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     profile = load_profile("system1")
     t0 = time.perf_counter()

@@ -4,18 +4,33 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
+from lfcam.atomic import check_output_dir, refuse_overwrite
 from lfcam.camera import profile_for_capture
-from lfcam.cli.common import json_value
+from lfcam.cli.common import (
+    add_no_verify,
+    add_quiet,
+    capture_files,
+    json_value,
+    positive_float,
+    profile_file,
+    verify_mode,
+)
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
+from lfcam.progress import counts, terminal_progress
+
+OUTPUT_FILES = ("regions.csv", "distance.tiff", "distance.png")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``distance`` sub-command."""
-    p = sub.add_parser("distance", help="per-region distance map of a capture")
+    p = sub.add_parser(
+        "distance", help="per-region distance map of a capture",
+        description="Detect the regions (point and line images) of a capture, measure each "
+        "one's blur through the calibrated microlens grid and turn it into a metric distance; "
+        "writes OUTPUT/regions.csv, distance.tiff and distance.png.")
     p.add_argument("capture", help="raw capture (LFP/LFR, raw + sidecar, camera raw, PNG/TIFF)")
     p.add_argument("--calibration", required=True, help="calibration JSON (lfcam calibrate)")
     p.add_argument("--profile", help="camera profile (default: CAPTURE's .profile.toml sidecar)")
@@ -24,19 +39,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="refocus = Hahne et al.'s depth from refocus (the seed's baseline)")
     p.add_argument("--method", default="lightfield", choices=METHODS,
                    help="blur measurement: exact light-field fit, or the seed's diameter")
-    p.add_argument("--tolerance", type=float, metavar="PCT",
+    p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_no_verify(p)
+    add_quiet(p)
     p.set_defaults(func=run)
-
-
-def _progress(done: int, total: int) -> None:
-    if sys.stderr.isatty():
-        print(f"\rregions {done}/{total}", end="" if done < total else "\n", file=sys.stderr,
-              flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,15 +55,29 @@ def run(args: argparse.Namespace) -> int:
     from lfcam.calibrate import load_calibration
     from lfcam.distance import run_distance, write_outputs
     from lfcam.io import load_capture
+    from lfcam.io.capture import check_saturation
 
     capture_path = Path(args.capture)
+    out = Path(args.output)
+    sidecar = capture_path.with_name(capture_path.stem + ".profile.toml")
+    refuse_overwrite([*capture_files(capture_path), args.calibration,
+                      profile_file(args.profile) if args.profile else sidecar],
+                     [out / name for name in OUTPUT_FILES])
+    check_output_dir(out)
     profile = profile_for_capture(capture_path, args.profile)
-    calibration = load_calibration(args.calibration)
-    cap = load_capture(capture_path, profile)
-    image = cap.grey()
-    result = run_distance(image, profile, calibration, model=args.model, method=args.method,
-                          tolerance_pct=args.tolerance, fast=args.fast, progress=_progress)
-    write_outputs(args.output, result)
+    with terminal_progress(args.quiet) as bar:
+        bar("loading", 0, 1)
+        calibration = load_calibration(args.calibration)
+        cap = load_capture(capture_path, profile, verify=verify_mode(args))
+        check_saturation(cap)
+        image = cap.grey()
+        bar("loading", 1, 1)
+        result = run_distance(image, profile, calibration, model=args.model,
+                              method=args.method, tolerance_pct=args.tolerance, fast=args.fast,
+                              progress=counts(bar, "regions"))
+        bar("writing", 0, 1)
+        write_outputs(out, result)
+        bar("writing", 1, 1)
     ok = sum(r.status == "ok" for r in result.regions)
     if args.json:
         print(json.dumps({

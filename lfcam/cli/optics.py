@@ -5,12 +5,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 
+from lfcam.atomic import check_output_dir, refuse_overwrite
 from lfcam.cli.common import (
     add_profile_args,
+    finite_float,
+    positive_float,
+    positive_or_inf,
     print_json,
+    profile_file,
     profile_from_args,
     read_csv_columns,
 )
@@ -28,16 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     f = osub.add_parser("forward", help="rim-ray sensor heights of a point source (exact trace)")
     add_profile_args(f)
-    f.add_argument("--distance", type=float, help="object plane → front vertex, mm")
-    f.add_argument("--offset", type=float, default=0.0, help="source height above the axis, mm")
+    f.add_argument("--distance", type=positive_float, help="object plane → front vertex, mm")
+    f.add_argument("--offset", type=finite_float, default=0.0,
+                   help="source height above the axis, mm")
     _add_batch_args(f)
     f.set_defaults(func=run_forward)
 
     i = osub.add_parser("inverse", help="distance and offset from rim-ray sensor heights")
     add_profile_args(i)
     i.add_argument("--model", required=True, choices=sorted(POINT_MODELS))
-    i.add_argument("--y1", type=float, help="sensor height of the upper-rim ray, mm")
-    i.add_argument("--y2", type=float, help="sensor height of the lower-rim ray, mm")
+    i.add_argument("--y1", type=finite_float, help="sensor height of the upper-rim ray, mm")
+    i.add_argument("--y2", type=finite_float, help="sensor height of the lower-rim ray, mm")
     _add_batch_args(i)
     i.set_defaults(func=run_inverse)
 
@@ -46,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="Hahne et al.'s refocusing distance for shift a (PlenoptiSign parameters)",
     )
     r.add_argument("--profile", help="take any parameter not given from this camera profile")
-    r.add_argument("--d-in", type=float, help="with --profile: MLA distance, mm")
+    r.add_argument("--d-in", type=positive_float, help="with --profile: MLA distance, mm")
     for flag, text in (
         ("--pp", "pixel pitch, mm"),
         ("--fs", "micro-lens focal length, mm"),
@@ -59,8 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         ("--f-num", "main-lens f-number (not used by the model)"),
         ("--M", "1-D micro-image size, px"),
     ):
-        r.add_argument(flag, type=float, help=text)
-    r.add_argument("--a", type=float, required=True, help="refocusing shift parameter")
+        r.add_argument(flag, type=positive_or_inf if flag == "--df" else finite_float, help=text)
+    r.add_argument("--a", type=finite_float, required=True, help="refocusing shift parameter")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=run_refocus_distance)
 
@@ -75,6 +82,8 @@ def _batch_mode(args: argparse.Namespace, single: tuple[str, ...]) -> bool:
     if args.input or args.output:
         if not (args.input and args.output):
             raise UsageError("--input and --output go together")
+        refuse_overwrite([args.input, profile_file(args.profile)], [args.output])
+        check_output_dir(Path(args.output).parent)
         return True
     missing = [f"--{name.replace('_', '-')}" for name in single if getattr(args, name) is None]
     if missing:

@@ -4,6 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
+
+from lfcam.atomic import check_output_dir, refuse_overwrite
+from lfcam.cli.common import add_quiet, nonneg_int, positive_int, profile_file
+from lfcam.errors import OutputPathError
+from lfcam.progress import counts, terminal_progress
+from lfcam.sim.scene import MAX_TOTAL_RAYS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,8 +25,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", required=True, help="profile name (system1, system2) or TOML")
     p.add_argument("--scene", required=True, help="scene JSON file")
     p.add_argument("-o", "--output", required=True, help="output raster (.png, .tif, .tiff)")
-    p.add_argument("--seed", type=int, default=None, help="override the scene's seed")
+    p.add_argument("--seed", type=nonneg_int, default=None, help="override the scene's seed")
+    p.add_argument("--max-rays", type=positive_int, default=MAX_TOTAL_RAYS, metavar="N",
+                   help=f"refuse scenes tracing more rays than this (default {MAX_TOTAL_RAYS:.0e}"
+                   ", about 20 min on one core)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
+    add_quiet(p)
     p.set_defaults(func=run)
 
 
@@ -38,8 +49,15 @@ def run(args: argparse.Namespace) -> int:
         if args.seed < 0:
             raise SceneError(f"--seed must not be negative, got {args.seed}")
         scene = replace(scene, seed=args.seed)
-    capture_paths(args.output, scene.output_format)  # fail early on an unsupported suffix
-    raw, used, truth = simulate(profile, scene)
+    # fail early: unsupported suffix, an output replacing an input, a missing output folder
+    outputs = capture_paths(args.output, scene.output_format)
+    refuse_overwrite([profile_file(args.profile), args.scene], outputs)
+    if not Path(outputs[0]).parent.is_dir():
+        raise OutputPathError(f"output folder does not exist: {Path(outputs[0]).parent}")
+    check_output_dir(Path(outputs[0]).parent)
+    with terminal_progress(args.quiet) as bar:
+        raw, used, truth = simulate(profile, scene, max_rays=args.max_rays,
+                                    progress=counts(bar, "rendering"))
     img, prof, tru = write_capture(args.output, raw, used, truth, scene.output_format)
     summary = {"raster": str(img), "profile": str(prof), "truth": str(tru),
                "width_px": int(raw.shape[1]), "height_px": int(raw.shape[0]),

@@ -17,6 +17,10 @@ none (``.raw``/``.RAW``)     bare Lytro packed raw + ``.json``/``.txt`` sidecar
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,10 +32,12 @@ from lfcam.errors import (
     InputFileError,
     MetadataError,
     RawDataError,
+    SaturatedCaptureError,
     UnsupportedFormatError,
 )
 from lfcam.io import lytro_meta as lm
 from lfcam.io.lfp import LFP_MAGIC, merged_metadata, read_lfp
+from lfcam.io.limits import check_raster
 from lfcam.io.packing import check_dimensions, packed_size, unpack
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -287,13 +293,46 @@ def _raster_levels(img: np.ndarray, profile: CameraProfile | None, p: Path):
     return "none", 0.0, float(np.iinfo(img.dtype).max)
 
 
+@contextmanager
+def native_stderr():
+    """Collect what native decoders (libpng, OpenCV) print on file descriptor 2.
+
+    Yields a list that holds the captured text once the block ends, so a damaged file gives
+    lfcam's one-line error instead of stray ``libpng error:`` lines. Falls back to doing
+    nothing where fd 2 cannot be redirected.
+    """
+    said: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield said
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            said.append(tmp.read(64 * 1024).decode("utf-8", "replace"))
+
+
 def _from_raster(p: Path, kind: str, profile: CameraProfile | None) -> Capture:
+    check_raster(p, kind)  # header only: refuse oversized / forged sizes before decoding
     if kind == "png":
         import cv2
 
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        with native_stderr() as said:
+            try:
+                img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            except cv2.error as exc:
+                raise UnsupportedFormatError(f"{p}: PNG could not be decoded "
+                                             f"({str(exc).strip().splitlines()[-1]})") from None
         if img is None:
-            raise UnsupportedFormatError(f"{p}: PNG could not be decoded (damaged?)")
+            why = said[0].strip().splitlines()[-1] if said and said[0].strip() else "damaged?"
+            raise UnsupportedFormatError(f"{p}: PNG could not be decoded ({why})")
     else:
         import tifffile
 
@@ -320,6 +359,35 @@ def _from_raster(p: Path, kind: str, profile: CameraProfile | None) -> Capture:
     return Capture(raw=_freeze(img), bayer=bayer, black_level=black, white_level=white,
                    metadata={"dtype": str(np.asarray(img).dtype)}, source_kind=kind,
                    path=str(p), profile=profile)
+
+
+MAX_SATURATED_FRACTION = 0.5
+
+
+def check_saturation(cap: Capture, max_fraction: float = MAX_SATURATED_FRACTION) -> float:
+    """Refuse a capture with more than ``max_fraction`` of its pixels at the white level.
+
+    Such a frame (over-exposed, or a white image passed as a capture) has no measurable
+    blur: the pipeline would report "0 regions" as if the scene were empty.
+
+    Returns
+    -------
+    float
+        The saturated fraction.
+
+    Raises
+    ------
+    SaturatedCaptureError
+        Naming the file, the fraction and the white level.
+    """
+    raw = cap.raw
+    frac = float(np.count_nonzero(raw >= cap.white_level)) / max(raw.size, 1)
+    if frac > max_fraction:
+        raise SaturatedCaptureError(
+            f"{cap.path}: {100 * frac:.1f} % of the pixels sit at the white level "
+            f"{cap.white_level:g} (over {100 * max_fraction:g} %): over-exposed, nothing "
+            "can be measured")
+    return frac
 
 
 def load_capture(path: str | Path, profile: CameraProfile | None = None,

@@ -39,6 +39,7 @@ from lfcam.errors import (
 )
 from lfcam.io import lytro_meta as lm
 from lfcam.io.packing import pack_10bit_le, pack_12bit_be, packed_size, unpack
+from lfcam.validate import MAX_JSON_DEPTH, json_depth
 
 LFP_MAGIC = b"\x89LFP\r\n\x1a\n"
 LFM_MAGIC = b"\x89LFM\r\n\x1a\n"
@@ -47,6 +48,7 @@ NAME_BYTES = 80
 HEADER_BYTES = 16
 ALIGN = 16
 MAX_JSON_BYTES = 64 * 1024 * 1024
+CHECKSUM_HINT = "; verify='warn' loads it anyway"  # the CLI swaps in its own flag
 
 
 class ChecksumWarning(UserWarning):
@@ -171,6 +173,10 @@ def _parse_json(raw: bytes, where: str) -> Any:
     except UnicodeDecodeError as exc:
         raise MetadataError(f"{where}: metadata is not UTF-8 ({exc.reason} at byte "
                             f"{exc.start})") from None
+    depth = json_depth(raw) if raw.count(b"[") + raw.count(b"{") > MAX_JSON_DEPTH else 0
+    if depth > MAX_JSON_DEPTH:
+        raise MetadataError(f"{where}: metadata JSON nested {depth} levels deep "
+                            f"(limit {MAX_JSON_DEPTH})")
     try:
         return json.loads(text)
     except RecursionError:
@@ -227,7 +233,7 @@ def _read_sections(data: bytes, where: str, verify: str) -> tuple[int, list[LfpS
             if digest != name[5:].lower():
                 msg = f"{where}: sha1 mismatch in section {name} (data hashes to sha1-{digest})"
                 if verify == "error":
-                    raise ChecksumError(msg + "; pass --no-verify / verify='warn' to load anyway")
+                    raise ChecksumError(msg + CHECKSUM_HINT)
                 if verify == "warn":
                     warnings.warn(msg, ChecksumWarning, stacklevel=3)
                 failures.append(name)

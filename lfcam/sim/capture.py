@@ -26,7 +26,7 @@ from lfcam.errors import LfcamError, SceneError
 from lfcam.optics.mla import MlaGrid
 from lfcam.optics.trace import forward
 from lfcam.sim.render import Renderer, RenderResult
-from lfcam.sim.scene import LineSource, PointSource, Scene
+from lfcam.sim.scene import MAX_TOTAL_RAYS, LineSource, PointSource, Scene, check_ray_budget
 from lfcam.sim.sensor import apply_sensor
 
 TRUTH_VERSION = 1
@@ -197,13 +197,20 @@ def build_truth(profile: CameraProfile, scene: Scene, renderer: Renderer, res: R
     }
 
 
-def simulate(profile: CameraProfile, scene: Scene) -> tuple[np.ndarray, CameraProfile, dict]:
-    """Render a scene: returns (raw uint16 raster, profile used, truth mapping)."""
+def simulate(profile: CameraProfile, scene: Scene, max_rays: int = MAX_TOTAL_RAYS,
+             progress: Callable[[int, int], None] | None = None,
+             ) -> tuple[np.ndarray, CameraProfile, dict]:
+    """Render a scene: returns (raw uint16 raster, profile used, truth mapping).
+
+    ``max_rays`` bounds the total work (:func:`lfcam.sim.scene.check_ray_budget`, checked
+    before rendering); ``progress(done, total)`` is called after each rendering step.
+    """
     profile = apply_overrides(profile, scene.camera)
     profile = profile.with_d_in(profile.d_in_mm)
     profile = _sensor_profile(profile, scene)
+    check_ray_budget(scene, profile.sensor.width_px * profile.sensor.height_px, max_rays)
     renderer = Renderer(profile)
-    res = renderer.render(scene)
+    res = renderer.render(scene, progress=progress)
     peak = float(res.signal.max())
     if scene.exposure_scale is not None:
         scale = scene.exposure_scale

@@ -412,19 +412,32 @@ class Renderer:
             acc.add(sx, sy, w, np.repeat(lidx[sl], n_s))
 
     # ------------------------------------------------------------------ public
-    def render(self, scene: Scene) -> RenderResult:
-        """Render a scene's noiseless signal and its ray-derived truth."""
+    def render(self, scene: Scene, progress=None) -> RenderResult:
+        """Render a scene's noiseless signal and its ray-derived truth.
+
+        ``progress(done, total)``, if given, is called after the backward pass and after
+        each source.
+        """
         acc = Accumulator(self.height, self.width, self.li.size)
         seq = np.random.SeedSequence(scene.seed)
         streams = [np.random.default_rng(s) for s in seq.spawn(len(scene.objects) + 1)]
         complete = np.zeros(self.li.size, dtype=bool)
         stats: dict = {}
-        if any(isinstance(o, (WhiteScene, TexturedPlane)) for o in scene.objects):
+        backward = any(isinstance(o, (WhiteScene, TexturedPlane)) for o in scene.objects)
+        n_forward = sum(isinstance(o, (PointSource, LineSource)) for o in scene.objects)
+        steps, done = n_forward + int(backward), 0
+        if backward:
             stats = self._backward(scene, streams[-1], acc, complete)
+            done += 1
+            if progress is not None:
+                progress(done, steps)
         sources = []
         z_front = self.lens.front_vertex_z_mm
         for k, obj in enumerate(scene.objects):
             rng = streams[k]
+            if progress is not None and isinstance(obj, (PointSource, LineSource)):
+                progress(done, steps)
+                done += 1
             if isinstance(obj, PointSource):
                 n = obj.rays or scene.rays_per_source
                 before = acc.image.copy()
@@ -451,6 +464,8 @@ class Renderer:
                         total[key] += info[key]
                 total.update(index=k, kind="line", points=n_pts)
                 sources.append(total)
+        if progress is not None and n_forward:
+            progress(steps, steps)
         with np.errstate(invalid="ignore", divide="ignore"):
             cen = np.stack([acc.lens_wx / acc.lens_w, acc.lens_wy / acc.lens_w], axis=1)
         cen[acc.lens_w <= 0] = np.nan

@@ -16,6 +16,7 @@ from lfcam.errors import SceneError
 from lfcam.validate import Fields, read_json
 
 MAX_RAYS = 500_000_000  # per source; bounds the work an untrusted scene can ask for
+MAX_TOTAL_RAYS = 2_000_000_000  # whole scene (~20 min on one core); `simulate --max-rays`
 MAX_SAMPLES = 4096
 TEXTURES = ("checkerboard", "random", "uniform")
 
@@ -272,3 +273,48 @@ def scene_from_dict(data: Any) -> Scene:
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene JSON file."""
     return scene_from_dict(read_json(path, SceneError, "scene", 16 * 1024 * 1024))
+
+
+def _strata(n: int) -> int:
+    """Rays actually traced for a request of ``n`` (rounded up to a k×k square)."""
+    k = max(1, math.ceil(math.sqrt(n)))
+    return k * k
+
+
+def ray_count(scene: Scene, n_pixels: int) -> int:
+    """Upper bound of the rays rendering ``scene`` on a sensor of ``n_pixels`` traces.
+
+    Point sources trace ``rays`` (rounded up to a square); line sources ``points`` times
+    the per-point share; white and textured scenes at most four corner rays plus
+    ``max(samples_per_pixel, interior_samples)`` (rounded up to squares) per pixel.
+    """
+    total = 0
+    backward = False
+    for obj in scene.objects:
+        if isinstance(obj, PointSource):
+            total += _strata(obj.rays or scene.rays_per_source)
+        elif isinstance(obj, LineSource):
+            n_pts = obj.points or max(16, int(math.ceil(obj.length_mm / 0.05)))
+            per_pt = max(1, (obj.rays or scene.rays_per_source) // n_pts)
+            total += n_pts * _strata(per_pt)
+        else:
+            backward = True
+    if backward:
+        per_px = max(_strata(scene.samples_per_pixel), _strata(scene.interior_samples))
+        total += n_pixels * (4 + per_px)
+    return total
+
+
+def check_ray_budget(scene: Scene, n_pixels: int, max_rays: int = MAX_TOTAL_RAYS) -> int:
+    """Refuse a scene whose :func:`ray_count` exceeds ``max_rays``; returns the count.
+
+    Raises
+    ------
+    SceneError
+        Naming the count and the budget (``lfcam simulate --max-rays`` raises it).
+    """
+    n = ray_count(scene, n_pixels)
+    if n > max_rays:
+        raise SceneError(f"scene needs about {n:.3g} rays, over the budget of {max_rays:.3g} "
+                         "(fewer objects or rays, or raise it with --max-rays)")
+    return n

@@ -100,7 +100,6 @@ def test_refocus_by_shift_realigns_and_distance_matches_shift(capture, tmp_path)
     [
         (["--distance", "700"], "pass --profile"),
         (["--shift", "1", "-o", "x.jpg"], ".png"),
-        (["--shift", "nan"], "finite"),
     ],
 )
 def test_refocus_errors_are_one_line(capture, tmp_path, capsys, extra, msg):
@@ -111,6 +110,15 @@ def test_refocus_errors_are_one_line(capture, tmp_path, capsys, extra, msg):
     assert main(args) == 1
     err = capsys.readouterr().err
     assert msg in err and err.count("\n") == 1
+
+
+def test_refocus_nan_shift_is_a_usage_error(capture, tmp_path, capsys):
+    png, calib, _ = capture
+    with pytest.raises(SystemExit) as exc:
+        main(["refocus", str(png), "--calibration", str(calib), "--shift", "nan",
+              "-o", str(tmp_path / "o.tiff")])
+    assert exc.value.code == 2
+    assert "--shift: must be a finite number" in capsys.readouterr().err
 
 
 def test_missing_calibration_is_one_line(capture, tmp_path, capsys):
