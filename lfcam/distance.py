@@ -38,6 +38,7 @@ from lfcam.measure.geometry import lenslet_centres_mm, regularise_to_lattice
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
+    SpotExtraction,
     assign_spots,
     find_spots,
     fit_point,
@@ -152,7 +153,9 @@ def measure_lightfield(profile, geom: Geometry, image, region: Region, noise: fl
     thr = max(6.0 * noise, 0.03 * peak)
     spots, energy = find_spots(sub, mask, thr)
     spots = spots + np.array([x0, y0])
-    fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm)
+    # the fit simulates its statistic through the same box, mask and threshold
+    extraction = SpotExtraction(region.box_px, mask, thr, float(sub[mask].sum()))
+    fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm, extraction)
     nan = float("nan")
     # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
     # the per-pixel fit would only re-render a huge patch a hundred times.
