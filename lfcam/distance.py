@@ -133,7 +133,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
 def run_distance(
     image: np.ndarray,
     profile: CameraProfile,
-    calibration: Calibration,
+    calibration: Calibration | None,
     model: str = "auto",
     method: str = "lightfield",
     tolerance_pct: float | None = None,
@@ -148,7 +148,8 @@ def run_distance(
     image : (H, W) array
         Linear signal (black level removed), e.g. :meth:`lfcam.io.Capture.grey`.
     profile : CameraProfile
-    calibration : Calibration
+    calibration : Calibration or None
+        Used to prepare the lenslet geometry; may be None when ``geometry`` is given.
     model : str
         One of :data:`lfcam.models.DISTANCE_MODELS`.
     method : str
@@ -186,6 +187,8 @@ def run_distance(
             f"capture is {img.shape[1]}×{img.shape[0]} px but profile {profile.name!r} "
             f"describes a {expected[1]}×{expected[0]} px sensor"
         )
+    if geometry is None and calibration is None:
+        raise ModelError("run_distance needs a calibration or a prepared geometry")
     geom = geometry or prepare_geometry(profile, calibration, img.shape)
     t1 = time.perf_counter()
     stats = lenslet_stats(img, geom.lmap)

@@ -17,7 +17,7 @@ from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement, neighbours, region_pixels_mask
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
-from lfcam.measure.pointfit import find_spots, fit_point, fit_point_image
+from lfcam.measure.pointfit import SpotExtraction, find_spots, fit_point, fit_point_image
 from lfcam.measure.regions import Region
 from lfcam.optics.trace import forward
 
@@ -57,7 +57,9 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     thr = max(6.0 * noise, 0.03 * peak)
     spots, energy = find_spots(sub, mask, thr)
     spots = spots + np.array([x0, y0])
-    fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm)
+    # the fit simulates its statistic through the same box, mask and threshold
+    extraction = SpotExtraction(region.box_px, mask, thr, float(sub[mask].sum()))
+    fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm, extraction)
     nan = float("nan")
     # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
     # the per-pixel fit would only re-render a huge patch a hundred times.

@@ -12,6 +12,14 @@ ambiguous between two lenslets; they are assigned with the smoothness of the slo
 a robust affine model ``offset = a + B·C`` of spot offset against lenslet centre is fitted on
 unambiguous spots, then every spot goes to the candidate lenslet that model explains best.
 The signed rim-ray heights (y1, y2) then follow from the exact forward trace of the source.
+
+Behind the focused plane each lenslet images only a small patch of the pupil: its spot spans
+2–4 pixels, and pixel integration moves a spot's centroid by up to half a pixel (0.15 px RMS,
+zero mean, but smooth across lenslets). The triangulation reads that as a change of the slope
+field: −1.5 % of distance at 3.5 m (system 2, focus 1 m). The threshold that cuts spots from
+the data and the sensor edge bias it too. :func:`fit_point` therefore simulates the statistic
+through the same chain as the data: rays are binned into pixels of the region's box, spots are
+cut with the same threshold and mask and assigned the same way (``SpotExtraction``).
 """
 
 from __future__ import annotations
@@ -29,7 +37,9 @@ from lfcam.optics.trace import trace_backward_fast, trace_source_fast
 MIN_SPOTS = 6
 PARTIAL_FRACTION = 0.5  # lenslets dimmer than this × the median are edge (partially lit) ones
 PUPIL_SAMPLES = 160  # per side of the stratified pupil grid of the forward model (~20 k rays)
+SPOT_PUPIL_SAMPLES = 480  # per side when the statistic is simulated through pixels (~180 k rays)
 MAX_ITERATIONS = 8
+SPOT_ITERATIONS = 12
 
 
 @dataclass(frozen=True)
@@ -181,12 +191,108 @@ def simulate_lenslets(profile, d_in_mm, source_mm, tree: cKDTree, centres_mm, pa
     return e, np.column_stack([lx, ly])
 
 
+@dataclass(frozen=True)
+class SpotExtraction:
+    """How the measured spots were cut from the data, so that a simulation can repeat it.
+
+    ``box`` = (x0, y0, x1, y1) of the region in sensor pixels, ``mask`` (y1−y0, x1−x0) the
+    pixels spots may use, ``threshold`` the absolute level of :func:`find_spots` and
+    ``energy`` the data's sum over the mask (the simulation is scaled to it).
+    """
+
+    box: tuple[int, int, int, int]
+    mask: np.ndarray
+    threshold: float
+    energy: float
+
+
+def _lenslet_of(lattice: LocalLattice | None, tree: cKDTree, centres: np.ndarray, pitch: float,
+                x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (x, y) of the lenslet each MLA point crosses; NaN where it is unknown.
+
+    With a lattice the crossed cell is exact, also beyond the calibrated lenslets (their light
+    may still reach the region, or fall off the sensor). Otherwise the nearest calibrated
+    centre, within 0.75 pitch.
+    """
+    if lattice is not None:
+        cx, cy = lattice.node(x, y)
+        return cx, cy
+    d, k = tree.query(np.column_stack([x, y]))
+    cx, cy = centres[k, 0].copy(), centres[k, 1].copy()
+    far = d > 0.75 * pitch
+    cx[far] = np.nan
+    cy[far] = np.nan
+    return cx, cy
+
+
+def simulate_spots(profile, d_in_mm, source_mm, extraction: SpotExtraction, lattice, tree,
+                   centres_mm, pattern):
+    """Spots a point source would give through the data's own chain (pixels, threshold, mask).
+
+    Rays are traced exactly, cross the lenslet whose cell they hit, land at
+    ``C + f_x·slope`` and are added to the pixel that contains them (the sensor integrates);
+    the box image is scaled to the data's energy and cut by :func:`find_spots`.
+    Returns (spots_px (M, 2), energy (M,)) in sensor pixels.
+    """
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    half = 0.5 * lens.pupil_diameter_mm
+    rx, ry = pattern[0] * half, pattern[1] * half
+    tr = trace_source_fast(lens, tuple(source_mm), rx, ry, d_in_mm)
+    ok = tr.ok
+    along = lens.rim_z_mm - source_mm[2]
+    rho2 = (rx[ok] - source_mm[0]) ** 2 + (ry[ok] - source_mm[1]) ** 2 + along**2
+    w = (along * along / rho2) ** 1.5
+    cx, cy = _lenslet_of(lattice, tree, centres_mm, profile.mla.pitch_mm, tr.x[ok], tr.y[ok])
+    px = (cx + fx * tr.dx[ok] / tr.dz[ok]) / pp + ax
+    py = (cy + fx * tr.dy[ok] / tr.dz[ok]) / pp + ay
+    x0, y0, x1, y1 = extraction.box
+    h, w_box = y1 - y0, x1 - x0
+    with np.errstate(invalid="ignore"):
+        col = np.floor(px + 0.5) - x0
+        row = np.floor(py + 0.5) - y0
+        inside = (col >= 0) & (col < w_box) & (row >= 0) & (row < h)
+    img = np.bincount((row[inside] * w_box + col[inside]).astype(np.int64), w[inside],
+                      minlength=h * w_box).reshape(h, w_box)
+    total = float(img[extraction.mask].sum())
+    if not total > 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    img *= extraction.energy / total
+    spots, energy = find_spots(img, extraction.mask, extraction.threshold)
+    return spots + np.array([x0, y0]), energy
+
+
+def _spot_statistic(profile, d_in_mm, spots_px, energy, lens_centres_mm, mag):
+    """Assign spots to lenslets and triangulate: (statistic or None, lit lenslet indices)."""
+    lens = profile.main_lens
+    fx = profile.mla.focal_length_mm
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    if len(spots_px) < MIN_SPOTS:
+        return None, np.zeros(0, dtype=np.int64)
+    spots_mm = np.column_stack([(spots_px[:, 0] - ax) * pp, (spots_px[:, 1] - ay) * pp])
+    k = assign_spots(spots_mm, energy, lens_centres_mm, profile.mla.pitch_mm, mag)
+    good = k >= 0
+    n = len(lens_centres_mm)
+    e_meas = np.bincount(k[good], energy[good], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        land = np.column_stack([
+            np.bincount(k[good], energy[good] * spots_mm[good, 0], minlength=n) / e_meas,
+            np.bincount(k[good], energy[good] * spots_mm[good, 1], minlength=n) / e_meas,
+        ])
+    lit = np.flatnonzero(e_meas > 0)
+    return _statistic(lens, d_in_mm, fx, lens_centres_mm[lit], e_meas[lit], land[lit]), lit
+
+
 def fit_point(
     profile: CameraProfile,
     d_in_mm: float,
     spots_px: np.ndarray,
     energy: np.ndarray,
     lens_centres_mm: np.ndarray,
+    extraction: SpotExtraction | None = None,
 ) -> PointFit:
     """Locate a point source from its spots (see module docstring).
 
@@ -204,32 +310,29 @@ def fit_point(
     spots_px : (M, 2) spot centroids in sensor pixels (x, y).
     energy : (M,) spot energies.
     lens_centres_mm : (N, 2) lenslet centres on the MLA plane.
+    extraction : SpotExtraction, optional
+        How ``spots_px`` were cut from the data. With it, the simulated statistic goes through
+        pixels, threshold and assignment like the data's (needed behind focus, where spots are
+        2–4 px and pixel integration moves their centroids); without it, per-lenslet ray
+        centroids are used (exact only for spots much larger than a pixel).
     """
     lens = profile.main_lens
     fx = profile.mla.focal_length_mm
-    pp = profile.sensor.pixel_pitch_mm
     ax, ay = profile.sensor.axis_xy_px
     nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
     if len(spots_px) < MIN_SPOTS:
         return PointFit(nan3, nan33, len(spots_px), np.nan, False, "near-focus")
-    spots_mm = np.column_stack([(spots_px[:, 0] - ax) * pp, (spots_px[:, 1] - ay) * pp])
     mag = 1.0 + fx / (d_in_mm - lens.exit_pupil_z_mm)
-    k = assign_spots(spots_mm, energy, lens_centres_mm, profile.mla.pitch_mm, mag)
-    good = k >= 0
-    n = len(lens_centres_mm)
-    e_meas = np.bincount(k[good], energy[good], minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        land = np.column_stack([
-            np.bincount(k[good], energy[good] * spots_mm[good, 0], minlength=n) / e_meas,
-            np.bincount(k[good], energy[good] * spots_mm[good, 1], minlength=n) / e_meas,
-        ])
-    lit = np.flatnonzero(e_meas > 0)
-    measured = _statistic(lens, d_in_mm, fx, lens_centres_mm[lit], e_meas[lit], land[lit])
+    measured, lit = _spot_statistic(profile, d_in_mm, spots_px, energy, lens_centres_mm, mag)
+    n_lit = int(len(lit))
     if measured is None:
-        return PointFit(nan3, nan33, int(len(lit)), np.nan, False, "near-focus")
+        return PointFit(nan3, nan33, n_lit, np.nan, False, "near-focus")
     t_meas, cov, rms = measured
     if not (np.isfinite(t_meas).all() and t_meas[2] < lens.front_vertex_z_mm):
-        return PointFit(t_meas, cov, int(len(lit)), rms, False, "no-solution")
+        return PointFit(t_meas, cov, n_lit, rms, False, "no-solution")
+    if extraction is not None:
+        return _fit_point_spots(profile, d_in_mm, lens_centres_mm, mag, extraction, t_meas,
+                                cov, rms, n_lit)
     # neighbourhood of the lit lenslets for the forward model's binning
     tree_all = cKDTree(lens_centres_mm)
     near = np.unique(np.concatenate(tree_all.query_ball_point(
@@ -251,6 +354,38 @@ def fit_point(
         if abs(step[2]) < 1e-6 * abs(source[2]):
             break
     return PointFit(source, cov, int(len(lit)), rms, True)
+
+
+def _fit_point_spots(profile, d_in_mm, lens_centres_mm, mag, extraction, t_meas, cov, rms,
+                     n_lit) -> PointFit:
+    """Indirect inference with the statistic simulated through pixels (``SpotExtraction``).
+
+    The simulated statistic is piecewise constant on the scale where spots cross pixel
+    borders, so the fixed-point iteration ends in a small cycle: it stops when the step falls
+    below 1e-5 of the distance or returns the mean of its last iterates.
+    """
+    lens = profile.main_lens
+    lattice = LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
+    tree = cKDTree(lens_centres_mm)
+    pattern = pupil_pattern(SPOT_PUPIL_SAMPLES)
+    source = t_meas.copy()
+    history = []
+    for _ in range(SPOT_ITERATIONS):
+        spots, energy = simulate_spots(profile, d_in_mm, source, extraction, lattice, tree,
+                                       lens_centres_mm, pattern)
+        sim, _ = _spot_statistic(profile, d_in_mm, spots, energy, lens_centres_mm, mag)
+        if sim is None:
+            return PointFit(source, cov, n_lit, rms, False, "near-focus")
+        step = t_meas - sim[0]
+        source = source + step
+        if not (np.isfinite(source).all() and source[2] < lens.front_vertex_z_mm):
+            return PointFit(source, cov, n_lit, rms, False, "no-solution")
+        history.append(source.copy())
+        if abs(step[2]) < 1e-5 * abs(source[2]):
+            break
+    else:
+        source = np.mean(history[-4:], axis=0)
+    return PointFit(source, cov, n_lit, rms, True)
 
 
 # ----------------------------------------------------------------------------- image matching
@@ -311,8 +446,14 @@ class LocalLattice:
         table[ij[:, 0] - i0, ij[:, 1] - j0] = np.arange(len(c))
         return cls(coef[0], basis, np.linalg.inv(basis), table, int(i0), int(j0), c)
 
-    def nearest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Index of the lenslet whose Voronoi cell holds each point (−1: not in the set)."""
+    def node(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centre of the lattice cell (Voronoi) holding each point, in or beyond the set."""
+        bi, bj = self._cell(x, y)
+        return (self.origin[0] + self.basis[0, 0] * bi + self.basis[0, 1] * bj,
+                self.origin[1] + self.basis[1, 0] * bi + self.basis[1, 1] * bj)
+
+    def _cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lattice indices (i, j) of the nearest node of each point."""
         u = self.inverse @ np.vstack([x - self.origin[0], y - self.origin[1]])
         fu, fv = np.floor(u[0]), np.floor(u[1])
         best = np.full(x.shape, np.inf)
@@ -327,6 +468,11 @@ class LocalLattice:
                 better = dist < best
                 best[better] = dist[better]
                 bi[better], bj[better] = ci[better], cj[better]
+        return bi, bj
+
+    def nearest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Index of the lenslet whose Voronoi cell holds each point (−1: not in the set)."""
+        bi, bj = self._cell(x, y)
         ti, tj = bi - self.i0, bj - self.j0
         inside = (ti >= 0) & (ti < self.table.shape[0]) & (tj >= 0) & (tj < self.table.shape[1])
         out = np.full(x.shape, -1, dtype=np.int64)
