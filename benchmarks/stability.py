@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import pickle
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -391,8 +392,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
     ap.add_argument("--no-figures", action="store_true")
+    ap.add_argument("--curves", type=Path, help="also write the plotted curves (pickle)")
     args = ap.parse_args(argv)
     rows, plots = run()
+    if args.curves:
+        args.curves.write_bytes(pickle.dumps(plots))
     order = {c: i for i, c in enumerate(
         ("focus", "far", "rim", "tir", "fnumber", "shortline", "float32", "noise"))}
     rows.sort(key=lambda r: (order[r["case"]], r["system"]))

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import csv
+import pickle
+import subprocess
 import sys
 from pathlib import Path
 
@@ -13,14 +16,19 @@ from lfcam.models import POINT_MODELS, line
 from lfcam.models.base import Status
 from lfcam.optics.trace import forward
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def report():
-    import stability
-
-    rows, plots = stability.run()
+def report(tmp_path_factory):
+    """The report as a user makes it: ``python benchmarks/stability.py`` (its CSV and curves)."""
+    out = tmp_path_factory.mktemp("stability")
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "stability.py"), "--out",
+                    str(out), "--no-figures", "--curves", str(out / "curves.pkl")],
+                   check=True, capture_output=True, timeout=900, cwd=ROOT)
+    with (out / "stability.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    plots = pickle.loads((out / "curves.pkl").read_bytes())
     return {(r["case"], r["system"], r["model"], r["note"]): r for r in rows}, plots
 
 
