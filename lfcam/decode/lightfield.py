@@ -72,7 +72,17 @@ class LightField:
 
 
 def default_n_views(pitch_px: float) -> int:
-    """Odd number of one-pixel angular samples spanning a micro-image: 2·⌊pitch/2⌋ + 1."""
+    """Odd number of one-pixel angular samples spanning a micro-image: 2·⌊pitch/2⌋ + 1.
+
+    Parameters
+    ----------
+    pitch_px : float
+        Micro-image pitch.
+
+    Returns
+    -------
+    int
+    """
     return 2 * int(math.floor(pitch_px / 2.0)) + 1
 
 

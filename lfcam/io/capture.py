@@ -130,6 +130,15 @@ def _sniff(path: Path) -> bytes:
 def sniff_kind(path: str | Path) -> str:
     """Content kind of a file: ``lfp``, ``png``, ``tiff``, ``camera-raw``, ``lytro-raw``.
 
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    str
+        The kind, decided by magic bytes (bare raws: by extension and sidecar).
+
     Raises
     ------
     UnsupportedFormatError

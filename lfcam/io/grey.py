@@ -30,6 +30,16 @@ def to_grey(raw: np.ndarray, bayer: str = "none", black_level: float = 0.0,
         ``"none"`` or a CFA pattern (docs/profiles.md).
     black_level, white_level : float
         Raw value of no light and of saturation (``None``: the dtype maximum, or 1 for floats).
+
+    Returns
+    -------
+    (H, W) float32 array
+        0 at the black level, 1 at the white level.
+
+    Raises
+    ------
+    InputFileError
+        Not 2-D, unknown pattern, levels in the wrong order, or non-finite values.
     """
     if raw.ndim != 2 or raw.shape[0] < 2 or raw.shape[1] < 2:
         raise InputFileError(f"raw image must be 2-D and at least 2×2, got shape {raw.shape}")

@@ -432,6 +432,20 @@ def write_lfp(
     0, full scale, monochrome). An optional ``white_image`` is stored as a second frame tagged
     ``modulationFrame``.
 
+    Parameters
+    ----------
+    path : str or Path
+        Output file.
+    raw_uint16 : (H, W) uint16 array
+        The raw mosaic.
+    metadata : dict
+        Frame metadata (Lytro keys).
+    packing : str
+        ``"12bit"`` (F01) or ``"10bit"`` (Illum).
+    private_metadata : dict, optional
+    white_image : (H, W) uint16 array, optional
+    white_metadata : dict, optional
+
     Returns
     -------
     Path

@@ -198,6 +198,18 @@ def _channels(d: Any, path: str, where: str) -> dict[str, float]:
 def raw_format(meta: Any, where: str = "frame metadata") -> LytroRawFormat:
     """Read the raw format from frame metadata (F01 or Illum layout).
 
+    Parameters
+    ----------
+    meta : dict
+        Frame metadata.
+    where : str
+        Named in error messages.
+
+    Returns
+    -------
+    LytroRawFormat
+        Size, bit depth, packing, levels and mosaic of the raw frame.
+
     Raises
     ------
     MetadataError
@@ -294,6 +306,20 @@ class LytroCamera:
 
 def lytro_camera(meta: Any, private: Any = None, where: str = "frame metadata") -> LytroCamera:
     """Map Lytro frame metadata (F01 or Illum layout) to :class:`LytroCamera`.
+
+    Parameters
+    ----------
+    meta : dict
+        Frame metadata.
+    private : dict, optional
+        Private metadata (camera serial).
+    where : str
+        Named in error messages.
+
+    Returns
+    -------
+    LytroCamera
+        Sensor, MLA and lens description of the camera.
 
     Raises
     ------

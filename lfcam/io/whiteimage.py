@@ -84,6 +84,11 @@ def find_white_image(folder: str | Path, serial: str | None, zoom_step: int,
     zoom_step, focus_step : int
         The capture's ``devices.lens.zoomStep`` / ``focusStep``.
 
+    Returns
+    -------
+    WhiteImageEntry
+        The nearest white image of that camera in (zoom, focus) steps.
+
     Raises
     ------
     WhiteImageNotFoundError
@@ -115,6 +120,18 @@ def find_white_image(folder: str | Path, serial: str | None, zoom_step: int,
 
 
 def white_image_for(capture_metadata: dict[str, Any], folder: str | Path) -> WhiteImageEntry:
-    """:func:`find_white_image` using the serial and lens steps of a capture's metadata."""
+    """:func:`find_white_image` using the serial and lens steps of a capture's metadata.
+
+    Parameters
+    ----------
+    capture_metadata : dict
+        The capture's Lytro metadata (``Capture.metadata``).
+    folder : path
+        Caldata folder.
+
+    Returns
+    -------
+    WhiteImageEntry
+    """
     serial, zoom, focus = capture_lens_state(capture_metadata)
     return find_white_image(folder, serial, zoom, focus)

@@ -45,7 +45,17 @@ def region_pixels_mask(region: Region, lmap: LensletMap) -> np.ndarray:
 
 def noise_sigma(image: np.ndarray) -> float:
     """Robust pixel noise (normal-scaled MAD) of a subsample of the whole frame (most
-    pixels see no source)."""
+    pixels see no source).
+
+    Parameters
+    ----------
+    image : (H, W) array
+
+    Returns
+    -------
+    float
+        σ of one pixel, in the image's units.
+    """
     sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
     return float(median_abs_deviation(sample, axis=None, scale="normal"))
 

@@ -77,6 +77,16 @@ def lenslet_stats(image: np.ndarray, lmap: LensletMap) -> LensletStats:
     image : (H, W) array
         Linear signal, black level already removed (negative values allowed: noise).
     lmap : LensletMap
+
+    Returns
+    -------
+    LensletStats
+        Energy and intensity centroid of every lenslet.
+
+    Raises
+    ------
+    CalibrationError
+        The image and the lenslet map differ in size.
     """
     img = np.asarray(image, dtype=np.float64)
     if img.shape != lmap.labels.shape:

@@ -52,7 +52,21 @@ def lit_threshold(energy: np.ndarray) -> float:
 
 
 def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list[Region]:
-    """Cluster lit lenslets into regions (see module docstring)."""
+    """Cluster lit lenslets into regions (see module docstring).
+
+    Parameters
+    ----------
+    stats : LensletStats
+        Per-lenslet energies and centroids of the capture.
+    lmap : LensletMap
+    pitch_px : float
+        Micro-image pitch (lenslets closer than 1.6 pitches are neighbours).
+
+    Returns
+    -------
+    list of Region
+        ``spot``, ``line`` or ``extended`` clusters of at least ``MIN_LENSLETS`` lenslets.
+    """
     energy = stats.energy
     thr = lit_threshold(energy)
     lit = np.flatnonzero(energy > thr)

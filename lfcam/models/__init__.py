@@ -30,6 +30,14 @@ DISTANCE_MODELS: tuple[str, ...] = ("auto", *POINT_MODELS, "refocus")
 def check_distance_model(name: str) -> str:
     """``name`` if it is one of :data:`DISTANCE_MODELS`.
 
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    str
+
     Raises
     ------
     ModelError
@@ -42,6 +50,16 @@ def check_distance_model(name: str) -> str:
 
 def point_model(name: str) -> Callable[..., Inversion]:
     """Look up a point-source model by name.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`POINT_MODELS`.
+
+    Returns
+    -------
+    callable
+        ``invert(profile, d_in_mm, y1_mm, y2_mm) -> Inversion``.
 
     Raises
     ------
