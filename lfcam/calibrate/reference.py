@@ -357,24 +357,32 @@ def fit_dot_exact(profile: CameraProfile, lmap: LensletMap, dot: DotData,
                         else (fun(q + dq) - base) / h)
         return np.column_stack(cols)
 
-    # Behind the focused plane the image point sits a few mm before the MLA, so a 0.4 mm
-    # error of d_in rescales the spot pattern by ~10 %: the local solve alone stalls in a
-    # side basin. A scan of d_in (lateral start re-derived at each node) picks the basin.
-    span = SCAN_FRACTION * d_in_start_mm
-    best = None
-    for d_try in d_in_start_mm + np.linspace(-span, span, SCAN_NODES):
-        xy_try = _start_position(profile, d_try, distance_mm, dot)
-        cost = float((fun(np.array([d_try, *xy_try])) ** 2).sum())
-        if best is None or cost < best[0]:
-            best = (cost, np.array([d_try, *xy_try]))
-    q0 = best[1]
-    try:
-        res = least_squares(fun, q0, jac=jac, method="trf", x_scale=[step_d, step_xy, step_xy],
-                            bounds=([lo, -np.inf, -np.inf], [hi, np.inf, np.inf]),
-                            max_nfev=30, xtol=1e-6, ftol=1e-10)
-    except ValueError as exc:
-        raise CalibrationError(f"reference dot {dot.region_id}: exact solve failed ({exc})")\
-            from None
+    def solve(q0):
+        try:
+            return least_squares(fun, q0, jac=jac, method="trf",
+                                 x_scale=[step_d, step_xy, step_xy],
+                                 bounds=([lo, -np.inf, -np.inf], [hi, np.inf, np.inf]),
+                                 max_nfev=30, xtol=1e-6, ftol=1e-10)
+        except ValueError as exc:
+            raise CalibrationError(f"reference dot {dot.region_id}: exact solve failed "
+                                   f"({exc})") from None
+
+    res = solve(np.array([d_in_start_mm, *_start_position(profile, d_in_start_mm,
+                                                          distance_mm, dot)]))
+    if float(np.sqrt((res.fun**2).sum())) > 0.5 * MAX_RMS_PX:
+        # Behind the focused plane the image point sits a few mm before the MLA, so a 0.4 mm
+        # error of d_in rescales the spot pattern by ~10 %: the local solve stalls in a side
+        # basin. A scan of d_in (lateral start re-derived at each node) picks the basin.
+        span = SCAN_FRACTION * d_in_start_mm
+        best = None
+        for d_try in d_in_start_mm + np.linspace(-span, span, SCAN_NODES):
+            q = np.array([d_try, *_start_position(profile, d_try, distance_mm, dot)])
+            cost = float((fun(q) ** 2).sum())
+            if best is None or cost < best[0]:
+                best = (cost, q)
+        again = solve(best[1])
+        if (again.fun**2).sum() < (res.fun**2).sum():
+            res = again
     d = float(res.x[0])
     if not np.isfinite(res.x).all() or d <= lo * 1.0001 or d >= hi * 0.9999:
         raise CalibrationError(
