@@ -58,6 +58,8 @@ DOT_THRESHOLD = 0.01  # micro-images dimmer than this × the brightest one are i
 MAP_RADIUS_PITCH = 0.54  # pixel → micro-image assignment radius (as lfcam.distance)
 MAX_RMS_PX = 0.2  # a dot the model leaves a worse misfit is not a clean point at that distance
 SEARCH_FRACTION = 0.2  # the exact solve looks for d_in within ±20 % of its start
+SCAN_FRACTION = 0.01  # ... after a scan of d_in over ±1 % of the start
+SCAN_NODES = 21
 CENTRE_NODE_STEP_MM = 1.0  # spacing of the d_in nodes the lenslet-centre map is computed at
 
 
@@ -187,6 +189,15 @@ def find_dots(capture: np.ndarray, centres_px: np.ndarray, pitch_px: float,
         raise CalibrationError("reference capture contains non-finite values")
     lmap = build_lenslet_map(centres_px, img.shape, MAP_RADIUS_PITCH * pitch_px)
     stats = lenslet_stats(img, lmap)
+    # A sensor that clips at its black level turns read noise into a positive pedestal
+    # (~0.4 σ a pixel). Over a whole micro-image it drags the centroid of a dim cell towards
+    # the cell's centre: behind focus, where spots are a few pixels wide, that alone gave a
+    # 0.17 px misfit at the true d_in. Subtract the per-pixel level of the dimmest half.
+    per_px = stats.energy / np.maximum(stats.pixels, 1)
+    pedestal = float(np.median(np.sort(per_px)[: max(1, len(per_px) // 2)]))
+    if pedestal != 0.0:
+        img = img - pedestal
+        stats = lenslet_stats(img, lmap)
     energy = stats.energy
     # A dot target lights a large share of the lenslets (F/2 aberration halos), so the
     # background and its noise come from the dimmest half, and the threshold also has a floor
@@ -327,7 +338,6 @@ def fit_dot_exact(profile: CameraProfile, lmap: LensletMap, dot: DotData,
         If the solve does not converge to a d_in within ±``SEARCH_FRACTION`` of the start.
     """
     model = DotModel(profile, lmap, dot, centre_map, distance_mm, pupil_samples)
-    xy0 = _start_position(profile, d_in_start_mm, distance_mm, dot)
     lo, hi = (1 - SEARCH_FRACTION) * d_in_start_mm, (1 + SEARCH_FRACTION) * d_in_start_mm
     # physically sized finite-difference steps (~0.3 px of spot motion): the binned model is
     # piecewise constant on the scale of single rays crossing pixel borders
@@ -347,14 +357,32 @@ def fit_dot_exact(profile: CameraProfile, lmap: LensletMap, dot: DotData,
                         else (fun(q + dq) - base) / h)
         return np.column_stack(cols)
 
-    q0 = np.array([d_in_start_mm, xy0[0], xy0[1]])
-    try:
-        res = least_squares(fun, q0, jac=jac, method="trf", x_scale=[step_d, step_xy, step_xy],
-                            bounds=([lo, -np.inf, -np.inf], [hi, np.inf, np.inf]),
-                            max_nfev=30, xtol=1e-6, ftol=1e-10)
-    except ValueError as exc:
-        raise CalibrationError(f"reference dot {dot.region_id}: exact solve failed ({exc})")\
-            from None
+    def solve(q0):
+        try:
+            return least_squares(fun, q0, jac=jac, method="trf",
+                                 x_scale=[step_d, step_xy, step_xy],
+                                 bounds=([lo, -np.inf, -np.inf], [hi, np.inf, np.inf]),
+                                 max_nfev=30, xtol=1e-6, ftol=1e-10)
+        except ValueError as exc:
+            raise CalibrationError(f"reference dot {dot.region_id}: exact solve failed "
+                                   f"({exc})") from None
+
+    res = solve(np.array([d_in_start_mm, *_start_position(profile, d_in_start_mm,
+                                                          distance_mm, dot)]))
+    if float(np.sqrt((res.fun**2).sum())) > 0.5 * MAX_RMS_PX:
+        # Behind the focused plane the image point sits a few mm before the MLA, so a 0.4 mm
+        # error of d_in rescales the spot pattern by ~10 %: the local solve stalls in a side
+        # basin. A scan of d_in (lateral start re-derived at each node) picks the basin.
+        span = SCAN_FRACTION * d_in_start_mm
+        best = None
+        for d_try in d_in_start_mm + np.linspace(-span, span, SCAN_NODES):
+            q = np.array([d_try, *_start_position(profile, d_try, distance_mm, dot)])
+            cost = float((fun(q) ** 2).sum())
+            if best is None or cost < best[0]:
+                best = (cost, q)
+        again = solve(best[1])
+        if (again.fun**2).sum() < (res.fun**2).sum():
+            res = again
     d = float(res.x[0])
     if not np.isfinite(res.x).all() or d <= lo * 1.0001 or d >= hi * 0.9999:
         raise CalibrationError(

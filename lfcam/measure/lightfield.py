@@ -17,13 +17,20 @@ from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement, neighbours, region_pixels_mask
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
-from lfcam.measure.pointfit import SpotExtraction, find_spots, fit_point, fit_point_image
+from lfcam.measure.pointfit import (
+    SpotExtraction,
+    _Patch,
+    find_spots,
+    fit_point,
+    fit_point_image,
+)
 from lfcam.measure.regions import Region
 from lfcam.optics.trace import forward
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
+POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit")
 
 
 def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -63,27 +70,41 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     nan = float("nan")
     # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
     # the per-pixel fit would only re-render a huge patch a hundred times.
-    if not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH:
-        fast = True
+    triangulated = not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH
+    near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region)]))
+    pad = int(math.ceil(0.5 * geom.pitch_px))
+    h, w = image.shape
+    box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
     if fast:
         if not fit.ok:
             return Measurement.failed(fit.reason, geom.d_in_mm)
         source = fit.source_mm
         sigma_d = float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
+        misfit = float("nan")
+    elif triangulated:
+        # the triangulation assumes a point: whether one explains the pixels is checked by
+        # rendering it once (a line behind focus triangulates 30-80 % short, docs/distance.md)
+        source = fit.source_mm
+        sigma_d = float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
+        misfit = _Patch(profile, geom.d_in_mm, image, box,
+                        geom.lens_centres_mm[near]).misfit(source)
     else:
-        near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region)]))
-        pad = int(math.ceil(0.5 * geom.pitch_px))
-        h, w = image.shape
-        box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
                              fit.source_mm if fit.ok else None)
         if not fi.ok:
             return Measurement.failed(fi.reason or "no-solution", geom.d_in_mm)
-        source, sigma_d = fi.source_mm, fi.sigma_distance_mm
-        if fi.misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
+        source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
+    if not fast:
+        # point or line is decided from the pixels, on both sides of focus: the region's
+        # elongation only forces the line fit to be tried
+        if misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
             line = measure_line(profile, geom, image, box, near)
-            if line.status == "ok" and line.misfit < LINE_GAIN * fi.misfit:
+            if line.status == "ok" and line.misfit < LINE_GAIN * misfit:
+                if line.misfit > POOR_FIT_MISFIT:
+                    return Measurement.failed("poor-fit", geom.d_in_mm, kind="line")
                 return line
+        if not misfit <= POOR_FIT_MISFIT:
+            return Measurement.failed("poor-fit", geom.d_in_mm)
     distance = profile.main_lens.front_vertex_z_mm - float(source[2])
     offset = float(np.hypot(source[0], source[1]))
     fw = forward(profile, geom.d_in_mm, distance, offset)
@@ -95,7 +116,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
     dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
-    misfit = float("nan") if fast else float(fi.misfit)
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
                        misfit=misfit)
 
