@@ -1,0 +1,567 @@
+"""The lenslet-statistics fit: the exact forward model fitted to per-lenslet moments.
+
+``method="lenslet"`` (docs/distance.md, "The lenslet fit"). The per-pixel fit
+(:func:`lfcam.measure.pointfit.fit_point_image`) compares a rendered patch with the data
+pixel by pixel; this fit compresses both sides the same way first. For every lenslet whose
+micro-image touches the region's box it keeps four linear moments of the pixels the lenslet
+map (:class:`lfcam.measure.LensletMap`) gives that lenslet:
+
+    m0 = Σ v,   m1 = Σ v·dx,   m2 = Σ v·dy,   m3 = Σ v·(dx² + dy²)
+
+(dx, dy: pixel centre minus micro-image centre, in pitches). The moments are linear in the
+image, so the unknown intensity scale is still solved in closed form, and they are computed
+from the *same pixels* on both sides: the model traces rays exactly through the thick lens,
+crosses the lenslet whose cell it hits, lands at ``C + f_x·slope``, is binned to the pixel
+that contains it (the sensor integrates: the half-pixel centroid shifts of 2–4 px spots behind
+focus are modelled, not assumed away), looked up in the same lenslet map and dropped where the
+data has no pixel (sensor edge, seams, outside the box). No threshold is involved.
+
+Cost: a model evaluation is one trace of a few thousand to ~20 k rays (Vogel-spiral pupil
+sample: quasi-random, no grid aliasing against the pixels) and four ``bincount`` — about
+1–2 ms. Start: the triangulation of the lenslet centroids (no iterations); then Gauss–Newton
+with finite-difference Jacobians in physically sized steps, on (log distance, x, y), and a
+final line-of-sight polish. Lines: the same statistic with ``LINE_POINTS`` points along a
+segment (5 parameters).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.measure.base import Measurement
+from lfcam.measure.geometry import Geometry
+from lfcam.measure.pointfit import LocalLattice, _statistic, chief_ray_offset
+from lfcam.measure.regions import Region
+from lfcam.optics.trace import forward, trace_source_fast
+
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
+MIN_RAYS = 6000
+MAX_RAYS = 40000
+MAX_ITERATIONS = 12
+COARSE_RAYS = 3000  # rays per evaluation while the basin is found
+SCAN_DISTANCES = 16  # geometric distance scan, 1.1 f … 30 m
+SCAN_KEEP = 2  # best scan points refined with the coarse model
+COARSE_ITERATIONS = 6
+COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
+SUMMARY_ITERATIONS = 2
+FINE_ITERATIONS = 4
+LINE_POINTS = 16
+_LATTICES: dict[int, LocalLattice | None] = {}
+
+
+def vogel_disc(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral)."""
+    i = np.arange(n, dtype=np.float64)
+    r = np.sqrt((i + 0.5) / n)
+    t = i * GOLDEN_ANGLE
+    return r * np.cos(t), r * np.sin(t)
+
+
+def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
+    """The exact lenslet-cell lookup of a geometry (cached per geometry object)."""
+    key = id(geom)
+    if key not in _LATTICES:
+        if len(_LATTICES) > 8:
+            _LATTICES.clear()
+        _LATTICES[key] = LocalLattice.fit(geom.lens_centres_mm, pitch_mm)
+    return _LATTICES[key]
+
+
+@dataclass
+class _Moments:
+    """The region's lenslets and the data's moments (module docstring)."""
+
+    box: tuple[int, int, int, int]
+    labels: np.ndarray  # (h, w) compact lenslet index in the box, −1 none
+    ids: np.ndarray  # (K,) geometry lenslet index of each compact index
+    centres_px: np.ndarray  # (K, 2) micro-image centres
+    data: np.ndarray  # (K, 4)
+    norm: float
+
+
+def _moments_of(labels, box, centres_px, pitch_px, x_px, y_px, w, k):
+    """Four moments per compact lenslet from samples at pixel (x, y) with weight w."""
+    n = len(centres_px)
+    dx = (x_px - centres_px[k, 0]) / pitch_px
+    dy = (y_px - centres_px[k, 1]) / pitch_px
+    out = np.empty((n, 4))
+    out[:, 0] = np.bincount(k, w, minlength=n)
+    out[:, 1] = np.bincount(k, w * dx, minlength=n)
+    out[:, 2] = np.bincount(k, w * dy, minlength=n)
+    out[:, 3] = np.bincount(k, w * (dx * dx + dy * dy), minlength=n)
+    return out
+
+
+def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int]) -> _Moments:
+    """Moments of the data over the lenslets whose pixels lie in ``box``."""
+    x0, y0, x1, y1 = box
+    lab = geom.lmap.labels[y0:y1, x0:x1]
+    keep = lab >= 0
+    present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0
+    ids = np.flatnonzero(present)
+    index = np.full(geom.lmap.count + 1, -1, dtype=np.int64)
+    index[ids] = np.arange(len(ids))
+    compact = index[lab]  # label −1 reads the last entry: −1
+    inv = compact[keep]
+    yy, xx = np.nonzero(keep)
+    cen = geom.lmap.centres_px[ids]
+    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep]
+    m = _moments_of(None, box, cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
+    return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())))
+
+
+class LensletModel:
+    """Forward model of a region's lenslet moments for point (or line) sources."""
+
+    def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int):
+        self.profile, self.geom, self.mom = profile, geom, mom
+        lens = profile.main_lens
+        half = 0.5 * lens.pupil_diameter_mm
+        u, v = vogel_disc(n_rays)
+        self.rx, self.ry = u * half, v * half
+        self.spacing = lens.pupil_diameter_mm * math.sqrt(math.pi / (4.0 * n_rays))
+        self.lattice = lattice_of(geom, profile.mla.pitch_mm)
+        self.evaluations = 0
+
+    def simulate(self, sources: np.ndarray) -> np.ndarray:
+        """(K, 4) moments of unit-intensity source point(s) ``(3,)`` or ``(M, 3)``.
+
+        Each ray stands for a patch of the pupil; it is spread as a box of the local ray
+        spacing across the lenslet-cell border it lies near (MLA plane) and across the pixel
+        border (sensor). With the box shrunk to nothing this is the renderer's binning; with it,
+        the moments are continuous (piecewise linear) in the source position, so that
+        finite-difference Jacobians with small steps are meaningful.
+        """
+        self.evaluations += 1
+        p = self.profile
+        lens = p.main_lens
+        fx = p.mla.focal_length_mm
+        pp = p.sensor.pixel_pitch_mm
+        ax, ay = p.sensor.axis_xy_px
+        x0, y0 = self.mom.box[:2]
+        h, w = self.mom.labels.shape
+        out = np.zeros_like(self.mom.data)
+        # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
+        mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
+        s_px = min(0.9, self.spacing * mag)
+        for pt in np.atleast_2d(sources):
+            tr = trace_source_fast(lens, tuple(pt), self.rx, self.ry, self.geom.d_in_mm)
+            ok = tr.ok
+            along = lens.rim_z_mm - pt[2]
+            rho2 = (self.rx[ok] - pt[0]) ** 2 + (self.ry[ok] - pt[1]) ** 2 + along * along
+            wt = (along * along / rho2) ** 1.5
+            x, y = tr.x[ok], tr.y[ok]
+            sx, sy = fx * tr.dx[ok] / tr.dz[ok], fx * tr.dy[ok] / tr.dz[ok]
+            if x.size == 0:
+                continue
+            # MLA-plane ray spacing: the footprint's extent over the pupil's, times the
+            # pupil spacing
+            foot = max(float(np.ptp(x)), float(np.ptp(y)))
+            s_mla = self.spacing * foot / lens.pupil_diameter_mm
+            c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
+            share = np.clip(0.5 - gap / max(s_mla, 1e-12), 0.0, 0.5)
+            split = share > 0
+            cx = np.concatenate([c1x, c2x[split]])
+            cy = np.concatenate([c1y, c2y[split]])
+            wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
+            px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
+            py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
+            cols, rows, wts = _pixel_boxes(px, py, wt, s_px)
+            inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+            cols, rows, wts = cols[inside], rows[inside], wts[inside]
+            k = self.mom.labels[rows, cols]
+            known = k >= 0
+            out += _moments_of(None, None, self.mom.centres_px, self.geom.pitch_px,
+                               cols[known] + x0, rows[known] + y0, wts[known], k[known])
+        return out
+
+    def residual(self, sources: np.ndarray) -> np.ndarray:
+        """Data minus the best-scaled model moments, over the data's norm."""
+        return self.residual_of(self.simulate(sources))
+
+    def residual_of(self, m: np.ndarray) -> np.ndarray:
+        """Data minus the best-scaled moments ``m``, over the data's norm."""
+        mm = float((m * m).sum())
+        a = float((m * self.mom.data).sum()) / mm if mm > 0 else 0.0
+        return ((self.mom.data - a * m) / self.mom.norm).ravel()
+
+
+def _start(profile: CameraProfile, geom: Geometry, mom: _Moments) -> np.ndarray | None:
+    """Triangulated source from the lenslets' centroids (a 3×3 solve)."""
+    e = mom.data[:, 0]
+    lit = e > 0.05 * e.max()
+    if lit.sum() < 6:
+        return None
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    cen = mom.centres_px[lit] + geom.pitch_px * mom.data[lit, 1:3] / e[lit, None]
+    land = np.column_stack([(cen[:, 0] - ax) * pp, (cen[:, 1] - ay) * pp])
+    st = _statistic(profile.main_lens, geom.d_in_mm, profile.mla.focal_length_mm,
+                    geom.lens_centres_mm[mom.ids[lit]], e[lit], land)
+    if st is None or not np.isfinite(st[0]).all():
+        return None
+    return st[0]
+
+
+def _cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
+    """Centre of the lattice cell holding each MLA point (as ``LocalLattice.node``, faster).
+
+    A rectangular lattice needs only rounding; otherwise the nearest of the four corners of
+    the containing lattice parallelogram.
+    """
+    b = lattice.basis
+    u = lattice.inverse @ np.vstack([x - lattice.origin[0], y - lattice.origin[1]])
+    if abs(b[:, 0] @ b[:, 1]) < 1e-9 * (b[:, 0] @ b[:, 0]):
+        i, j = np.rint(u[0]), np.rint(u[1])
+    else:
+        fu, fv = np.floor(u[0]), np.floor(u[1])
+        ru, rv = u[0] - fu, u[1] - fv  # position inside the cell, in lattice units
+        best = None
+        i, j = fu.copy(), fv.copy()
+        for di in (0.0, 1.0):
+            for dj in (0.0, 1.0):
+                ex, ey = ru - di, rv - dj
+                gx = b[0, 0] * ex + b[0, 1] * ey
+                gy = b[1, 0] * ex + b[1, 1] * ey
+                d2 = gx * gx + gy * gy
+                if best is None:
+                    best = d2
+                    continue
+                better = d2 < best
+                best = np.where(better, d2, best)
+                i[better] = fu[better] + di
+                j[better] = fv[better] + dj
+    o = lattice.origin
+    return o[0] + b[0, 0] * i + b[0, 1] * j, o[1] + b[1, 0] * i + b[1, 1] * j
+
+
+def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
+    """Nearest and second-nearest lattice nodes of MLA points, and each point's distance to
+    their bisector (the cell border it is nearest to): (n1x, n1y, n2x, n2y, gap)."""
+    b = lattice.basis
+    u = lattice.inverse @ np.vstack([x - lattice.origin[0], y - lattice.origin[1]])
+    fu, fv = np.floor(u[0]), np.floor(u[1])
+    ru, rv = u[0] - fu, u[1] - fv
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    d2 = np.empty((4, x.size))
+    for c, (di, dj) in enumerate(corners):
+        ex, ey = ru - di, rv - dj
+        gx = b[0, 0] * ex + b[0, 1] * ey
+        gy = b[1, 0] * ex + b[1, 1] * ey
+        d2[c] = gx * gx + gy * gy
+    order = np.argsort(d2, axis=0)[:2]
+    cols = np.arange(x.size)
+    i1, i2 = order[0], order[1]
+    da, db = d2[i1, cols], d2[i2, cols]
+    n1 = corners[i1]
+    n2 = corners[i2]
+    sep = n2 - n1
+    sep_len = np.hypot(b[0, 0] * sep[:, 0] + b[0, 1] * sep[:, 1],
+                       b[1, 0] * sep[:, 0] + b[1, 1] * sep[:, 1])
+    gap = (db - da) / (2.0 * sep_len)
+    o = lattice.origin
+    i_1, j_1 = fu + n1[:, 0], fv + n1[:, 1]
+    i_2, j_2 = fu + n2[:, 0], fv + n2[:, 1]
+    return (o[0] + b[0, 0] * i_1 + b[0, 1] * j_1, o[1] + b[1, 0] * i_1 + b[1, 1] * j_1,
+            o[0] + b[0, 0] * i_2 + b[0, 1] * j_2, o[1] + b[1, 0] * i_2 + b[1, 1] * j_2, gap)
+
+
+def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float):
+    """Bin rays at sensor positions (px, py) into pixels, each ray a box ``s`` px wide:
+    (cols, rows, weights); ``s → 0`` is nearest-pixel binning (the sensor's integration)."""
+    cx, cy = np.floor(px + 0.5), np.floor(py + 0.5)
+    tx, ty = px - cx, py - cy  # offset from the pixel centre, [−0.5, 0.5)
+    ex = np.clip((np.abs(tx) + 0.5 * s - 0.5) / s, 0.0, 0.5)  # share beyond the near edge
+    ey = np.clip((np.abs(ty) + 0.5 * s - 0.5) / s, 0.0, 0.5)
+    nx = cx + np.sign(tx)
+    ny = cy + np.sign(ty)
+    sx, sy = ex > 0, ey > 0
+    sxy = sx & sy
+    cols = np.concatenate([cx, nx[sx], cx[sy], nx[sxy]]).astype(np.int64)
+    rows = np.concatenate([cy, cy[sx], ny[sy], ny[sxy]]).astype(np.int64)
+    wts = np.concatenate([w * (1 - ex) * (1 - ey), (w * ex * (1 - ey))[sx],
+                          (w * (1 - ex) * ey)[sy], (w * ex * ey)[sxy]])
+    return cols, rows, wts
+
+
+def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
+    """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
+
+    Returns (q, residual, cost, Jacobian at the last linearisation).
+    """
+    q = np.asarray(q0, dtype=np.float64)
+    r = fun(q)
+    f = float(r @ r)
+    lam = 1e-3
+    jac = None
+    for _ in range(max_iter):
+        jac = np.column_stack([(fun(q + h * e) - r) / h
+                               for h, e in zip(steps, np.eye(len(q)), strict=True)])
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        dq = np.zeros_like(q)
+        for _ in range(5):
+            a = jtj + lam * np.diag(np.diag(jtj) + 1e-30)
+            try:
+                dq = -np.linalg.solve(a, g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            r2 = fun(q + dq)
+            f2 = float(r2 @ r2)
+            if f2 < f:
+                q, r, f = q + dq, r2, f2
+                lam = max(lam / 10, 1e-7)
+                improved = True
+                break
+            lam *= 10
+        if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
+            break
+    return q, r, f, jac
+
+
+def _region_box(geom: Geometry, region: Region, shape) -> tuple[int, int, int, int]:
+    x0, y0, x1, y1 = region.box_px
+    pad = int(math.ceil(0.5 * geom.pitch_px))
+    h, w = shape
+    return max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad)
+
+
+@dataclass(frozen=True)
+class LensletFit:
+    """Result of the lenslet-statistics fit of one region."""
+
+    source_mm: np.ndarray  # (3,) point, or the midpoint of a line
+    misfit: float
+    sigma_distance_mm: float
+    evaluations: int
+    ok: bool
+    reason: str = ""
+    ends_mm: tuple = ()  # lines: (start (3,), end (3,))
+
+
+class _Frame:
+    """Parameters ``q = (log distance, x/L, y/L)``, L the distance to the stop: changing the
+    distance keeps the line of sight through the stop centre, which decouples the three."""
+
+    def __init__(self, profile: CameraProfile):
+        lens = profile.main_lens
+        self.z_front = lens.front_vertex_z_mm
+        self.z_rim = lens.rim_z_mm
+
+    def source(self, q: np.ndarray) -> np.ndarray:
+        z = self.z_front - math.exp(q[0])
+        along = self.z_rim - z
+        return np.array([q[1] * along, q[2] * along, z])
+
+    def params(self, s: np.ndarray) -> np.ndarray:
+        along = self.z_rim - s[2]
+        return np.array([math.log(self.z_front - s[2]), s[0] / along, s[1] / along])
+
+
+def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray) -> np.ndarray:
+    """Smooth low-dimensional summary of lenslet moments ``m`` (data or model), (3,).
+
+    ``(b, x̄, ȳ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
+    (≈ f_x/δ for an image point δ before the MLA: monotonic in distance on either side of
+    focus), and (x̄, ȳ) the energy centroid of the lit lenslets (mm on the MLA).
+    """
+    e = m[:, 0]
+    if not e.max() > 0:
+        return np.full(3, np.nan)
+    lit = e > 0.05 * e.max()
+    c = geom.lens_centres_mm[mom.ids[lit]]
+    w = e[lit]
+    cbar = (c * w[:, None]).sum(0) / w.sum()
+    off = geom.pitch_px * profile.sensor.pixel_pitch_mm * m[lit, 1:3] / w[:, None]
+    dc = c - cbar
+    obar = (off * w[:, None]).sum(0) / w.sum()
+    den = float((w * (dc * dc).sum(1)).sum())
+    b = float((w * ((off - obar) * dc).sum(1)).sum()) / den if den > 0 else 0.0
+    return np.array([b, cbar[0], cbar[1]])
+
+
+def _starts(profile, geom, mom, frame, model):
+    """Starting parameters from a geometric distance scan (lateral position from the chief ray
+    through the light's centroid): where the model's slope-field gain crosses the data's
+    (interpolated in log distance), and the scan point of least misfit."""
+    lens = profile.main_lens
+    f = lens.focal_length_mm
+    t_data = summary(profile, geom, mom, mom.data)
+    target = t_data[1:]
+    scan = []
+    for d in np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES):
+        xy = chief_ray_offset(profile, geom.d_in_mm, d, target)
+        q = frame.params(np.array([xy[0], xy[1], frame.z_front - d]))
+        m = model.simulate(frame.source(q))
+        r = model.residual_of(m)
+        scan.append((float(r @ r), q, summary(profile, geom, mom, m)[0]))
+    out = []
+    bd = t_data[0]
+    for (f0, q0, b0), (f1, q1, b1) in zip(scan[:-1], scan[1:], strict=True):
+        if not (np.isfinite(b0) and np.isfinite(b1)):
+            continue
+        if (b0 - bd) * (b1 - bd) <= 0 and np.sign(b0) == np.sign(b1) == np.sign(bd) \
+                and b1 != b0:
+            t = (bd - b0) / (b1 - b0)
+            out.append((min(f0, f1), q0 + t * (q1 - q0)))
+    out.sort(key=lambda v: v[0])
+    best = min(scan, key=lambda v: v[0])
+    return [q for _, q in out[:SCAN_KEEP]] + [best[1]], t_data
+
+
+def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS):
+    """Secant–Newton steps moving the model's summary at ``q`` onto the data's.
+
+    The summary is smooth on the scale of a few % of distance, so the differences are taken
+    over 3 % (and ~1 % of a lenslet pitch sideways scaled by distance): wide enough to average
+    the ray sampling, narrow enough for the local linearisation.
+    """
+    steps = np.array([0.03, 2e-3, 2e-3])
+    scale = np.array([abs(t_data[0]) + 1e-3, profile.mla.pitch_mm, profile.mla.pitch_mm])
+
+    def t_of(qq):
+        return summary(profile, geom, mom, model.simulate(frame.source(qq)))
+
+    t = t_of(q)
+    if not np.isfinite(t).all():
+        return q
+    err = float(np.linalg.norm((t - t_data) / scale))
+    for _ in range(iterations):
+        cols = []
+        for h, e in zip(steps, np.eye(3), strict=True):
+            cols.append((t_of(q + h * e) - t) / h)
+        jac = np.column_stack(cols)
+        if not np.isfinite(jac).all():
+            break
+        try:
+            dq = np.linalg.solve(jac, t_data - t)
+        except np.linalg.LinAlgError:
+            break
+        dq[0] = float(np.clip(dq[0], -0.15, 0.15))
+        for _ in range(3):  # halve the step until the summary comes closer
+            t2 = t_of(q + dq)
+            err2 = float(np.linalg.norm((t2 - t_data) / scale)) if np.isfinite(t2).all() \
+                else np.inf
+            if err2 < err:
+                break
+            dq = 0.5 * dq
+        else:
+            break
+        q, t, err = q + dq, t2, err2
+        if abs(dq[0]) < 2e-3:
+            break
+    return q
+
+
+def _gauss_newton_fixed(fun, q, r, jac, iterations):
+    """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step."""
+    f = float(r @ r)
+    jtj = jac.T @ jac
+    try:
+        solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj))) @ jac.T
+    except np.linalg.LinAlgError:
+        return q, r, f
+    for _ in range(iterations):
+        dq = -(solve @ r)
+        for _ in range(3):
+            r2 = fun(q + dq)
+            f2 = float(r2 @ r2)
+            if f2 < f:
+                break
+            dq = 0.5 * dq
+        else:
+            break
+        q, r, f = q + dq, r2, f2
+        if abs(dq[0]) < 2e-5:
+            break
+    return q, r, f
+
+
+def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                      region: Region) -> LensletFit:
+    """Fit a point source to the region's lenslet moments (module docstring).
+
+    Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
+    Levenberg–Marquardt with the coarse model, then Gauss–Newton steps with the fine model
+    (``RAYS_PER_LENSLET`` per lit lenslet) and the coarse Jacobian.
+    """
+    box = _region_box(geom, region, image.shape)
+    mom = data_moments(geom, image, box)
+    nan3 = np.full(3, np.nan)
+    if not mom.norm > 0 or len(mom.ids) < 3:
+        return LensletFit(nan3, np.nan, np.nan, 0, False, "empty")
+    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
+    frame = _Frame(profile)
+    coarse = LensletModel(profile, geom, mom, COARSE_RAYS)
+    fine = LensletModel(profile, geom, mom, n_rays)
+
+    def fun_of(model):
+        return lambda q: model.residual(frame.source(q))
+
+    starts, t_data = _starts(profile, geom, mom, frame, coarse)
+    best = None
+    for q0 in starts:
+        q = _match_summary(profile, geom, mom, frame, coarse, q0, t_data)
+        r = coarse.residual(frame.source(q))
+        f = float(r @ r)
+        if best is None or f < best[1]:
+            best = (q, f)
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
+                                        COARSE_ITERATIONS, 1e-3)
+    fun = fun_of(fine)
+    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    misfit = math.sqrt(f)
+    source = frame.source(q)
+    dist = math.exp(q[0])
+    try:
+        cov = f / max(len(r) - 3, 1) * np.linalg.inv(jac.T @ jac)
+        sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
+    evals = coarse.evaluations + fine.evaluations
+    if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
+        return LensletFit(source, misfit, sigma_d, evals, False, "no-solution")
+    return LensletFit(source, misfit, sigma_d, evals, True)
+
+
+def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                    region: Region, noise: float) -> Measurement:
+    """Lenslet-statistics fit of one region (module docstring).
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    geom : Geometry
+    image : (H, W) float array
+    region : Region
+    noise : float
+
+    Returns
+    -------
+    Measurement
+    """
+    fit = fit_lenslet_point(profile, geom, image, region)
+    if not fit.ok:
+        return Measurement.failed(fit.reason, geom.d_in_mm)
+    source, misfit, sigma_d = fit.source_mm, fit.misfit, fit.sigma_distance_mm
+    nan = float("nan")
+    distance = profile.main_lens.front_vertex_z_mm - float(source[2])
+    offset = float(np.hypot(source[0], source[1]))
+    fw = forward(profile, geom.d_in_mm, distance, offset)
+    if fw.status != 0:
+        return Measurement(nan, nan, nan, distance, offset, sigma_d, "out-of-domain",
+                           geom.d_in_mm)
+    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
+    fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
+    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
+    sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+                       misfit=misfit)
