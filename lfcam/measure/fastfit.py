@@ -44,7 +44,8 @@ MIN_RAYS = 6000
 MAX_RAYS = 40000
 MAX_ITERATIONS = 12
 COARSE_RAYS = 3000  # rays per evaluation while the basin is found
-SCAN_DISTANCES = 16  # geometric distance scan, 1.1 f … 30 m
+SCAN_RAYS = 1000  # rays per evaluation of the distance scan
+SCAN_DISTANCES = 28  # geometric distance scan, 1.1 f … 30 m
 SCAN_KEEP = 2  # best scan points refined with the coarse model
 COARSE_ITERATIONS = 6
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
@@ -297,7 +298,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q)
     f = float(r @ r)
-    lam = 1e-3
+    lam = 1e-4
     jac = None
     for _ in range(max_iter):
         jac = np.column_stack([(fun(q + h * e) - r) / h
@@ -317,7 +318,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
             f2 = float(r2 @ r2)
             if f2 < f:
                 q, r, f = q + dq, r2, f2
-                lam = max(lam / 10, 1e-7)
+                lam = max(lam / 10, 1e-8)
                 improved = True
                 break
             lam *= 10
@@ -506,7 +507,8 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def fun_of(model):
         return lambda q: model.residual(frame.source(q))
 
-    starts, t_data = _starts(profile, geom, mom, frame, coarse)
+    scan = LensletModel(profile, geom, mom, SCAN_RAYS)
+    starts, t_data = _starts(profile, geom, mom, frame, scan)
     best = None
     for q0 in starts:
         q = _match_summary(profile, geom, mom, frame, coarse, q0, t_data)
@@ -526,7 +528,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
     except np.linalg.LinAlgError:
         sigma_d = np.inf
-    evals = coarse.evaluations + fine.evaluations
+    evals = scan.evaluations + coarse.evaluations + fine.evaluations
     if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, "no-solution")
     return LensletFit(source, misfit, sigma_d, evals, True)
