@@ -41,15 +41,15 @@ from lfcam.optics.trace import forward, trace_source_fast
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
 MIN_RAYS = 6000
-MAX_RAYS = 40000
+MAX_RAYS = 20000
 MAX_ITERATIONS = 12
 COARSE_RAYS = 3000  # rays per evaluation while the basin is found
 SCAN_RAYS = 1000  # rays per evaluation of the distance scan
 SCAN_DISTANCES = 28  # geometric distance scan, 1.1 f … 30 m
-SCAN_KEEP = 2  # best scan points refined with the coarse model
+SCAN_KEEP = 2  # starts matched on the summary
 COARSE_ITERATIONS = 6
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
-SUMMARY_ITERATIONS = 2
+SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
 LINE_POINTS = 16
 _LATTICES: dict[int, LocalLattice | None] = {}
@@ -245,31 +245,42 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
     """Nearest and second-nearest lattice nodes of MLA points, and each point's distance to
     their bisector (the cell border it is nearest to): (n1x, n1y, n2x, n2y, gap)."""
     b = lattice.basis
-    u = lattice.inverse @ np.vstack([x - lattice.origin[0], y - lattice.origin[1]])
-    fu, fv = np.floor(u[0]), np.floor(u[1])
-    ru, rv = u[0] - fu, u[1] - fv
-    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
-    d2 = np.empty((4, x.size))
-    for c, (di, dj) in enumerate(corners):
-        ex, ey = ru - di, rv - dj
-        gx = b[0, 0] * ex + b[0, 1] * ey
-        gy = b[1, 0] * ex + b[1, 1] * ey
-        d2[c] = gx * gx + gy * gy
-    order = np.argsort(d2, axis=0)[:2]
-    cols = np.arange(x.size)
-    i1, i2 = order[0], order[1]
-    da, db = d2[i1, cols], d2[i2, cols]
-    n1 = corners[i1]
-    n2 = corners[i2]
-    sep = n2 - n1
-    sep_len = np.hypot(b[0, 0] * sep[:, 0] + b[0, 1] * sep[:, 1],
-                       b[1, 0] * sep[:, 0] + b[1, 1] * sep[:, 1])
-    gap = (db - da) / (2.0 * sep_len)
     o = lattice.origin
-    i_1, j_1 = fu + n1[:, 0], fv + n1[:, 1]
-    i_2, j_2 = fu + n2[:, 0], fv + n2[:, 1]
-    return (o[0] + b[0, 0] * i_1 + b[0, 1] * j_1, o[1] + b[1, 0] * i_1 + b[1, 1] * j_1,
-            o[0] + b[0, 0] * i_2 + b[0, 1] * j_2, o[1] + b[1, 0] * i_2 + b[1, 1] * j_2, gap)
+    u = lattice.inverse @ np.vstack([x - o[0], y - o[1]])
+    la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
+    if abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb:
+        # rectangular cells (a shear below 1e-4 moves the cell corners by < 1e-4 pitch): the nearest node by rounding, the nearest border along u or v
+        i, j = np.rint(u[0]), np.rint(u[1])
+        fu, fv = u[0] - i, u[1] - j
+        gu = (0.5 - np.abs(fu)) * la
+        gv = (0.5 - np.abs(fv)) * lb
+        across_u = gu <= gv
+        i2 = np.where(across_u, i + np.sign(fu), i)
+        j2 = np.where(across_u, j, j + np.sign(fv))
+        gap = np.minimum(gu, gv)
+    else:
+        fu, fv = np.floor(u[0]), np.floor(u[1])
+        ru, rv = u[0] - fu, u[1] - fv
+        d2 = []
+        for di, dj in ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)):
+            gx = b[0, 0] * (ru - di) + b[0, 1] * (rv - dj)
+            gy = b[1, 0] * (ru - di) + b[1, 1] * (rv - dj)
+            d2.append(gx * gx + gy * gy)
+        d2 = np.array(d2)
+        corner = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+        k1 = np.argmin(d2, axis=0)
+        cols = np.arange(x.size)
+        da = d2[k1, cols]
+        d2[k1, cols] = np.inf
+        k2 = np.argmin(d2, axis=0)
+        db = d2[k2, cols]
+        i, j = fu + corner[k1, 0], fv + corner[k1, 1]
+        i2, j2 = fu + corner[k2, 0], fv + corner[k2, 1]
+        di, dj = i2 - i, j2 - j
+        sep = np.hypot(b[0, 0] * di + b[0, 1] * dj, b[1, 0] * di + b[1, 1] * dj)
+        gap = (db - da) / (2.0 * sep)
+    return (o[0] + b[0, 0] * i + b[0, 1] * j, o[1] + b[1, 0] * i + b[1, 1] * j,
+            o[0] + b[0, 0] * i2 + b[0, 1] * j2, o[1] + b[1, 0] * i2 + b[1, 1] * j2, gap)
 
 
 def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float):
@@ -367,15 +378,16 @@ class _Frame:
 
 
 def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray) -> np.ndarray:
-    """Smooth low-dimensional summary of lenslet moments ``m`` (data or model), (3,).
+    """Smooth low-dimensional summary of lenslet moments ``m`` (data or model), (4,).
 
-    ``(b, x̄, ȳ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
-    (≈ f_x/δ for an image point δ before the MLA: monotonic in distance on either side of
-    focus), and (x̄, ȳ) the energy centroid of the lit lenslets (mm on the MLA).
+    ``(b, x̄, ȳ, ρ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
+    (≈ f_x/δ for an image point δ before the MLA: its sign tells the side of focus), (x̄, ȳ)
+    the energy centroid of the lit lenslets and ρ their energy-weighted RMS radius about it
+    (mm on the MLA; the blur's size).
     """
     e = m[:, 0]
     if not e.max() > 0:
-        return np.full(3, np.nan)
+        return np.full(4, np.nan)
     lit = e > 0.05 * e.max()
     c = geom.lens_centres_mm[mom.ids[lit]]
     w = e[lit]
@@ -383,9 +395,11 @@ def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray
     off = geom.pitch_px * profile.sensor.pixel_pitch_mm * m[lit, 1:3] / w[:, None]
     dc = c - cbar
     obar = (off * w[:, None]).sum(0) / w.sum()
-    den = float((w * (dc * dc).sum(1)).sum())
+    r2 = (dc * dc).sum(1)
+    den = float((w * r2).sum())
     b = float((w * ((off - obar) * dc).sum(1)).sum()) / den if den > 0 else 0.0
-    return np.array([b, cbar[0], cbar[1]])
+    rho = math.sqrt(den / float(w.sum()))
+    return np.array([b, cbar[0], cbar[1], rho])
 
 
 def _starts(profile, geom, mom, frame, model):
@@ -402,30 +416,34 @@ def _starts(profile, geom, mom, frame, model):
         q = frame.params(np.array([xy[0], xy[1], frame.z_front - d]))
         m = model.simulate(frame.source(q))
         r = model.residual_of(m)
-        scan.append((float(r @ r), q, summary(profile, geom, mom, m)[0]))
+        scan.append((float(r @ r), q, summary(profile, geom, mom, m)))
     out = []
-    bd = t_data[0]
-    for (f0, q0, b0), (f1, q1, b1) in zip(scan[:-1], scan[1:], strict=True):
-        if not (np.isfinite(b0) and np.isfinite(b1)):
+    bd, rd = t_data[0], t_data[3]
+    for (f0, q0, t0), (f1, q1, t1) in zip(scan[:-1], scan[1:], strict=True):
+        if not (np.isfinite(t0).all() and np.isfinite(t1).all()):
             continue
-        if (b0 - bd) * (b1 - bd) <= 0 and np.sign(b0) == np.sign(b1) == np.sign(bd) \
-                and b1 != b0:
-            t = (bd - b0) / (b1 - b0)
-            out.append((min(f0, f1), q0 + t * (q1 - q0)))
+        if np.sign(t0[0]) != np.sign(bd) or np.sign(t1[0]) != np.sign(bd):
+            continue  # the model's light is on the other side of focus
+        for k, target in ((0, bd), (3, rd)):  # crossings of the slope gain and of the size
+            if (t0[k] - target) * (t1[k] - target) <= 0 and t1[k] != t0[k]:
+                t = (target - t0[k]) / (t1[k] - t0[k])
+                out.append((min(f0, f1), q0 + t * (q1 - q0)))
     out.sort(key=lambda v: v[0])
     best = min(scan, key=lambda v: v[0])
-    return [q for _, q in out[:SCAN_KEEP]] + [best[1]], t_data
+    starts = [q for _, q in out[:SCAN_KEEP]]
+    return (starts or [best[1]]), t_data
 
 
 def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS):
-    """Secant–Newton steps moving the model's summary at ``q`` onto the data's.
+    """Broyden steps moving the model's summary at ``q`` onto the data's.
 
-    The summary is smooth on the scale of a few % of distance, so the differences are taken
-    over 3 % (and ~1 % of a lenslet pitch sideways scaled by distance): wide enough to average
-    the ray sampling, narrow enough for the local linearisation.
+    The summary is smooth on the scale of a few % of distance, so the first Jacobian is taken
+    by differences over 3 % (and ~1 % of a lenslet pitch sideways, scaled by distance); later
+    steps update it by Broyden's rule (one model evaluation a step).
     """
     steps = np.array([0.03, 2e-3, 2e-3])
-    scale = np.array([abs(t_data[0]) + 1e-3, profile.mla.pitch_mm, profile.mla.pitch_mm])
+    pitch = profile.mla.pitch_mm
+    scale = np.array([abs(t_data[0]) + 1e-3, pitch, pitch, 0.1 * t_data[3] + pitch])
 
     def t_of(qq):
         return summary(profile, geom, mom, model.simulate(frame.source(qq)))
@@ -434,27 +452,30 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
     if not np.isfinite(t).all():
         return q
     err = float(np.linalg.norm((t - t_data) / scale))
+
+    def fd_jacobian(q, t):
+        return np.column_stack([(t_of(q + h * e) - t) / h
+                                for h, e in zip(steps, np.eye(3), strict=True)])
+
+    jac = fd_jacobian(q, t)
+    fresh = True
     for _ in range(iterations):
-        cols = []
-        for h, e in zip(steps, np.eye(3), strict=True):
-            cols.append((t_of(q + h * e) - t) / h)
-        jac = np.column_stack(cols)
         if not np.isfinite(jac).all():
             break
         try:
-            dq = np.linalg.solve(jac, t_data - t)
+            dq = np.linalg.lstsq(jac / scale[:, None], (t_data - t) / scale, rcond=None)[0]
         except np.linalg.LinAlgError:
             break
         dq[0] = float(np.clip(dq[0], -0.15, 0.15))
-        for _ in range(3):  # halve the step until the summary comes closer
-            t2 = t_of(q + dq)
-            err2 = float(np.linalg.norm((t2 - t_data) / scale)) if np.isfinite(t2).all() \
-                else np.inf
-            if err2 < err:
+        t2 = t_of(q + dq)
+        err2 = float(np.linalg.norm((t2 - t_data) / scale)) if np.isfinite(t2).all() else np.inf
+        if not err2 < err:
+            if fresh:
                 break
-            dq = 0.5 * dq
-        else:
-            break
+            jac, fresh = fd_jacobian(q, t), True  # the Broyden update went stale: refresh
+            continue
+        jac = jac + np.outer((t2 - t) - jac @ dq, dq) / float(dq @ dq)
+        fresh = False
         q, t, err = q + dq, t2, err2
         if abs(dq[0]) < 2e-3:
             break
