@@ -40,7 +40,7 @@ from lfcam.optics.trace import forward, trace_source_fast
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
-MIN_RAYS = 6000
+MIN_RAYS = 12000
 MAX_RAYS = 20000
 MAX_ITERATIONS = 12
 COARSE_RAYS = 3000  # rays per evaluation while the basin is found
