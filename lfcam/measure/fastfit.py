@@ -51,15 +51,19 @@ COARSE_ITERATIONS = 6
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
-LINE_POINTS = 16
+LINE_POINTS = 12
+LINE_COARSE_SHARE = 12  # the coarse line model traces COARSE_RAYS / this per point
+LINE_TRIGGER = 3.0  # a point misfit over this × the model's noise floor: also try a line
+LINE_GAIN = 0.9  # ... and becomes a line when that cuts the misfit below this × the point's
 _LATTICES: dict[int, LocalLattice | None] = {}
 
 
-def vogel_disc(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral)."""
+def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral),
+    turned by ``phase`` radians."""
     i = np.arange(n, dtype=np.float64)
     r = np.sqrt((i + 0.5) / n)
-    t = i * GOLDEN_ANGLE
+    t = i * GOLDEN_ANGLE + phase
     return r * np.cos(t), r * np.sin(t)
 
 
@@ -119,11 +123,12 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
 class LensletModel:
     """Forward model of a region's lenslet moments for point (or line) sources."""
 
-    def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int):
+    def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
+                 phase: float = 0.0):
         self.profile, self.geom, self.mom = profile, geom, mom
         lens = profile.main_lens
         half = 0.5 * lens.pupil_diameter_mm
-        u, v = vogel_disc(n_rays)
+        u, v = vogel_disc(n_rays, phase)
         self.rx, self.ry = u * half, v * half
         self.spacing = lens.pupil_diameter_mm * math.sqrt(math.pi / (4.0 * n_rays))
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
@@ -150,36 +155,44 @@ class LensletModel:
         # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
         mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
         s_px = min(0.9, self.spacing * mag)
+        xs, ys, sxs, sys_, wts, gaps = [], [], [], [], [], []
         for pt in np.atleast_2d(sources):
             tr = trace_source_fast(lens, tuple(pt), self.rx, self.ry, self.geom.d_in_mm)
             ok = tr.ok
+            if not ok.any():
+                continue
             along = lens.rim_z_mm - pt[2]
             rho2 = (self.rx[ok] - pt[0]) ** 2 + (self.ry[ok] - pt[1]) ** 2 + along * along
-            wt = (along * along / rho2) ** 1.5
+            wts.append((along * along / rho2) ** 1.5)
             x, y = tr.x[ok], tr.y[ok]
-            sx, sy = fx * tr.dx[ok] / tr.dz[ok], fx * tr.dy[ok] / tr.dz[ok]
-            if x.size == 0:
-                continue
+            xs.append(x)
+            ys.append(y)
+            sxs.append(fx * tr.dx[ok] / tr.dz[ok])
+            sys_.append(fx * tr.dy[ok] / tr.dz[ok])
             # MLA-plane ray spacing: the footprint's extent over the pupil's, times the
             # pupil spacing
             foot = max(float(np.ptp(x)), float(np.ptp(y)))
-            s_mla = self.spacing * foot / lens.pupil_diameter_mm
-            c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
-            share = np.clip(0.5 - gap / max(s_mla, 1e-12), 0.0, 0.5)
-            split = share > 0
-            cx = np.concatenate([c1x, c2x[split]])
-            cy = np.concatenate([c1y, c2y[split]])
-            wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
-            px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
-            py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
-            cols, rows, wts = _pixel_boxes(px, py, wt, s_px)
-            inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-            cols, rows, wts = cols[inside], rows[inside], wts[inside]
-            k = self.mom.labels[rows, cols]
-            known = k >= 0
-            out += _moments_of(None, None, self.mom.centres_px, self.geom.pitch_px,
-                               cols[known] + x0, rows[known] + y0, wts[known], k[known])
-        return out
+            gaps.append(np.full(x.size, max(self.spacing * foot / lens.pupil_diameter_mm,
+                                            1e-12)))
+        if not xs:
+            return out
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        sx, sy, wt = np.concatenate(sxs), np.concatenate(sys_), np.concatenate(wts)
+        c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
+        share = np.clip(0.5 - gap / np.concatenate(gaps), 0.0, 0.5)
+        split = share > 0
+        cx = np.concatenate([c1x, c2x[split]])
+        cy = np.concatenate([c1y, c2y[split]])
+        wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
+        px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
+        py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
+        cols, rows, wts_ = _pixel_boxes(px, py, wt, s_px)
+        inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        cols, rows, wts_ = cols[inside], rows[inside], wts_[inside]
+        k = self.mom.labels[rows, cols]
+        known = k >= 0
+        return _moments_of(None, None, self.mom.centres_px, self.geom.pitch_px,
+                           cols[known] + x0, rows[known] + y0, wts_[known], k[known])
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
         """Data minus the best-scaled model moments, over the data's norm."""
@@ -356,6 +369,7 @@ class LensletFit:
     ok: bool
     reason: str = ""
     ends_mm: tuple = ()  # lines: (start (3,), end (3,))
+    noise_floor: float = float("nan")  # misfit the model's own ray sampling explains
 
 
 class _Frame:
@@ -544,6 +558,10 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(q[0])
+    # the model's own sampling noise: the same source through a turned pupil sample
+    other = LensletModel(profile, geom, mom, n_rays, phase=1.0)
+    m_a, m_b = fine.simulate(source), other.simulate(source)
+    floor = float(np.linalg.norm(m_a - m_b) / np.linalg.norm(m_a)) / math.sqrt(2.0)
     try:
         cov = f / max(len(r) - 3, 1) * np.linalg.inv(jac.T @ jac)
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
@@ -552,7 +570,72 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     evals = scan.evaluations + coarse.evaluations + fine.evaluations
     if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, "no-solution")
-    return LensletFit(source, misfit, sigma_d, evals, True)
+    return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
+
+
+def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
+    """``count`` equally bright points along the segment of ``q = (log d, a/L, b/L)``."""
+    z = frame.z_front - math.exp(q[0])
+    along = frame.z_rim - z
+    t = (np.arange(count) + 0.5) / count
+    a, b = q[1:3] * along, q[3:5] * along
+    xy = a[None, :] + t[:, None] * (b - a)[None, :]
+    return np.column_stack([xy, np.full(count, z)])
+
+
+def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                     region: Region, point: LensletFit | None = None) -> LensletFit:
+    """Fit a line source (``LINE_POINTS`` equally bright points, 5 parameters) to the
+    region's lenslet moments. Start: the point fit's distance and centre, the footprint's long
+    axis, and the image length from its second moments (along − across = Lᵢ²/12)."""
+    box = _region_box(geom, region, image.shape)
+    mom = data_moments(geom, image, box)
+    nan3 = np.full(3, np.nan)
+    if point is None:
+        point = fit_lenslet_point(profile, geom, image, region)
+    if not point.ok:
+        return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
+    frame = _Frame(profile)
+    e = mom.data[:, 0]
+    lit = e > 0.05 * e.max()
+    c = geom.lens_centres_mm[mom.ids[lit]]
+    w = e[lit]
+    dc = c - (c * w[:, None]).sum(0) / w.sum()
+    cov = (dc.T * w) @ dc / w.sum()
+    evals, evecs = np.linalg.eigh(cov)
+    length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
+    d0 = float(frame.z_front - point.source_mm[2])
+    gain = chief_ray_offset(profile, geom.d_in_mm, d0, np.array([1.0, 0.0]))[0]  # src mm / MLA mm
+    along = frame.z_rim - point.source_mm[2]
+    half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
+    centre = point.source_mm[:2] / along
+    q0 = np.r_[math.log(d0), centre - half, centre + half]
+    n_lit = int(lit.sum())
+    n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
+    coarse = LensletModel(profile, geom, mom, max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
+    fine = LensletModel(profile, geom, mom, max(n_rays // LINE_POINTS, 400))
+    steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
+
+    def fun_of(model, count):
+        return lambda q: model.residual(_line_points(frame, q, count))
+
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse, LINE_POINTS), q0, steps,
+                                        COARSE_ITERATIONS, 1e-3)
+    fun = fun_of(fine, LINE_POINTS)
+    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    pts = _line_points(frame, q, 2)
+    z = pts[0, 2]
+    along = frame.z_rim - z
+    ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
+    dist = math.exp(q[0])
+    try:
+        cov_q = f / max(len(r) - 5, 1) * np.linalg.inv(jac.T @ jac)
+        sigma_d = dist * math.sqrt(max(cov_q[0, 0], 0.0))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
+    total = point.evaluations + coarse.evaluations + fine.evaluations
+    mid = 0.5 * (ends[0] + ends[1])
+    return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
 
 
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -572,6 +655,10 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     Measurement
     """
     fit = fit_lenslet_point(profile, geom, image, region)
+    if region.kind == "line" or (fit.ok and fit.misfit > LINE_TRIGGER * fit.noise_floor):
+        line = fit_lenslet_line(profile, geom, image, region, fit)
+        if line.ok and (not fit.ok or region.kind == "line" or line.misfit < LINE_GAIN * fit.misfit):
+            return _line_measurement(profile, geom, line)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
     source, misfit, sigma_d = fit.source_mm, fit.misfit, fit.sigma_distance_mm
@@ -588,3 +675,18 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
                        misfit=misfit)
+
+
+def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:
+    """A line fit as a ``kind="line"`` measurement (rim heights of both endpoints)."""
+    nan = float("nan")
+    distance = profile.main_lens.front_vertex_z_mm - float(line.source_mm[2])
+    ends = []
+    for pt in line.ends_mm:
+        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
+        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
+    y1 = 0.5 * (ends[0][0] + ends[1][0])
+    y2 = 0.5 * (ends[0][1] + ends[1][1])
+    return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
+                       line.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       misfit=line.misfit, endpoints=tuple(ends))
