@@ -45,6 +45,7 @@ MAX_RAYS = 20000
 MAX_ITERATIONS = 12
 COARSE_RAYS = 3000  # rays per evaluation while the basin is found
 SCAN_RAYS = 1000  # rays per evaluation of the distance scan
+COARSE_PER_LENSLET = 25  # ... at least this many per lit lenslet
 SCAN_DISTANCES = 28  # geometric distance scan, 1.1 f … 30 m
 SCAN_KEEP = 2  # starts matched on the summary
 COARSE_ITERATIONS = 6
@@ -56,6 +57,7 @@ LINE_COARSE_SHARE = 12  # the coarse line model traces COARSE_RAYS / this per po
 LINE_TRIGGER = 3.0  # a point misfit over this × the model's noise floor: also try a line
 LINE_GAIN = 0.9  # ... and becomes a line when that cuts the misfit below this × the point's
 _LATTICES: dict[int, LocalLattice | None] = {}
+_PEDESTAL: dict = {}
 
 
 def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -102,8 +104,25 @@ def _moments_of(labels, box, centres_px, pitch_px, x_px, y_px, w, k):
     return out
 
 
+def pedestal(image: np.ndarray) -> float:
+    """Mean level of the pixels that see no source: a sensor that clips its noise at zero
+    (unsigned raws) leaves a positive mean of ~0.4 σ in the dark, which the moments would read
+    as light. A sample of the frame, values above median + 5 σ left out (σ from the upper
+    quartile, which clipping does not move)."""
+    key = (id(image), image.shape)
+    if _PEDESTAL.get("key") != key:
+        sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
+        med, upper = np.percentile(sample, [50.0, 75.0])
+        # the upper quartile keeps its place when the noise below zero is clipped
+        sig = max(float(upper - med) / 0.6745, 1e-12)
+        dark = sample[sample <= med + 5.0 * sig]
+        _PEDESTAL.update(key=key, value=float(dark.mean()) if dark.size else 0.0)
+    return _PEDESTAL["value"]
+
+
 def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int]) -> _Moments:
-    """Moments of the data over the lenslets whose pixels lie in ``box``."""
+    """Moments of the data over the lenslets whose pixels lie in ``box`` (the dark pedestal
+    removed, :func:`pedestal`)."""
     x0, y0, x1, y1 = box
     lab = geom.lmap.labels[y0:y1, x0:x1]
     keep = lab >= 0
@@ -115,7 +134,7 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     inv = compact[keep]
     yy, xx = np.nonzero(keep)
     cen = geom.lmap.centres_px[ids]
-    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep]
+    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - pedestal(image)
     m = _moments_of(None, box, cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
     return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())))
 
@@ -262,7 +281,8 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
     u = lattice.inverse @ np.vstack([x - o[0], y - o[1]])
     la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
     if abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb:
-        # rectangular cells (a shear below 1e-4 moves the cell corners by < 1e-4 pitch): the nearest node by rounding, the nearest border along u or v
+        # rectangular cells (a shear below 1e-4 moves their corners by < 1e-4 pitch): the
+        # nearest node by rounding, the nearest border along u or v
         i, j = np.rint(u[0]), np.rint(u[1])
         fu, fv = u[0] - i, u[1] - j
         gu = (0.5 - np.abs(fu)) * la
@@ -536,7 +556,8 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     frame = _Frame(profile)
-    coarse = LensletModel(profile, geom, mom, COARSE_RAYS)
+    coarse = LensletModel(profile, geom, mom,
+                          int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)))
     fine = LensletModel(profile, geom, mom, n_rays)
 
     def fun_of(model):
@@ -657,7 +678,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fit = fit_lenslet_point(profile, geom, image, region)
     if region.kind == "line" or (fit.ok and fit.misfit > LINE_TRIGGER * fit.noise_floor):
         line = fit_lenslet_line(profile, geom, image, region, fit)
-        if line.ok and (not fit.ok or region.kind == "line" or line.misfit < LINE_GAIN * fit.misfit):
+        if line.ok and (not fit.ok or region.kind == "line"
+                        or line.misfit < LINE_GAIN * fit.misfit):
             return _line_measurement(profile, geom, line)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)

@@ -160,3 +160,26 @@ def choose(
         distance[idx], offset[idx], status[idx] = inv.distance_mm, inv.offset_mm, inv.status
         sigma[idx] = np.hypot(sig, model_err * inv.distance_mm)
     return chosen.astype(str), Inversion(distance, offset, status), sigma
+
+
+# ----------------------------------------------------------------------------- method choice
+# Measurement methods, cheapest first, with the largest ERROR (eq. 21, %) measured over both
+# systems, points and lines, by ``benchmarks/tradeoff.py`` (docs/results/tradeoff.csv; model
+# ``exact``): what ``method="auto"`` reads to pick the cheapest method that meets a tolerance.
+METHOD_COST_ORDER = ("diameter", "lenslet", "lightfield")
+METHOD_MAX_ERROR_PCT = {"diameter": 50.3, "lenslet": 0.6, "lightfield": 0.98}
+
+
+def choose_method(tolerance_pct: float | None) -> str:
+    """The cheapest measurement method whose measured worst error meets ``tolerance_pct``.
+
+    Without a tolerance (or when none meets it): the method with the smallest measured worst
+    error.
+    """
+    best = min(METHOD_COST_ORDER, key=lambda m: METHOD_MAX_ERROR_PCT[m])
+    if tolerance_pct is None:
+        return best
+    for name in METHOD_COST_ORDER:
+        if METHOD_MAX_ERROR_PCT[name] <= tolerance_pct:
+            return name
+    return best
