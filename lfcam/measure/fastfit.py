@@ -152,6 +152,7 @@ class LensletModel:
         self.spacing = lens.pupil_diameter_mm * math.sqrt(math.pi / (4.0 * n_rays))
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
         self.evaluations = 0
+        self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
 
     def simulate(self, sources: np.ndarray) -> np.ndarray:
         """(K, 4) moments of unit-intensity source point(s) ``(3,)`` or ``(M, 3)``.
@@ -163,6 +164,12 @@ class LensletModel:
         finite-difference Jacobians with small steps are meaningful.
         """
         self.evaluations += 1
+        key = np.asarray(sources, dtype=np.float64).tobytes()
+        out = self._simulate(sources)
+        self.last = (key, out)
+        return out
+
+    def _simulate(self, sources: np.ndarray) -> np.ndarray:
         p = self.profile
         lens = p.main_lens
         fx = p.mla.focal_length_mm
@@ -443,7 +450,7 @@ def _starts(profile, geom, mom, frame, model):
     lens = profile.main_lens
     f = lens.focal_length_mm
     t_data = summary(profile, geom, mom, mom.data)
-    target = t_data[1:]
+    target = t_data[1:3]
     scan = []
     for d in np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES):
         xy = chief_ray_offset(profile, geom.d_in_mm, d, target)
@@ -456,7 +463,7 @@ def _starts(profile, geom, mom, frame, model):
     for (f0, q0, t0), (f1, q1, t1) in zip(scan[:-1], scan[1:], strict=True):
         if not (np.isfinite(t0).all() and np.isfinite(t1).all()):
             continue
-        if np.sign(t0[0]) != np.sign(bd) or np.sign(t1[0]) != np.sign(bd):
+        if np.sign(t0[0]) != np.sign(bd) and np.sign(t1[0]) != np.sign(bd):
             continue  # the model's light is on the other side of focus
         for k, target in ((0, bd), (3, rd)):  # crossings of the slope gain and of the size
             if (t0[k] - target) * (t1[k] - target) <= 0 and t1[k] != t0[k]:
@@ -464,8 +471,13 @@ def _starts(profile, geom, mom, frame, model):
                 out.append((min(f0, f1), q0 + t * (q1 - q0)))
     out.sort(key=lambda v: v[0])
     best = min(scan, key=lambda v: v[0])
-    starts = [q for _, q in out[:SCAN_KEEP]]
-    return (starts or [best[1]]), t_data
+    out.append((best[0], best[1]))  # and the scan point of least misfit
+    out.sort(key=lambda v: v[0])
+    starts = []
+    for _, q in out:  # the best distinct candidates (5 % apart in distance)
+        if all(abs(q[0] - p[0]) > 0.05 for p in starts):
+            starts.append(q)
+    return starts[:SCAN_KEEP], t_data
 
 
 def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS):
@@ -581,7 +593,9 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     dist = math.exp(q[0])
     # the model's own sampling noise: the same source through a turned pupil sample
     other = LensletModel(profile, geom, mom, n_rays, phase=1.0)
-    m_a, m_b = fine.simulate(source), other.simulate(source)
+    key = np.asarray(source, dtype=np.float64).tobytes()
+    m_a = fine.last[1] if fine.last[0] == key else fine.simulate(source)
+    m_b = other.simulate(source)
     floor = float(np.linalg.norm(m_a - m_b) / np.linalg.norm(m_a)) / math.sqrt(2.0)
     try:
         cov = f / max(len(r) - 3, 1) * np.linalg.inv(jac.T @ jac)
