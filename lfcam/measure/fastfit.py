@@ -91,16 +91,19 @@ class _Moments:
     norm: float
 
 
-def _moments_of(labels, box, centres_px, pitch_px, x_px, y_px, w, k):
-    """Four moments per compact lenslet from samples at pixel (x, y) with weight w."""
+def _moments_of(centres_px, pitch_px, x_px, y_px, w, k, group=None, groups=1):
+    """Four moments per compact lenslet ``k`` from samples at pixel (x, y) with weight w;
+    with ``group`` (one per sample), ``groups`` stacked sets: (groups·K, 4)."""
     n = len(centres_px)
     dx = (x_px - centres_px[k, 0]) / pitch_px
     dy = (y_px - centres_px[k, 1]) / pitch_px
+    bins = k if group is None else group * n + k
+    n = n * groups
     out = np.empty((n, 4))
-    out[:, 0] = np.bincount(k, w, minlength=n)
-    out[:, 1] = np.bincount(k, w * dx, minlength=n)
-    out[:, 2] = np.bincount(k, w * dy, minlength=n)
-    out[:, 3] = np.bincount(k, w * (dx * dx + dy * dy), minlength=n)
+    out[:, 0] = np.bincount(bins, w, minlength=n)
+    out[:, 1] = np.bincount(bins, w * dx, minlength=n)
+    out[:, 2] = np.bincount(bins, w * dy, minlength=n)
+    out[:, 3] = np.bincount(bins, w * (dx * dx + dy * dy), minlength=n)
     return out
 
 
@@ -135,7 +138,7 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     yy, xx = np.nonzero(keep)
     cen = geom.lmap.centres_px[ids]
     v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - pedestal(image)
-    m = _moments_of(None, box, cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
+    m = _moments_of(cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
     return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())))
 
 
@@ -169,7 +172,13 @@ class LensletModel:
         self.last = (key, out)
         return out
 
-    def _simulate(self, sources: np.ndarray) -> np.ndarray:
+    def simulate_each(self, sources: np.ndarray) -> np.ndarray:
+        """(M, K, 4) moments of each of ``M`` sources separately, in one pass."""
+        self.evaluations += 1
+        src = np.atleast_2d(sources)
+        return self._simulate(src, separate=True).reshape(len(src), -1, 4)
+
+    def _simulate(self, sources: np.ndarray, separate: bool = False) -> np.ndarray:
         p = self.profile
         lens = p.main_lens
         fx = p.mla.focal_length_mm
@@ -177,12 +186,14 @@ class LensletModel:
         ax, ay = p.sensor.axis_xy_px
         x0, y0 = self.mom.box[:2]
         h, w = self.mom.labels.shape
-        out = np.zeros_like(self.mom.data)
+        points = np.atleast_2d(sources)
+        groups = len(points) if separate else 1
+        out = np.zeros((groups * len(self.mom.data), 4))
         # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
         mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
         s_px = min(0.9, self.spacing * mag)
-        xs, ys, sxs, sys_, wts, gaps = [], [], [], [], [], []
-        for pt in np.atleast_2d(sources):
+        xs, ys, sxs, sys_, wts, gaps, tags = [], [], [], [], [], [], []
+        for g, pt in enumerate(points):
             tr = trace_source_fast(lens, tuple(pt), self.rx, self.ry, self.geom.d_in_mm)
             ok = tr.ok
             if not ok.any():
@@ -200,6 +211,7 @@ class LensletModel:
             foot = max(float(np.ptp(x)), float(np.ptp(y)))
             gaps.append(np.full(x.size, max(self.spacing * foot / lens.pupil_diameter_mm,
                                             1e-12)))
+            tags.append(np.full(x.size, g if separate else 0, dtype=np.int64))
         if not xs:
             return out
         x, y = np.concatenate(xs), np.concatenate(ys)
@@ -207,18 +219,21 @@ class LensletModel:
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
         share = np.clip(0.5 - gap / np.concatenate(gaps), 0.0, 0.5)
         split = share > 0
+        tag = np.concatenate(tags)
         cx = np.concatenate([c1x, c2x[split]])
         cy = np.concatenate([c1y, c2y[split]])
         wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
+        tag = np.concatenate([tag, tag[split]])
         px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
         py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
-        cols, rows, wts_ = _pixel_boxes(px, py, wt, s_px)
+        cols, rows, wts_, ray = _pixel_boxes(px, py, wt, s_px, with_source=True)
         inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-        cols, rows, wts_ = cols[inside], rows[inside], wts_[inside]
+        cols, rows, wts_, ray = cols[inside], rows[inside], wts_[inside], ray[inside]
         k = self.mom.labels[rows, cols]
         known = k >= 0
-        return _moments_of(None, None, self.mom.centres_px, self.geom.pitch_px,
-                           cols[known] + x0, rows[known] + y0, wts_[known], k[known])
+        return _moments_of(self.mom.centres_px, self.geom.pitch_px, cols[known] + x0,
+                           rows[known] + y0, wts_[known], k[known],
+                           tag[ray[known]] if separate else None, groups)
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
         """Data minus the best-scaled model moments, over the data's norm."""
@@ -323,9 +338,11 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
             o[0] + b[0, 0] * i2 + b[0, 1] * j2, o[1] + b[1, 0] * i2 + b[1, 1] * j2, gap)
 
 
-def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float):
+def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float,
+                 with_source: bool = False):
     """Bin rays at sensor positions (px, py) into pixels, each ray a box ``s`` px wide:
-    (cols, rows, weights); ``s → 0`` is nearest-pixel binning (the sensor's integration)."""
+    (cols, rows, weights[, index of the ray each share came from]); ``s → 0`` is
+    nearest-pixel binning (the sensor's integration)."""
     cx, cy = np.floor(px + 0.5), np.floor(py + 0.5)
     tx, ty = px - cx, py - cy  # offset from the pixel centre, [−0.5, 0.5)
     ex = np.clip((np.abs(tx) + 0.5 * s - 0.5) / s, 0.0, 0.5)  # share beyond the near edge
@@ -338,7 +355,11 @@ def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float):
     rows = np.concatenate([cy, cy[sx], ny[sy], ny[sxy]]).astype(np.int64)
     wts = np.concatenate([w * (1 - ex) * (1 - ey), (w * ex * (1 - ey))[sx],
                           (w * (1 - ex) * ey)[sy], (w * ex * ey)[sxy]])
-    return cols, rows, wts
+    if not with_source:
+        return cols, rows, wts
+    src = np.concatenate([np.arange(px.size), np.flatnonzero(sx), np.flatnonzero(sy),
+                          np.flatnonzero(sxy)])
+    return cols, rows, wts, src
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
@@ -451,11 +472,13 @@ def _starts(profile, geom, mom, frame, model):
     f = lens.focal_length_mm
     t_data = summary(profile, geom, mom, mom.data)
     target = t_data[1:3]
-    scan = []
+    qs = []
     for d in np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES):
         xy = chief_ray_offset(profile, geom.d_in_mm, d, target)
-        q = frame.params(np.array([xy[0], xy[1], frame.z_front - d]))
-        m = model.simulate(frame.source(q))
+        qs.append(frame.params(np.array([xy[0], xy[1], frame.z_front - d])))
+    ms = model.simulate_each(np.array([frame.source(q) for q in qs]))
+    scan = []
+    for q, m in zip(qs, ms, strict=True):
         r = model.residual_of(m)
         scan.append((float(r @ r), q, summary(profile, geom, mom, m)))
     out = []
