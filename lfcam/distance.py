@@ -131,7 +131,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
         d, sig, status = measure_refocus(profile, geom, img, reg)
         return reg.kind, "refocus", d, nan, nan, sig, status
     if method == "auto":
-        method = auto.choose_method(tolerance_pct)
+        method = auto.choose_method(tolerance_pct, reg.kind)
     if method == "lightfield":
         meas = measure_lightfield(profile, geom, img, reg, noise, fast)
     elif method == "lenslet":

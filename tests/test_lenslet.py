@@ -122,11 +122,12 @@ def test_parallel_equals_serial():
 
 def test_auto_method_choice_reads_the_error_table():
     assert "lenslet" in METHODS and "auto" in METHODS
-    assert choose_method(60.0) == "diameter"
-    worst = max(METHOD_MAX_ERROR_PCT[m] for m in ("lenslet", "lightfield"))
-    assert choose_method(worst) == "lenslet"
-    best = min(METHOD_COST_ORDER, key=METHOD_MAX_ERROR_PCT.get)
-    assert choose_method(None) == best and choose_method(1e-6) == best
+    for kind in ("spot", "line"):
+        table = METHOD_MAX_ERROR_PCT[kind]
+        assert choose_method(60.0, kind) == "diameter"
+        assert choose_method(table["lenslet"], kind) == "lenslet"
+        best = min(METHOD_COST_ORDER, key=table.get)
+        assert choose_method(None, kind) == best and choose_method(1e-6, kind) == best
 
 
 def test_soft_binning_is_continuous_and_exact_in_the_limit():

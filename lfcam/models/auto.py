@@ -164,22 +164,28 @@ def choose(
 
 # ----------------------------------------------------------------------------- method choice
 # Measurement methods, cheapest first, with the largest ERROR (eq. 21, %) measured over both
-# systems, points and lines, by ``benchmarks/tradeoff.py`` (docs/results/tradeoff.csv; model
-# ``exact``): what ``method="auto"`` reads to pick the cheapest method that meets a tolerance.
+# systems by ``benchmarks/tradeoff.py`` (docs/results/tradeoff.csv, model ``exact``; lines:
+# system 1's 16 lines, lightfield's from docs/distance.md's seed grid), per source kind: what
+# ``method="auto"`` reads to pick the cheapest method that meets a tolerance.
 METHOD_COST_ORDER = ("diameter", "lenslet", "lightfield")
-METHOD_MAX_ERROR_PCT = {"diameter": 50.3, "lenslet": 0.6, "lightfield": 0.98}
+METHOD_MAX_ERROR_PCT = {
+    "spot": {"diameter": 46.98, "lenslet": 0.132, "lightfield": 0.198},
+    "line": {"diameter": 38.18, "lenslet": 0.747, "lightfield": 0.975},
+}
 
 
-def choose_method(tolerance_pct: float | None) -> str:
-    """The cheapest measurement method whose measured worst error meets ``tolerance_pct``.
+def choose_method(tolerance_pct: float | None, kind: str = "spot") -> str:
+    """The cheapest measurement method whose measured worst error for ``kind`` (``spot`` or
+    ``line``) meets ``tolerance_pct``.
 
     Without a tolerance (or when none meets it): the method with the smallest measured worst
     error.
     """
-    best = min(METHOD_COST_ORDER, key=lambda m: METHOD_MAX_ERROR_PCT[m])
+    table = METHOD_MAX_ERROR_PCT["line" if kind == "line" else "spot"]
+    best = min(METHOD_COST_ORDER, key=table.__getitem__)
     if tolerance_pct is None:
         return best
     for name in METHOD_COST_ORDER:
-        if METHOD_MAX_ERROR_PCT[name] <= tolerance_pct:
+        if table[name] <= tolerance_pct:
             return name
     return best
