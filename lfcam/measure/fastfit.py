@@ -168,7 +168,8 @@ class LensletModel:
         """
         self.evaluations += 1
         key = np.asarray(sources, dtype=np.float64).tobytes()
-        out = self._simulate(sources)
+        with np.errstate(over="ignore", invalid="ignore"):  # rays that miss: ok = False
+            out = self._simulate(sources)
         self.last = (key, out)
         return out
 
@@ -176,7 +177,8 @@ class LensletModel:
         """(M, K, 4) moments of each of ``M`` sources separately, in one pass."""
         self.evaluations += 1
         src = np.atleast_2d(sources)
-        return self._simulate(src, separate=True).reshape(len(src), -1, 4)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._simulate(src, separate=True).reshape(len(src), -1, 4)
 
     def _simulate(self, sources: np.ndarray, separate: bool = False) -> np.ndarray:
         p = self.profile
@@ -430,9 +432,11 @@ class _Frame:
         self.z_rim = lens.rim_z_mm
 
     def source(self, q: np.ndarray) -> np.ndarray:
-        z = self.z_front - math.exp(q[0])
+        # a wild optimiser step stays a finite source (1 mm … 10⁷ mm, within ±45°)
+        z = self.z_front - math.exp(float(np.clip(q[0], 0.0, 16.0)))
         along = self.z_rim - z
-        return np.array([q[1] * along, q[2] * along, z])
+        return np.array([float(np.clip(q[1], -1.0, 1.0)) * along,
+                         float(np.clip(q[2], -1.0, 1.0)) * along, z])
 
     def params(self, s: np.ndarray) -> np.ndarray:
         along = self.z_rim - s[2]
