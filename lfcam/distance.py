@@ -285,6 +285,17 @@ def _worker_init(profile, lmap_parts, lens_centres_mm, pitch_px, d_in_mm, shm_na
     stats = LensletStats(energy[0], energy[1], energy[2])
     _WORKER.update(profile=profile, geom=geom, img=img, stats=stats, noise=noise, args=args,
                    shm=(shm_img, shm_lab))
+    # a worker whose parent was killed would otherwise live on, orphaned: leave with it
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    import threading
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def _worker_region(reg: Region) -> tuple:
