@@ -16,12 +16,17 @@ that contains it (the sensor integrates: the half-pixel centroid shifts of 2–4
 focus are modelled, not assumed away), looked up in the same lenslet map and dropped where the
 data has no pixel (sensor edge, seams, outside the box). No threshold is involved.
 
-Cost: a model evaluation is one trace of a few thousand to ~20 k rays (Vogel-spiral pupil
-sample: quasi-random, no grid aliasing against the pixels) and four ``bincount`` — about
-1–2 ms. Start: the triangulation of the lenslet centroids (no iterations); then Gauss–Newton
-with finite-difference Jacobians in physically sized steps, on (log distance, x, y), and a
-final line-of-sight polish. Lines: the same statistic with ``LINE_POINTS`` points along a
-segment (5 parameters).
+Each ray stands for a patch of the pupil: near a lenslet-cell border (MLA) and near a pixel
+border (sensor) it is shared across the border by a box of the local ray spacing, so that the
+moments are continuous in the source position (hard binning is the limit of a vanishing box).
+
+Cost: a model evaluation is one trace of 1 k–20 k rays (Vogel-spiral pupil sample:
+quasi-random, no grid aliasing against the pixels) and four ``bincount`` — 0.5–3 ms. Fit
+(:func:`fit_lenslet_point`): a batched distance scan of a smooth summary (slope-field gain,
+footprint centroid and size), Broyden matching of that summary from the best starts,
+Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model.
+Lines (:func:`fit_lenslet_line`): ``LINE_POINTS`` equally bright points along a segment, 5
+parameters, started from the point fit.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import numpy as np
 from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement
 from lfcam.measure.geometry import Geometry
-from lfcam.measure.pointfit import LocalLattice, _statistic, chief_ray_offset
+from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.optics.trace import forward, trace_source_fast
 
@@ -246,55 +251,6 @@ class LensletModel:
         mm = float((m * m).sum())
         a = float((m * self.mom.data).sum()) / mm if mm > 0 else 0.0
         return ((self.mom.data - a * m) / self.mom.norm).ravel()
-
-
-def _start(profile: CameraProfile, geom: Geometry, mom: _Moments) -> np.ndarray | None:
-    """Triangulated source from the lenslets' centroids (a 3×3 solve)."""
-    e = mom.data[:, 0]
-    lit = e > 0.05 * e.max()
-    if lit.sum() < 6:
-        return None
-    pp = profile.sensor.pixel_pitch_mm
-    ax, ay = profile.sensor.axis_xy_px
-    cen = mom.centres_px[lit] + geom.pitch_px * mom.data[lit, 1:3] / e[lit, None]
-    land = np.column_stack([(cen[:, 0] - ax) * pp, (cen[:, 1] - ay) * pp])
-    st = _statistic(profile.main_lens, geom.d_in_mm, profile.mla.focal_length_mm,
-                    geom.lens_centres_mm[mom.ids[lit]], e[lit], land)
-    if st is None or not np.isfinite(st[0]).all():
-        return None
-    return st[0]
-
-
-def _cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
-    """Centre of the lattice cell holding each MLA point (as ``LocalLattice.node``, faster).
-
-    A rectangular lattice needs only rounding; otherwise the nearest of the four corners of
-    the containing lattice parallelogram.
-    """
-    b = lattice.basis
-    u = lattice.inverse @ np.vstack([x - lattice.origin[0], y - lattice.origin[1]])
-    if abs(b[:, 0] @ b[:, 1]) < 1e-9 * (b[:, 0] @ b[:, 0]):
-        i, j = np.rint(u[0]), np.rint(u[1])
-    else:
-        fu, fv = np.floor(u[0]), np.floor(u[1])
-        ru, rv = u[0] - fu, u[1] - fv  # position inside the cell, in lattice units
-        best = None
-        i, j = fu.copy(), fv.copy()
-        for di in (0.0, 1.0):
-            for dj in (0.0, 1.0):
-                ex, ey = ru - di, rv - dj
-                gx = b[0, 0] * ex + b[0, 1] * ey
-                gy = b[1, 0] * ex + b[1, 1] * ey
-                d2 = gx * gx + gy * gy
-                if best is None:
-                    best = d2
-                    continue
-                better = d2 < best
-                best = np.where(better, d2, best)
-                i[better] = fu[better] + di
-                j[better] = fv[better] + dj
-    o = lattice.origin
-    return o[0] + b[0, 0] * i + b[0, 1] * j, o[1] + b[1, 0] * i + b[1, 1] * j
 
 
 def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
