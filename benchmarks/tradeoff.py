@@ -9,7 +9,10 @@ time per region and the time per frame. Each capture is measured once per method
 then applied to that same measurement, so the models differ only by their own cost and error.
 
 Methods: ``lightfield`` (exact forward-model fit of the pixels; slow), ``lightfield-fast``
-(triangulation of the lenslet spots alone), ``diameter`` (the seed's footprint diameter).
+(triangulation of the lenslet spots alone), ``lenslet`` (exact forward model fitted to
+per-lenslet moments, issue 17), ``diameter`` (the seed's footprint diameter).
+Times are single-core CPU seconds (``time.process_time``) of each method in the same run;
+``max_time_per_region_ms`` is the worst single region.
 Budget: the slow method runs on :data:`SLOW_POINTS` and :data:`SLOW_LINES_MM` only; the fast ones
 on the whole seed grid. ``--quick`` keeps one capture per system and source (schema test).
 
@@ -51,6 +54,7 @@ from lfcam.distance import _apply_model  # noqa: E402
 from lfcam.io import load_capture  # noqa: E402
 from lfcam.measure import (  # noqa: E402
     measure_diameter,
+    measure_lenslet,
     measure_lightfield,
     noise_sigma,
     prepare_geometry,
@@ -60,7 +64,7 @@ from lfcam.measure.regions import find_regions  # noqa: E402
 
 DATA = ROOT / "data" / "synthetic"
 SYSTEMS = ("system1", "system2")
-METHODS = ("lightfield", "lightfield-fast", "diameter")
+METHODS = ("lightfield", "lightfield-fast", "lenslet", "diameter")
 MODELS = ("exact", "offaxis", "onaxis", "thin", "auto")
 # the slow method: 6 point captures per system (every Δh twice) and 3 lines
 SLOW_POINTS = ((3500, 0), (2500, 5), (1800, 10), (1100, 0), (600, 5), (300, 10))
@@ -68,7 +72,8 @@ SLOW_LINES_MM = (3500, 1500, 600)
 QUICK_POINTS = {"system1": (450, 10), "system2": (1500, 5)}  # cheap for the slow fit
 QUICK_LINE_MM = 3500
 CSV_COLUMNS = ("system", "source", "method", "model", "captures", "ok", "mean_error_pct",
-               "max_error_pct", "time_per_region_ms", "time_per_frame_ms")
+               "max_error_pct", "time_per_region_ms", "time_per_frame_ms",
+               "max_time_per_region_ms")
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,7 @@ class Row:
     region_s: float  # measurement + model, summed over the frame's regions
     frame_s: float  # region detection + region_s
     regions: int
+    max_region_s: float = math.nan  # the frame's slowest region (measurement + model)
 
 
 def captures(system: str, quick: bool, slow: bool) -> list[tuple[str, int, int]]:
@@ -115,31 +121,36 @@ def load(system: str, source: str, dist: int, dh: int):
 def run_capture(img, prof, geom, method: str) -> dict[str, tuple[float, str, float, float, int]]:
     """Measure every region once, apply every model; per model: (first region's distance,
     status, summed region seconds, frame seconds, region count)."""
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     stats = lenslet_stats(img, geom.lmap)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
     noise = noise_sigma(img)
-    detect_s = time.perf_counter() - t0
+    detect_s = time.process_time() - t0
     measured = []
     for reg in regions:
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         if method == "diameter":
             meas = measure_diameter(prof, geom, img, stats, reg, noise)
+        elif method == "lenslet":
+            meas = measure_lenslet(prof, geom, img, reg, noise)
         else:
             meas = measure_lightfield(prof, geom, img, reg, noise, method == "lightfield-fast")
-        measured.append((meas, time.perf_counter() - t1))
+        measured.append((meas, time.process_time() - t1))
     out = {}
     for model in MODELS:
         region_s = 0.0
+        worst = 0.0
         first = (math.nan, "no-region")
         for k, (meas, meas_s) in enumerate(measured):
-            t1 = time.perf_counter()
+            t1 = time.process_time()
             with np.errstate(invalid="ignore"):  # auto.ErrorTable.predict casts NaN
                 _, d, _, _, status = _apply_model(prof, meas, model, None)
-            region_s += meas_s + time.perf_counter() - t1
+            one = meas_s + time.process_time() - t1
+            region_s += one
+            worst = max(worst, one)
             if k == 0:
                 first = (d, status)
-        out[model] = (first[0], first[1], region_s, detect_s + region_s, len(regions))
+        out[model] = (first[0], first[1], region_s, detect_s + region_s, len(regions), worst)
     return out
 
 
@@ -159,11 +170,12 @@ def collect(quick: bool, log=print) -> list[Row]:
                 t_half = 0.5 * prof.main_lens.thickness_mm
                 ad = float(truth["distance_mm"])
                 off = float(truth.get("offset_mm", dh))
-                for model, (d, status, rs, fs, n) in run_capture(img, prof, geom, method).items():
+                for model, (d, status, rs, fs, n, worst) in run_capture(img, prof, geom,
+                                                                       method).items():
                     ok = status == "ok" and math.isfinite(d)
                     err = abs(ad - d) / (ad + t_half) * 100.0 if ok else math.nan
                     rows.append(Row(system, source, ad, off, method, model, d, status, err,
-                                    rs, fs, n))
+                                    rs, fs, n, worst))
             log(f"  {system} {method:15} {len(todo):3d} captures "
                 f"{time.perf_counter() - t_start:6.1f} s")
     return rows
@@ -189,6 +201,7 @@ def summarise(rows: list[Row]) -> list[dict]:
             "max_error_pct": f"{errs[ok].max():.4g}" if ok.any() else "nan",
             "time_per_region_ms": f"{1e3 * sum(r.region_s for r in sel) / max(nreg, 1):.4g}",
             "time_per_frame_ms": f"{1e3 * np.mean([r.frame_s for r in sel]):.4g}",
+            "max_time_per_region_ms": f"{1e3 * max(r.max_region_s for r in sel):.4g}",
         })
     return table
 
@@ -246,6 +259,7 @@ def seed_comparison(rows: list[Row]) -> list[dict]:
             "ours_offaxis_diameter_pct": fmt(pipe.get(pkey + ("diameter", "offaxis"))),
             "ours_exact_lightfield_fast_pct": fmt(pipe.get(pkey + ("lightfield-fast", "exact"))),
             "ours_exact_lightfield_pct": fmt(pipe.get(pkey + ("lightfield", "exact"))),
+            "ours_exact_lenslet_pct": fmt(pipe.get(pkey + ("lenslet", "exact"))),
         })
     return out
 
@@ -275,6 +289,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.6), sharey=False)
     ours = [("lightfield", "exact", "ours: lightfield + exact", "C0", "o-"),
             ("lightfield-fast", "exact", "ours: lightfield-fast + exact", "C2", "s-"),
+            ("lenslet", "exact", "ours: lenslet + exact", "C5", "D-"),
             ("diameter", "offaxis", "seed model on our diameter measurement", "C1", "^-"),
             ("diameter", "exact", "ours: diameter + exact", "C4", "v-")]
     for ax, (system, source, title) in zip(axes, panels, strict=True):
@@ -315,7 +330,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
     plt.close(fig)
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
-    markers = {"lightfield": "o", "lightfield-fast": "s", "diameter": "^"}
+    markers = {"lightfield": "o", "lightfield-fast": "s", "lenslet": "D", "diameter": "^"}
     colours = dict(zip(MODELS, ("C0", "C1", "C2", "C3", "C4"), strict=True))
     for ax, system in zip(axes, SYSTEMS, strict=True):
         pts, labels = [], []
@@ -353,13 +368,14 @@ def _save(fig, path: Path) -> None:
 def print_table(table: list[dict]) -> None:
     """The summary table on stdout."""
     head = (f"{'system':8} {'source':6} {'method':15} {'model':8} {'ok/n':>7} {'mean%':>8} "
-            f"{'max%':>8} {'ms/region':>10} {'ms/frame':>9}")
+            f"{'max%':>8} {'ms/region':>10} {'ms/frame':>9} {'worst ms':>9}")
     print(head)
     print("-" * len(head))
     for t in table:
         print(f"{t['system']:8} {t['source']:6} {t['method']:15} {t['model']:8} "
               f"{t['ok']:>3}/{t['captures']:<3} {t['mean_error_pct']:>8} {t['max_error_pct']:>8} "
-              f"{t['time_per_region_ms']:>10} {t['time_per_frame_ms']:>9}")
+              f"{t['time_per_region_ms']:>10} {t['time_per_frame_ms']:>9} "
+              f"{t['max_time_per_region_ms']:>9}")
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -387,6 +403,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print(f"# lightfield (slow) on Ad/Δh = {slow} mm and lines at "
               f"{', '.join(map(str, SLOW_LINES_MM))} mm only;\n# lightfield-fast and diameter "
               "on all 16 Ad × 3 Δh (+16 lines, system 1)")
+        print("# lenslet on all 16 Ad × 3 Δh (+16 lines, system 1)")
     t0 = time.perf_counter()
     rows = collect(args.quick)
     table = summarise(rows)

@@ -7,7 +7,12 @@ regions on the lenslet lattice → per region a blur measurement (:mod:`lfcam.me
 (:mod:`lfcam.export`).
 
 Methods: ``lightfield`` (default; the exact light-field fit, ``fast=True`` keeps its
-triangulation) and ``diameter`` (the seed's footprint diameter). Models: those of
+triangulation), ``lenslet`` (the exact forward model fitted to per-lenslet moments, ~50 ms a
+region), ``diameter`` (the seed's footprint diameter) and ``auto`` (the cheapest method whose
+measured worst error meets ``tolerance_pct``, :func:`lfcam.models.auto.choose_method`).
+Regions are measured in parallel over ``jobs`` processes (spawned; the image and the
+lenslet map are shared once through shared memory); the results equal the serial run's.
+Models: those of
 :data:`lfcam.models.DISTANCE_MODELS`; ``auto`` picks per region the cheapest whose predicted
 error (model error table ⊕ measurement uncertainty) meets ``tolerance_pct`` (default: best
 available, i.e. ``exact``); ``refocus`` is Hahne et al.'s depth from refocus.
@@ -18,8 +23,10 @@ regions and the outputs go on.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +51,7 @@ from lfcam.measure import (
     find_regions,
     lenslet_stats,
     measure_diameter,
+    measure_lenslet,
     measure_lightfield,
     measure_refocus,
     noise_sigma,
@@ -122,8 +130,12 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     if model == "refocus":
         d, sig, status = measure_refocus(profile, geom, img, reg)
         return reg.kind, "refocus", d, nan, nan, sig, status
+    if method == "auto":
+        method = auto.choose_method(tolerance_pct, reg.kind)
     if method == "lightfield":
         meas = measure_lightfield(profile, geom, img, reg, noise, fast)
+    elif method == "lenslet":
+        meas = measure_lenslet(profile, geom, img, reg, noise)
     else:
         meas = measure_diameter(profile, geom, img, stats, reg, noise)
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
@@ -140,6 +152,7 @@ def run_distance(
     fast: bool = False,
     progress: Callable[[int, int], None] | None = None,
     geometry: Geometry | None = None,
+    jobs: int | None = 1,
 ) -> DistanceRun:
     """Detect regions in a linear grey image and estimate a distance for each.
 
@@ -162,10 +175,15 @@ def run_distance(
         Called as ``progress(done, total)`` after each region.
     geometry : Geometry, optional
         Reuse a prepared geometry (batches).
+    jobs : int or None
+        Worker processes for the regions (``None``: all cores; 1: serial, in this process).
+        The results do not depend on it.
 
     Returns
     -------
     DistanceRun
+        ``timings_s`` holds the stage times (``geometry``, ``regions``, ``measure``), ``jobs``
+        and ``region_s``: each region's measurement CPU seconds, in region order.
 
     Raises
     ------
@@ -195,16 +213,24 @@ def run_distance(
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
     noise = noise_sigma(img)
     t2 = time.perf_counter()
+    args = (model, method, tolerance_pct, fast)
+    if jobs is None:
+        jobs = os.cpu_count() or 1
+    jobs = max(1, min(int(jobs), len(regions)))
+    if jobs > 1:
+        estimates = _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs,
+                                       progress)
+    else:
+        estimates = []
+        for i, reg in enumerate(regions):
+            estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args))
+            if progress:
+                progress(i + 1, len(regions))
     results = []
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     nan = float("nan")
-    for i, reg in enumerate(regions):
-        try:
-            kind, name, d, off, diameter, sig, status = _estimate(
-                profile, geom, img, stats, reg, noise, model, method, tolerance_pct, fast)
-        except _REGION_FAILURES as exc:
-            kind, name, d, off, diameter, sig = reg.kind, model, nan, nan, nan, nan
-            status = f"failed: {type(exc).__name__}"
+    for reg, (est, _) in zip(regions, estimates, strict=True):
+        kind, name, d, off, diameter, sig, status = est
         if status != "ok" or not np.isfinite(d):
             # no estimate: no numbers, whatever the model computed on the way
             status = status if status != "ok" else "out-of-domain"
@@ -216,11 +242,99 @@ def run_distance(
         ))
         if status == "ok":
             paint_region(dmap, reg, geom.lmap, geom.pitch_px, d)
-        if progress:
-            progress(i + 1, len(regions))
     t3 = time.perf_counter()
     return DistanceRun(results, dmap, {"geometry": t1 - t0, "regions": t2 - t1,
-                                       "measure": t3 - t2})
+                                       "measure": t3 - t2, "jobs": jobs,
+                                       "region_s": [t for _, t in estimates]})
+
+
+def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
+    """(estimate of :func:`_estimate` or its failure, CPU seconds of this region)."""
+    model, method, tolerance_pct, fast = args
+    t = time.process_time()
+    try:
+        est = _estimate(profile, geom, img, stats, reg, noise, model, method, tolerance_pct,
+                        fast)
+    except _REGION_FAILURES as exc:
+        nan = float("nan")
+        est = (reg.kind, model, nan, nan, nan, nan, f"failed: {type(exc).__name__}")
+    return est, time.process_time() - t
+
+
+# ----------------------------------------------------------------------------- parallel regions
+_WORKER: dict = {}
+
+
+def _worker_init(profile, lmap_parts, lens_centres_mm, pitch_px, d_in_mm, shm_names, shapes,
+                 energy, noise, args) -> None:
+    """Attach the shared image and lenslet labels once per worker; rebuild the geometry."""
+    from multiprocessing import shared_memory
+
+    from lfcam.measure.lenslets import LensletMap, LensletStats
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    cv2.setNumThreads(1)
+    shm_img = shared_memory.SharedMemory(name=shm_names[0])
+    shm_lab = shared_memory.SharedMemory(name=shm_names[1])
+    img = np.ndarray(shapes[0], dtype=np.float64, buffer=shm_img.buf)
+    labels = np.ndarray(shapes[0], dtype=np.int32, buffer=shm_lab.buf)
+    centres_px, radius_px = lmap_parts
+    geom = Geometry(LensletMap(centres_px, labels, radius_px), lens_centres_mm, pitch_px,
+                    d_in_mm)
+    stats = LensletStats(energy[0], energy[1], energy[2])
+    _WORKER.update(profile=profile, geom=geom, img=img, stats=stats, noise=noise, args=args,
+                   shm=(shm_img, shm_lab))
+    # a worker whose parent was killed would otherwise live on, orphaned: leave with it
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    import threading
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _worker_region(reg: Region) -> tuple:
+    w = _WORKER
+    return _timed_estimate(w["profile"], w["geom"], w["img"], w["stats"], reg, w["noise"],
+                           w["args"])
+
+
+def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, progress):
+    """:func:`_timed_estimate` of every region over ``jobs`` spawned worker processes."""
+    import multiprocessing as mp
+    from multiprocessing import shared_memory
+
+    shms = []
+    try:
+        for arr in (img, geom.lmap.labels.astype(np.int32, copy=False)):
+            shm = shared_memory.SharedMemory(create=True, size=max(arr.nbytes, 1))
+            np.ndarray(arr.shape, dtype=arr.dtype, buffer=shm.buf)[...] = arr
+            shms.append(shm)
+        init = (profile, (geom.lmap.centres_px, geom.lmap.radius_px), geom.lens_centres_mm,
+                geom.pitch_px, geom.d_in_mm, [s.name for s in shms], (img.shape,),
+                (stats.energy, stats.centroid_px, stats.pixels), noise, args)
+        # the largest regions first, so that no worker is left with a long tail
+        order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
+        out: list = [None] * len(regions)
+        with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
+                                 initializer=_worker_init, initargs=init) as pool:
+            futures = {pool.submit(_worker_region, regions[i]): i for i in order}
+            from concurrent.futures import as_completed
+
+            for done, fut in enumerate(as_completed(futures), start=1):
+                out[futures[fut]] = fut.result()
+                if progress:
+                    progress(done, len(regions))
+        return out
+    finally:
+        for shm in shms:
+            shm.close()
+            shm.unlink()
 
 
 def write_outputs(outdir: str | Path, run: DistanceRun) -> None:

@@ -14,6 +14,7 @@ from lfcam.cli.common import (
     capture_files,
     json_value,
     positive_float,
+    positive_int,
     profile_file,
     verify_mode,
 )
@@ -37,12 +38,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="auto",
                    choices=DISTANCE_MODELS,
                    help="refocus = Hahne et al.'s depth from refocus (the seed's baseline)")
-    p.add_argument("--method", default="lightfield", choices=METHODS,
-                   help="blur measurement: exact light-field fit, or the seed's diameter")
+    p.add_argument("--method", choices=METHODS,
+                   help="blur measurement: lightfield (exact fit of the pixels), lenslet (exact "
+                   "fit of per-lenslet moments, fast), diameter (the seed's), auto (cheapest "
+                   "meeting --tolerance); default: auto with --model auto --tolerance, else "
+                   "lightfield")
     p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
+    p.add_argument("--jobs", type=positive_int, metavar="N",
+                   help="worker processes for the regions (default: all cores)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_no_verify(p)
@@ -72,17 +78,21 @@ def run(args: argparse.Namespace) -> int:
         check_saturation(cap)
         image = cap.grey()
         bar("loading", 1, 1)
+        method = args.method or ("auto" if args.model == "auto" and args.tolerance is not None
+                                 else "lightfield")
         result = run_distance(image, profile, calibration, model=args.model,
-                              method=args.method, tolerance_pct=args.tolerance, fast=args.fast,
-                              progress=counts(bar, "regions"))
+                              method=method, tolerance_pct=args.tolerance, fast=args.fast,
+                              progress=counts(bar, "regions"), jobs=args.jobs)
         bar("writing", 0, 1)
         write_outputs(out, result)
         bar("writing", 1, 1)
     ok = sum(r.status == "ok" for r in result.regions)
     if args.json:
         print(json.dumps({
-            "regions": [{k: json_value(v) for k, v in r.__dict__.items() if k != "bbox_px"}
-                        for r in result.regions],
+            "regions": [{**{k: json_value(v) for k, v in r.__dict__.items() if k != "bbox_px"},
+                         "time_ms": json_value(1e3 * t)}
+                        for r, t in zip(result.regions, result.timings_s["region_s"],
+                                        strict=True)],
             "output": str(args.output),
             "timings_s": result.timings_s,
         }))

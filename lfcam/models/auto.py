@@ -160,3 +160,32 @@ def choose(
         distance[idx], offset[idx], status[idx] = inv.distance_mm, inv.offset_mm, inv.status
         sigma[idx] = np.hypot(sig, model_err * inv.distance_mm)
     return chosen.astype(str), Inversion(distance, offset, status), sigma
+
+
+# ----------------------------------------------------------------------------- method choice
+# Measurement methods, cheapest first, with the largest ERROR (eq. 21, %) measured over both
+# systems by ``benchmarks/tradeoff.py`` (docs/results/tradeoff.csv, model ``exact``; lines:
+# system 1's 16 lines, lightfield's from docs/distance.md's seed grid), per source kind: what
+# ``method="auto"`` reads to pick the cheapest method that meets a tolerance.
+METHOD_COST_ORDER = ("diameter", "lenslet", "lightfield")
+METHOD_MAX_ERROR_PCT = {
+    "spot": {"diameter": 46.98, "lenslet": 0.132, "lightfield": 0.198},
+    "line": {"diameter": 38.18, "lenslet": 0.747, "lightfield": 0.975},
+}
+
+
+def choose_method(tolerance_pct: float | None, kind: str = "spot") -> str:
+    """The cheapest measurement method whose measured worst error for ``kind`` (``spot`` or
+    ``line``) meets ``tolerance_pct``.
+
+    Without a tolerance (or when none meets it): the method with the smallest measured worst
+    error.
+    """
+    table = METHOD_MAX_ERROR_PCT["line" if kind == "line" else "spot"]
+    best = min(METHOD_COST_ORDER, key=table.__getitem__)
+    if tolerance_pct is None:
+        return best
+    for name in METHOD_COST_ORDER:
+        if table[name] <= tolerance_pct:
+            return name
+    return best

@@ -1,0 +1,223 @@
+"""Many-source scenes (issue 17): the distance run of a whole frame, stage by stage.
+
+Run: ``python benchmarks/many_sources.py --scene a|b [--workdir DIR] [--methods lenslet]
+[--jobs N] [--no-cli]``
+
+* ``a``: a 1568² system-2 capture (focus 3.5 m) with 12 point sources, 600…3000 mm, spread
+  over the field. Target: ``lfcam distance`` ≤ 5 s wall on the 2-core machine.
+* ``b``: an Illum-size capture (``benchmarks/profiles/illum_like.toml``: system 2's main lens,
+  7728×5368 px of 2.5 µm, hex MLA of 14.29 px pitch, 235 k lenslets) with 100 point sources and
+  10 lines of 4 mm, 900…1500 mm (blurs of 300–1500 lenslets that do not overlap).
+  Target: ≤ 15 s.
+
+Both are rendered with :mod:`lfcam.sim` (photon and read noise, ``RAYS_PER_SOURCE`` rays a
+source) into ``--workdir`` (PNG + profile sidecar + truth, cached). The calibration is the
+renderer's own lenslet lattice, mapped to white-image centroids through the same radial
+white-offset table that :func:`lfcam.measure.prepare_geometry` inverts ("lattice
+calibration": a white image of 41 Mpx would take the backward renderer far longer than the
+benchmark; the white-calibration path is measured on system 2 in ``benchmarks/lenslet_focus.py``
+and ``docs/distance.md``).
+
+Per method: the stage times of one in-process run (load, geometry, regions, fits, export),
+the wall time of the ``lfcam distance`` command on the written files (``--no-cli`` skips it),
+the worst single region's CPU time, and the errors against the truth (each truth source is
+matched to the region nearest its light centroid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from lfcam.calibrate import load_calibration  # noqa: E402
+from lfcam.calibrate.model import Calibration, save_calibration  # noqa: E402
+from lfcam.camera import CameraProfile, load_profile  # noqa: E402
+from lfcam.distance import run_distance, write_outputs  # noqa: E402
+from lfcam.io import load_capture  # noqa: E402
+from lfcam.measure import prepare_geometry  # noqa: E402
+from lfcam.measure.geometry import white_offset_table  # noqa: E402
+from lfcam.measure.pointfit import chief_ray_offset  # noqa: E402
+from lfcam.sim.capture import apply_overrides, simulate, write_capture  # noqa: E402
+from lfcam.sim.render import Renderer  # noqa: E402
+from lfcam.sim.scene import scene_from_dict  # noqa: E402
+
+NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
+RAYS_PER_SOURCE = 200_000
+
+
+def scene_a() -> tuple[CameraProfile, dict]:
+    """12 point sources on a 1568² system-2 sensor."""
+    base = load_profile("system2")
+    camera = {"sensor": {"width_px": 1568, "height_px": 1568}}
+    prof = apply_overrides(base, camera)
+    dists = (600.0, 800.0, 1000.0, 1200.0, 1500.0, 1800.0, 2000.0, 2200.0, 2500.0, 2800.0,
+             3000.0, 1100.0)
+    # a 4 × 3 grid of sensor positions (mm), clear of each other's blurs
+    spots = [(x, y) for y in (-7.5, 0.0, 7.5) for x in (-8.5, -2.8, 2.8, 8.5)]
+    objects = []
+    for d, (sx, sy) in zip(dists, spots, strict=True):
+        xy = _source_xy(prof, d, sx, sy)
+        objects.append({"type": "point", "distance_mm": d, "position_mm": xy})
+    return base, {"seed": 11, "rays_per_source": RAYS_PER_SOURCE, "sensor": NOISE,
+                  "exposure": {"peak": 0.8}, "camera": camera, "objects": objects}
+
+
+def scene_b() -> tuple[CameraProfile, dict]:
+    """100 point sources and 10 lines on the Illum-size sensor."""
+    base = load_profile(ROOT / "benchmarks" / "profiles" / "illum_like.toml")
+    rng = np.random.default_rng(17)
+    w = base.sensor.width_px * base.sensor.pixel_pitch_mm
+    h = base.sensor.height_px * base.sensor.pixel_pitch_mm
+    cols, rows = 11, 10  # 110 cells: 100 points, 10 lines
+    objects = []
+    for k in range(cols * rows):
+        i, j = k % cols, k // cols
+        sx = (i + 0.5) / cols * w - 0.5 * w
+        sy = (j + 0.5) / rows * h - 0.5 * h
+        d = float(rng.uniform(900.0, 1500.0))
+        xy = _source_xy(base, d, sx, sy)
+        if k % 11 == 5:  # every 11th cell: a 4 mm line
+            ang = float(rng.uniform(0.0, math.pi))
+            dx, dy = 2.0 * math.cos(ang), 2.0 * math.sin(ang)
+            objects.append({"type": "line", "distance_mm": d,
+                            "start_mm": [xy[0] - dx, xy[1] - dy],
+                            "end_mm": [xy[0] + dx, xy[1] + dy]})
+        else:
+            objects.append({"type": "point", "distance_mm": d, "position_mm": xy})
+    return base, {"seed": 12, "rays_per_source": RAYS_PER_SOURCE, "sensor": NOISE,
+                  "exposure": {"peak": 0.8}, "objects": objects}
+
+
+def _source_xy(prof: CameraProfile, distance: float, sx: float, sy: float) -> list[float]:
+    """Source position whose chief ray lands at sensor point (sx, sy) mm."""
+    mag = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
+    xy = chief_ray_offset(prof, prof.d_in_mm, distance, np.array([sx, sy]) / mag)
+    return [float(xy[0]), float(xy[1])]
+
+
+def lattice_calibration(prof: CameraProfile, shape: tuple[int, int]) -> Calibration:
+    """The renderer's lenslet lattice as a calibration (module docstring)."""
+    rend = Renderer(prof)
+    c = np.stack([rend.lcx, rend.lcy], 1)
+    pp = prof.sensor.pixel_pitch_mm
+    ax, ay = prof.sensor.axis_xy_px
+    r = np.hypot(c[:, 0], c[:, 1])
+    radii, r_w = white_offset_table(prof, float(prof.d_in_mm), float(r.max() * 1.05 + 1e-6))
+    rw = np.interp(r, radii, r_w)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(r > 0, rw / r, r_w[1] / radii[1])
+    px = c * scale[:, None] / pp + np.array([ax, ay])
+    h, w = shape
+    keep = (px[:, 0] > 1) & (px[:, 0] < w - 2) & (px[:, 1] > 1) & (px[:, 1] < h - 2)
+    mag = float(r_w[1] / radii[1])
+    return Calibration.from_lattice(
+        prof.mla.grid, prof.mla.pitch_mm * mag / pp, prof.mla.rotation_rad,
+        (ax + prof.mla.offset_mm[0] * mag / pp, ay + prof.mla.offset_mm[1] * mag / pp),
+        px[keep], image_size_px=(w, h), d_in_mm=prof.d_in_mm, source="lattice calibration")
+
+
+def prepare(name: str, workdir: Path) -> tuple[Path, Path, dict]:
+    """Render (or reuse) the scene and its calibration; (capture, calibration, truth)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    png = workdir / f"scene_{name}.png"
+    cal_path = workdir / f"scene_{name}.calib.json"
+    truth_path = workdir / f"scene_{name}.truth.json"
+    if not (png.exists() and cal_path.exists() and truth_path.exists()):
+        base, scene = scene_a() if name == "a" else scene_b()
+        t = time.perf_counter()
+        raw, used, truth = simulate(base, scene_from_dict(scene))
+        print(f"# rendered scene {name}: {raw.shape[1]}×{raw.shape[0]} px, "
+              f"{len(scene['objects'])} sources, {time.perf_counter() - t:.0f} s", flush=True)
+        write_capture(png, raw, used, truth)
+        save_calibration(lattice_calibration(used, raw.shape), cal_path)
+    return png, cal_path, json.loads(truth_path.read_text(encoding="utf-8"))
+
+
+def match(regions, truth: dict, t_half: float) -> list[float]:
+    """Eq. 21 error (%) of the region nearest each truth source's light centroid."""
+    errs = []
+    for src in truth["sources"]:
+        cx, cy = src["centroid_px"]
+        k = int(np.argmin([math.hypot(r.x_px - cx, r.y_px - cy) for r in regions]))
+        r = regions[k]
+        ad = float(src["distance_mm"])
+        errs.append(abs(r.distance_mm - ad) / (ad + t_half) * 100.0 if r.status == "ok"
+                    else math.nan)
+    return errs
+
+
+def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> dict:
+    """One method on one scene: stage times, CLI wall time, worst region, errors."""
+    png, cal_path, truth = prepare(name, workdir)
+    out = workdir / f"out_{name}_{method}"
+    t0 = time.perf_counter()
+    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
+    cal = load_calibration(cal_path)
+    img = load_capture(png, prof).grey()
+    t1 = time.perf_counter()
+    geom = prepare_geometry(prof, cal, img.shape)
+    t2 = time.perf_counter()
+    res = run_distance(img, prof, cal, model="exact", method=method, geometry=geom, jobs=jobs)
+    t3 = time.perf_counter()
+    write_outputs(out, res)
+    t4 = time.perf_counter()
+    errs = np.array(match(res.regions, truth, 0.5 * prof.main_lens.thickness_mm))
+    rec = {
+        "scene": name, "method": method, "jobs": res.timings_s["jobs"],
+        "regions": len(res.regions), "sources": len(truth["sources"]),
+        "load_s": t1 - t0, "geometry_s": t2 - t1, "regions_s": res.timings_s["regions"],
+        "fits_s": res.timings_s["measure"], "export_s": t4 - t3, "total_s": t4 - t0,
+        "region_cpu_sum_s": float(sum(res.timings_s["region_s"])),
+        "worst_region_ms": 1e3 * max(res.timings_s["region_s"], default=0.0),
+        "missing": int(np.isnan(errs).sum()),
+        "mean_error_pct": float(np.nanmean(errs)), "max_error_pct": float(np.nanmax(errs)),
+    }
+    if cli:
+        cmd = [sys.executable, "-m", "lfcam", "distance", str(png), "--calibration",
+               str(cal_path), "--method", method, "--model", "exact", "--json", "-q",
+               "-o", str(workdir / f"cli_{name}_{method}")]
+        if jobs:
+            cmd += ["--jobs", str(jobs)]
+        for f in ("regions.csv", "distance.tiff", "distance.png"):
+            (workdir / f"cli_{name}_{method}" / f).unlink(missing_ok=True)
+        t = time.perf_counter()
+        done = subprocess.run(cmd, capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+        rec["cli_wall_s"] = time.perf_counter() - t
+        if done.returncode != 0:
+            raise SystemExit(done.stderr)
+        rec["cli_timings_s"] = {k: v for k, v in json.loads(done.stdout)["timings_s"].items()
+                                if k != "region_s"}
+    return rec
+
+
+def main(argv=None) -> list[dict]:
+    """Run and print (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", choices=("a", "b"), default="a")
+    ap.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / ".cache")
+    ap.add_argument("--methods", default="lenslet")
+    ap.add_argument("--jobs", type=int, default=None, help="default: all cores")
+    ap.add_argument("--no-cli", action="store_true")
+    args = ap.parse_args(argv)
+    recs = []
+    for method in args.methods.split(","):
+        rec = run(args.scene, args.workdir, method, args.jobs, not args.no_cli)
+        recs.append(rec)
+        print(json.dumps(rec, indent=1), flush=True)
+    return recs
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,711 @@
+"""The lenslet-statistics fit: the exact forward model fitted to per-lenslet moments.
+
+``method="lenslet"`` (docs/distance.md, "The lenslet fit"). The per-pixel fit
+(:func:`lfcam.measure.pointfit.fit_point_image`) compares a rendered patch with the data
+pixel by pixel; this fit compresses both sides the same way first. For every lenslet whose
+micro-image touches the region's box it keeps four linear moments of the pixels the lenslet
+map (:class:`lfcam.measure.LensletMap`) gives that lenslet:
+
+    m0 = Σ v,   m1 = Σ v·dx,   m2 = Σ v·dy,   m3 = Σ v·(dx² + dy²)
+
+(dx, dy: pixel centre minus micro-image centre, in pitches). The moments are linear in the
+image, so the unknown intensity scale is still solved in closed form, and they are computed
+from the *same pixels* on both sides: the model traces rays exactly through the thick lens,
+crosses the lenslet whose cell it hits, lands at ``C + f_x·slope``, is binned to the pixel
+that contains it (the sensor integrates: the half-pixel centroid shifts of 2–4 px spots behind
+focus are modelled, not assumed away), looked up in the same lenslet map and dropped where the
+data has no pixel (sensor edge, seams, outside the box). No threshold is involved.
+
+Each ray stands for a patch of the pupil: near a lenslet-cell border (MLA) and near a pixel
+border (sensor) it is shared across the border by a box of the local ray spacing, so that the
+moments are continuous in the source position (hard binning is the limit of a vanishing box).
+
+Cost: a model evaluation is one trace of 1 k–20 k rays (Vogel-spiral pupil sample:
+quasi-random, no grid aliasing against the pixels) and four ``bincount`` — 0.5–3 ms. Fit
+(:func:`fit_lenslet_point`): a batched distance scan of a smooth summary (slope-field gain,
+footprint centroid and size), Broyden matching of that summary from the best starts,
+Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model.
+Lines (:func:`fit_lenslet_line`): ``LINE_POINTS`` equally bright points along a segment, 5
+parameters, started from the point fit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.measure.base import Measurement
+from lfcam.measure.geometry import Geometry
+from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
+from lfcam.measure.regions import Region
+from lfcam.optics.trace import forward, trace_source_fast
+
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
+MIN_RAYS = 12000
+MAX_RAYS = 20000
+MAX_ITERATIONS = 12
+COARSE_RAYS = 3000  # rays per evaluation while the basin is found
+SCAN_RAYS = 1000  # rays per evaluation of the distance scan
+COARSE_PER_LENSLET = 25  # ... at least this many per lit lenslet
+SCAN_DISTANCES = 28  # geometric distance scan, 1.1 f … 30 m
+SCAN_KEEP = 2  # starts matched on the summary
+COARSE_ITERATIONS = 6
+COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
+SUMMARY_ITERATIONS = 4
+FINE_ITERATIONS = 4
+LINE_POINTS = 12
+LINE_COARSE_SHARE = 12  # the coarse line model traces COARSE_RAYS / this per point
+LINE_TRIGGER = 3.0  # a point misfit over this × the model's noise floor: also try a line
+LINE_GAIN = 0.9  # ... and becomes a line when that cuts the misfit below this × the point's
+_LATTICES: dict[int, LocalLattice | None] = {}
+_PEDESTAL: dict = {}
+
+
+def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral),
+    turned by ``phase`` radians."""
+    i = np.arange(n, dtype=np.float64)
+    r = np.sqrt((i + 0.5) / n)
+    t = i * GOLDEN_ANGLE + phase
+    return r * np.cos(t), r * np.sin(t)
+
+
+def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
+    """The exact lenslet-cell lookup of a geometry (cached per geometry object)."""
+    key = id(geom)
+    if key not in _LATTICES:
+        if len(_LATTICES) > 8:
+            _LATTICES.clear()
+        _LATTICES[key] = LocalLattice.fit(geom.lens_centres_mm, pitch_mm)
+    return _LATTICES[key]
+
+
+@dataclass
+class _Moments:
+    """The region's lenslets and the data's moments (module docstring)."""
+
+    box: tuple[int, int, int, int]
+    labels: np.ndarray  # (h, w) compact lenslet index in the box, −1 none
+    ids: np.ndarray  # (K,) geometry lenslet index of each compact index
+    centres_px: np.ndarray  # (K, 2) micro-image centres
+    data: np.ndarray  # (K, 4)
+    norm: float
+
+
+def _moments_of(centres_px, pitch_px, x_px, y_px, w, k, group=None, groups=1):
+    """Four moments per compact lenslet ``k`` from samples at pixel (x, y) with weight w;
+    with ``group`` (one per sample), ``groups`` stacked sets: (groups·K, 4)."""
+    n = len(centres_px)
+    dx = (x_px - centres_px[k, 0]) / pitch_px
+    dy = (y_px - centres_px[k, 1]) / pitch_px
+    bins = k if group is None else group * n + k
+    n = n * groups
+    out = np.empty((n, 4))
+    out[:, 0] = np.bincount(bins, w, minlength=n)
+    out[:, 1] = np.bincount(bins, w * dx, minlength=n)
+    out[:, 2] = np.bincount(bins, w * dy, minlength=n)
+    out[:, 3] = np.bincount(bins, w * (dx * dx + dy * dy), minlength=n)
+    return out
+
+
+def pedestal(image: np.ndarray) -> float:
+    """Mean level of the pixels that see no source: a sensor that clips its noise at zero
+    (unsigned raws) leaves a positive mean of ~0.4 σ in the dark, which the moments would read
+    as light. A sample of the frame, values above median + 5 σ left out (σ from the upper
+    quartile, which clipping does not move)."""
+    key = (id(image), image.shape)
+    if _PEDESTAL.get("key") != key:
+        sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
+        med, upper = np.percentile(sample, [50.0, 75.0])
+        # the upper quartile keeps its place when the noise below zero is clipped
+        sig = max(float(upper - med) / 0.6745, 1e-12)
+        dark = sample[sample <= med + 5.0 * sig]
+        _PEDESTAL.update(key=key, value=float(dark.mean()) if dark.size else 0.0)
+    return _PEDESTAL["value"]
+
+
+def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int]) -> _Moments:
+    """Moments of the data over the lenslets whose pixels lie in ``box`` (the dark pedestal
+    removed, :func:`pedestal`)."""
+    x0, y0, x1, y1 = box
+    lab = geom.lmap.labels[y0:y1, x0:x1]
+    keep = lab >= 0
+    present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0
+    ids = np.flatnonzero(present)
+    index = np.full(geom.lmap.count + 1, -1, dtype=np.int64)
+    index[ids] = np.arange(len(ids))
+    compact = index[lab]  # label −1 reads the last entry: −1
+    inv = compact[keep]
+    yy, xx = np.nonzero(keep)
+    cen = geom.lmap.centres_px[ids]
+    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - pedestal(image)
+    m = _moments_of(cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
+    return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())))
+
+
+class LensletModel:
+    """Forward model of a region's lenslet moments for point (or line) sources."""
+
+    def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
+                 phase: float = 0.0):
+        self.profile, self.geom, self.mom = profile, geom, mom
+        lens = profile.main_lens
+        half = 0.5 * lens.pupil_diameter_mm
+        u, v = vogel_disc(n_rays, phase)
+        self.rx, self.ry = u * half, v * half
+        self.spacing = lens.pupil_diameter_mm * math.sqrt(math.pi / (4.0 * n_rays))
+        self.lattice = lattice_of(geom, profile.mla.pitch_mm)
+        self.evaluations = 0
+        self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
+
+    def simulate(self, sources: np.ndarray) -> np.ndarray:
+        """(K, 4) moments of unit-intensity source point(s) ``(3,)`` or ``(M, 3)``.
+
+        Each ray stands for a patch of the pupil; it is spread as a box of the local ray
+        spacing across the lenslet-cell border it lies near (MLA plane) and across the pixel
+        border (sensor). With the box shrunk to nothing this is the renderer's binning; with it,
+        the moments are continuous (piecewise linear) in the source position, so that
+        finite-difference Jacobians with small steps are meaningful.
+        """
+        self.evaluations += 1
+        key = np.asarray(sources, dtype=np.float64).tobytes()
+        with np.errstate(over="ignore", invalid="ignore"):  # rays that miss: ok = False
+            out = self._simulate(sources)
+        self.last = (key, out)
+        return out
+
+    def simulate_each(self, sources: np.ndarray) -> np.ndarray:
+        """(M, K, 4) moments of each of ``M`` sources separately, in one pass."""
+        self.evaluations += 1
+        src = np.atleast_2d(sources)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._simulate(src, separate=True).reshape(len(src), -1, 4)
+
+    def _simulate(self, sources: np.ndarray, separate: bool = False) -> np.ndarray:
+        p = self.profile
+        lens = p.main_lens
+        fx = p.mla.focal_length_mm
+        pp = p.sensor.pixel_pitch_mm
+        ax, ay = p.sensor.axis_xy_px
+        x0, y0 = self.mom.box[:2]
+        h, w = self.mom.labels.shape
+        points = np.atleast_2d(sources)
+        groups = len(points) if separate else 1
+        out = np.zeros((groups * len(self.mom.data), 4))
+        # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
+        mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
+        s_px = min(0.9, self.spacing * mag)
+        xs, ys, sxs, sys_, wts, gaps, tags = [], [], [], [], [], [], []
+        for g, pt in enumerate(points):
+            tr = trace_source_fast(lens, tuple(pt), self.rx, self.ry, self.geom.d_in_mm)
+            ok = tr.ok
+            if not ok.any():
+                continue
+            along = lens.rim_z_mm - pt[2]
+            rho2 = (self.rx[ok] - pt[0]) ** 2 + (self.ry[ok] - pt[1]) ** 2 + along * along
+            wts.append((along * along / rho2) ** 1.5)
+            x, y = tr.x[ok], tr.y[ok]
+            xs.append(x)
+            ys.append(y)
+            sxs.append(fx * tr.dx[ok] / tr.dz[ok])
+            sys_.append(fx * tr.dy[ok] / tr.dz[ok])
+            # MLA-plane ray spacing: the footprint's extent over the pupil's, times the
+            # pupil spacing
+            foot = max(float(np.ptp(x)), float(np.ptp(y)))
+            gaps.append(np.full(x.size, max(self.spacing * foot / lens.pupil_diameter_mm,
+                                            1e-12)))
+            tags.append(np.full(x.size, g if separate else 0, dtype=np.int64))
+        if not xs:
+            return out
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        sx, sy, wt = np.concatenate(sxs), np.concatenate(sys_), np.concatenate(wts)
+        c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
+        share = np.clip(0.5 - gap / np.concatenate(gaps), 0.0, 0.5)
+        split = share > 0
+        tag = np.concatenate(tags)
+        cx = np.concatenate([c1x, c2x[split]])
+        cy = np.concatenate([c1y, c2y[split]])
+        wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
+        tag = np.concatenate([tag, tag[split]])
+        px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
+        py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
+        cols, rows, wts_, ray = _pixel_boxes(px, py, wt, s_px, with_source=True)
+        inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        cols, rows, wts_, ray = cols[inside], rows[inside], wts_[inside], ray[inside]
+        k = self.mom.labels[rows, cols]
+        known = k >= 0
+        return _moments_of(self.mom.centres_px, self.geom.pitch_px, cols[known] + x0,
+                           rows[known] + y0, wts_[known], k[known],
+                           tag[ray[known]] if separate else None, groups)
+
+    def residual(self, sources: np.ndarray) -> np.ndarray:
+        """Data minus the best-scaled model moments, over the data's norm."""
+        return self.residual_of(self.simulate(sources))
+
+    def residual_of(self, m: np.ndarray) -> np.ndarray:
+        """Data minus the best-scaled moments ``m``, over the data's norm."""
+        mm = float((m * m).sum())
+        a = float((m * self.mom.data).sum()) / mm if mm > 0 else 0.0
+        return ((self.mom.data - a * m) / self.mom.norm).ravel()
+
+
+def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
+    """Nearest and second-nearest lattice nodes of MLA points, and each point's distance to
+    their bisector (the cell border it is nearest to): (n1x, n1y, n2x, n2y, gap)."""
+    b = lattice.basis
+    o = lattice.origin
+    u = lattice.inverse @ np.vstack([x - o[0], y - o[1]])
+    la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
+    if abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb:
+        # rectangular cells (a shear below 1e-4 moves their corners by < 1e-4 pitch): the
+        # nearest node by rounding, the nearest border along u or v
+        i, j = np.rint(u[0]), np.rint(u[1])
+        fu, fv = u[0] - i, u[1] - j
+        gu = (0.5 - np.abs(fu)) * la
+        gv = (0.5 - np.abs(fv)) * lb
+        across_u = gu <= gv
+        i2 = np.where(across_u, i + np.sign(fu), i)
+        j2 = np.where(across_u, j, j + np.sign(fv))
+        gap = np.minimum(gu, gv)
+    else:
+        fu, fv = np.floor(u[0]), np.floor(u[1])
+        ru, rv = u[0] - fu, u[1] - fv
+        d2 = []
+        for di, dj in ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)):
+            gx = b[0, 0] * (ru - di) + b[0, 1] * (rv - dj)
+            gy = b[1, 0] * (ru - di) + b[1, 1] * (rv - dj)
+            d2.append(gx * gx + gy * gy)
+        d2 = np.array(d2)
+        corner = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+        k1 = np.argmin(d2, axis=0)
+        cols = np.arange(x.size)
+        da = d2[k1, cols]
+        d2[k1, cols] = np.inf
+        k2 = np.argmin(d2, axis=0)
+        db = d2[k2, cols]
+        i, j = fu + corner[k1, 0], fv + corner[k1, 1]
+        i2, j2 = fu + corner[k2, 0], fv + corner[k2, 1]
+        di, dj = i2 - i, j2 - j
+        sep = np.hypot(b[0, 0] * di + b[0, 1] * dj, b[1, 0] * di + b[1, 1] * dj)
+        gap = (db - da) / (2.0 * sep)
+    return (o[0] + b[0, 0] * i + b[0, 1] * j, o[1] + b[1, 0] * i + b[1, 1] * j,
+            o[0] + b[0, 0] * i2 + b[0, 1] * j2, o[1] + b[1, 0] * i2 + b[1, 1] * j2, gap)
+
+
+def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float,
+                 with_source: bool = False):
+    """Bin rays at sensor positions (px, py) into pixels, each ray a box ``s`` px wide:
+    (cols, rows, weights[, index of the ray each share came from]); ``s → 0`` is
+    nearest-pixel binning (the sensor's integration)."""
+    cx, cy = np.floor(px + 0.5), np.floor(py + 0.5)
+    tx, ty = px - cx, py - cy  # offset from the pixel centre, [−0.5, 0.5)
+    ex = np.clip((np.abs(tx) + 0.5 * s - 0.5) / s, 0.0, 0.5)  # share beyond the near edge
+    ey = np.clip((np.abs(ty) + 0.5 * s - 0.5) / s, 0.0, 0.5)
+    nx = cx + np.sign(tx)
+    ny = cy + np.sign(ty)
+    sx, sy = ex > 0, ey > 0
+    sxy = sx & sy
+    cols = np.concatenate([cx, nx[sx], cx[sy], nx[sxy]]).astype(np.int64)
+    rows = np.concatenate([cy, cy[sx], ny[sy], ny[sxy]]).astype(np.int64)
+    wts = np.concatenate([w * (1 - ex) * (1 - ey), (w * ex * (1 - ey))[sx],
+                          (w * (1 - ex) * ey)[sy], (w * ex * ey)[sxy]])
+    if not with_source:
+        return cols, rows, wts
+    src = np.concatenate([np.arange(px.size), np.flatnonzero(sx), np.flatnonzero(sy),
+                          np.flatnonzero(sxy)])
+    return cols, rows, wts, src
+
+
+def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
+    """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
+
+    Returns (q, residual, cost, Jacobian at the last linearisation).
+    """
+    q = np.asarray(q0, dtype=np.float64)
+    r = fun(q)
+    f = float(r @ r)
+    lam = 1e-4
+    jac = None
+    for _ in range(max_iter):
+        jac = np.column_stack([(fun(q + h * e) - r) / h
+                               for h, e in zip(steps, np.eye(len(q)), strict=True)])
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        improved = False
+        dq = np.zeros_like(q)
+        for _ in range(5):
+            a = jtj + lam * np.diag(np.diag(jtj) + 1e-30)
+            try:
+                dq = -np.linalg.solve(a, g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            r2 = fun(q + dq)
+            f2 = float(r2 @ r2)
+            if f2 < f:
+                q, r, f = q + dq, r2, f2
+                lam = max(lam / 10, 1e-8)
+                improved = True
+                break
+            lam *= 10
+        if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
+            break
+    return q, r, f, jac
+
+
+def _region_box(geom: Geometry, region: Region, shape) -> tuple[int, int, int, int]:
+    x0, y0, x1, y1 = region.box_px
+    pad = int(math.ceil(0.5 * geom.pitch_px))
+    h, w = shape
+    return max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad)
+
+
+@dataclass(frozen=True)
+class LensletFit:
+    """Result of the lenslet-statistics fit of one region."""
+
+    source_mm: np.ndarray  # (3,) point, or the midpoint of a line
+    misfit: float
+    sigma_distance_mm: float
+    evaluations: int
+    ok: bool
+    reason: str = ""
+    ends_mm: tuple = ()  # lines: (start (3,), end (3,))
+    noise_floor: float = float("nan")  # misfit the model's own ray sampling explains
+
+
+class _Frame:
+    """Parameters ``q = (log distance, x/L, y/L)``, L the distance to the stop: changing the
+    distance keeps the line of sight through the stop centre, which decouples the three."""
+
+    def __init__(self, profile: CameraProfile):
+        lens = profile.main_lens
+        self.z_front = lens.front_vertex_z_mm
+        self.z_rim = lens.rim_z_mm
+
+    def source(self, q: np.ndarray) -> np.ndarray:
+        # a wild optimiser step stays a finite source (1 mm … 10⁷ mm, within ±45°)
+        z = self.z_front - math.exp(float(np.clip(q[0], 0.0, 16.0)))
+        along = self.z_rim - z
+        return np.array([float(np.clip(q[1], -1.0, 1.0)) * along,
+                         float(np.clip(q[2], -1.0, 1.0)) * along, z])
+
+    def params(self, s: np.ndarray) -> np.ndarray:
+        along = self.z_rim - s[2]
+        return np.array([math.log(self.z_front - s[2]), s[0] / along, s[1] / along])
+
+
+def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray) -> np.ndarray:
+    """Smooth low-dimensional summary of lenslet moments ``m`` (data or model), (4,).
+
+    ``(b, x̄, ȳ, ρ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
+    (≈ f_x/δ for an image point δ before the MLA: its sign tells the side of focus), (x̄, ȳ)
+    the energy centroid of the lit lenslets and ρ their energy-weighted RMS radius about it
+    (mm on the MLA; the blur's size).
+    """
+    e = m[:, 0]
+    if not e.max() > 0:
+        return np.full(4, np.nan)
+    lit = e > 0.05 * e.max()
+    c = geom.lens_centres_mm[mom.ids[lit]]
+    w = e[lit]
+    cbar = (c * w[:, None]).sum(0) / w.sum()
+    off = geom.pitch_px * profile.sensor.pixel_pitch_mm * m[lit, 1:3] / w[:, None]
+    dc = c - cbar
+    obar = (off * w[:, None]).sum(0) / w.sum()
+    r2 = (dc * dc).sum(1)
+    den = float((w * r2).sum())
+    b = float((w * ((off - obar) * dc).sum(1)).sum()) / den if den > 0 else 0.0
+    rho = math.sqrt(den / float(w.sum()))
+    return np.array([b, cbar[0], cbar[1], rho])
+
+
+def _starts(profile, geom, mom, frame, model):
+    """Starting parameters from a geometric distance scan (lateral position from the chief ray
+    through the light's centroid): where the model's slope-field gain crosses the data's
+    (interpolated in log distance), and the scan point of least misfit."""
+    lens = profile.main_lens
+    f = lens.focal_length_mm
+    t_data = summary(profile, geom, mom, mom.data)
+    target = t_data[1:3]
+    qs = []
+    for d in np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES):
+        xy = chief_ray_offset(profile, geom.d_in_mm, d, target)
+        qs.append(frame.params(np.array([xy[0], xy[1], frame.z_front - d])))
+    ms = model.simulate_each(np.array([frame.source(q) for q in qs]))
+    scan = []
+    for q, m in zip(qs, ms, strict=True):
+        r = model.residual_of(m)
+        scan.append((float(r @ r), q, summary(profile, geom, mom, m)))
+    out = []
+    bd, rd = t_data[0], t_data[3]
+    for (f0, q0, t0), (f1, q1, t1) in zip(scan[:-1], scan[1:], strict=True):
+        if not (np.isfinite(t0).all() and np.isfinite(t1).all()):
+            continue
+        if np.sign(t0[0]) != np.sign(bd) and np.sign(t1[0]) != np.sign(bd):
+            continue  # the model's light is on the other side of focus
+        for k, target in ((0, bd), (3, rd)):  # crossings of the slope gain and of the size
+            if (t0[k] - target) * (t1[k] - target) <= 0 and t1[k] != t0[k]:
+                t = (target - t0[k]) / (t1[k] - t0[k])
+                out.append((min(f0, f1), q0 + t * (q1 - q0)))
+    out.sort(key=lambda v: v[0])
+    best = min(scan, key=lambda v: v[0])
+    out.append((best[0], best[1]))  # and the scan point of least misfit
+    out.sort(key=lambda v: v[0])
+    starts = []
+    for _, q in out:  # the best distinct candidates (5 % apart in distance)
+        if all(abs(q[0] - p[0]) > 0.05 for p in starts):
+            starts.append(q)
+    return starts[:SCAN_KEEP], t_data
+
+
+def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS):
+    """Broyden steps moving the model's summary at ``q`` onto the data's.
+
+    The summary is smooth on the scale of a few % of distance, so the first Jacobian is taken
+    by differences over 3 % (and ~1 % of a lenslet pitch sideways, scaled by distance); later
+    steps update it by Broyden's rule (one model evaluation a step).
+    """
+    steps = np.array([0.03, 2e-3, 2e-3])
+    pitch = profile.mla.pitch_mm
+    scale = np.array([abs(t_data[0]) + 1e-3, pitch, pitch, 0.1 * t_data[3] + pitch])
+
+    def t_of(qq):
+        return summary(profile, geom, mom, model.simulate(frame.source(qq)))
+
+    t = t_of(q)
+    if not np.isfinite(t).all():
+        return q
+    err = float(np.linalg.norm((t - t_data) / scale))
+
+    def fd_jacobian(q, t):
+        return np.column_stack([(t_of(q + h * e) - t) / h
+                                for h, e in zip(steps, np.eye(3), strict=True)])
+
+    jac = fd_jacobian(q, t)
+    fresh = True
+    for _ in range(iterations):
+        if not np.isfinite(jac).all():
+            break
+        try:
+            dq = np.linalg.lstsq(jac / scale[:, None], (t_data - t) / scale, rcond=None)[0]
+        except np.linalg.LinAlgError:
+            break
+        dq[0] = float(np.clip(dq[0], -0.15, 0.15))
+        t2 = t_of(q + dq)
+        err2 = float(np.linalg.norm((t2 - t_data) / scale)) if np.isfinite(t2).all() else np.inf
+        if not err2 < err:
+            if fresh:
+                break
+            jac, fresh = fd_jacobian(q, t), True  # the Broyden update went stale: refresh
+            continue
+        jac = jac + np.outer((t2 - t) - jac @ dq, dq) / float(dq @ dq)
+        fresh = False
+        q, t, err = q + dq, t2, err2
+        if abs(dq[0]) < 2e-3:
+            break
+    return q
+
+
+def _gauss_newton_fixed(fun, q, r, jac, iterations):
+    """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step."""
+    f = float(r @ r)
+    jtj = jac.T @ jac
+    try:
+        solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj))) @ jac.T
+    except np.linalg.LinAlgError:
+        return q, r, f
+    for _ in range(iterations):
+        dq = -(solve @ r)
+        for _ in range(3):
+            r2 = fun(q + dq)
+            f2 = float(r2 @ r2)
+            if f2 < f:
+                break
+            dq = 0.5 * dq
+        else:
+            break
+        q, r, f = q + dq, r2, f2
+        if abs(dq[0]) < 2e-5:
+            break
+    return q, r, f
+
+
+def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                      region: Region) -> LensletFit:
+    """Fit a point source to the region's lenslet moments (module docstring).
+
+    Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
+    Levenberg–Marquardt with the coarse model, then Gauss–Newton steps with the fine model
+    (``RAYS_PER_LENSLET`` per lit lenslet) and the coarse Jacobian.
+    """
+    box = _region_box(geom, region, image.shape)
+    mom = data_moments(geom, image, box)
+    nan3 = np.full(3, np.nan)
+    if not mom.norm > 0 or len(mom.ids) < 3:
+        return LensletFit(nan3, np.nan, np.nan, 0, False, "empty")
+    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
+    frame = _Frame(profile)
+    coarse = LensletModel(profile, geom, mom,
+                          int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)))
+    fine = LensletModel(profile, geom, mom, n_rays)
+
+    def fun_of(model):
+        return lambda q: model.residual(frame.source(q))
+
+    scan = LensletModel(profile, geom, mom, SCAN_RAYS)
+    starts, t_data = _starts(profile, geom, mom, frame, scan)
+    best = None
+    for q0 in starts:
+        q = _match_summary(profile, geom, mom, frame, coarse, q0, t_data)
+        r = coarse.residual(frame.source(q))
+        f = float(r @ r)
+        if best is None or f < best[1]:
+            best = (q, f)
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
+                                        COARSE_ITERATIONS, 1e-3)
+    fun = fun_of(fine)
+    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    misfit = math.sqrt(f)
+    source = frame.source(q)
+    dist = math.exp(q[0])
+    # the model's own sampling noise: the same source through a turned pupil sample
+    other = LensletModel(profile, geom, mom, n_rays, phase=1.0)
+    key = np.asarray(source, dtype=np.float64).tobytes()
+    m_a = fine.last[1] if fine.last[0] == key else fine.simulate(source)
+    m_b = other.simulate(source)
+    floor = float(np.linalg.norm(m_a - m_b) / np.linalg.norm(m_a)) / math.sqrt(2.0)
+    try:
+        cov = f / max(len(r) - 3, 1) * np.linalg.inv(jac.T @ jac)
+        sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
+    evals = scan.evaluations + coarse.evaluations + fine.evaluations
+    if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
+        return LensletFit(source, misfit, sigma_d, evals, False, "no-solution")
+    return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
+
+
+def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
+    """``count`` equally bright points along the segment of ``q = (log d, a/L, b/L)``."""
+    z = frame.z_front - math.exp(q[0])
+    along = frame.z_rim - z
+    t = (np.arange(count) + 0.5) / count
+    a, b = q[1:3] * along, q[3:5] * along
+    xy = a[None, :] + t[:, None] * (b - a)[None, :]
+    return np.column_stack([xy, np.full(count, z)])
+
+
+def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                     region: Region, point: LensletFit | None = None) -> LensletFit:
+    """Fit a line source (``LINE_POINTS`` equally bright points, 5 parameters) to the
+    region's lenslet moments. Start: the point fit's distance and centre, the footprint's long
+    axis, and the image length from its second moments (along − across = Lᵢ²/12)."""
+    box = _region_box(geom, region, image.shape)
+    mom = data_moments(geom, image, box)
+    nan3 = np.full(3, np.nan)
+    if point is None:
+        point = fit_lenslet_point(profile, geom, image, region)
+    if not point.ok:
+        return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
+    frame = _Frame(profile)
+    e = mom.data[:, 0]
+    lit = e > 0.05 * e.max()
+    c = geom.lens_centres_mm[mom.ids[lit]]
+    w = e[lit]
+    dc = c - (c * w[:, None]).sum(0) / w.sum()
+    cov = (dc.T * w) @ dc / w.sum()
+    evals, evecs = np.linalg.eigh(cov)
+    length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
+    d0 = float(frame.z_front - point.source_mm[2])
+    gain = chief_ray_offset(profile, geom.d_in_mm, d0, np.array([1.0, 0.0]))[0]  # src mm / MLA mm
+    along = frame.z_rim - point.source_mm[2]
+    half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
+    centre = point.source_mm[:2] / along
+    q0 = np.r_[math.log(d0), centre - half, centre + half]
+    n_lit = int(lit.sum())
+    n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
+    coarse = LensletModel(profile, geom, mom, max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
+    fine = LensletModel(profile, geom, mom, max(n_rays // LINE_POINTS, 400))
+    steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
+
+    def fun_of(model, count):
+        return lambda q: model.residual(_line_points(frame, q, count))
+
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse, LINE_POINTS), q0, steps,
+                                        COARSE_ITERATIONS, 1e-3)
+    fun = fun_of(fine, LINE_POINTS)
+    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    pts = _line_points(frame, q, 2)
+    z = pts[0, 2]
+    along = frame.z_rim - z
+    ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
+    dist = math.exp(q[0])
+    try:
+        cov_q = f / max(len(r) - 5, 1) * np.linalg.inv(jac.T @ jac)
+        sigma_d = dist * math.sqrt(max(cov_q[0, 0], 0.0))
+    except np.linalg.LinAlgError:
+        sigma_d = np.inf
+    total = point.evaluations + coarse.evaluations + fine.evaluations
+    mid = 0.5 * (ends[0] + ends[1])
+    return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
+
+
+def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                    region: Region, noise: float) -> Measurement:
+    """Lenslet-statistics fit of one region (module docstring).
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    geom : Geometry
+    image : (H, W) float array
+    region : Region
+    noise : float
+
+    Returns
+    -------
+    Measurement
+    """
+    fit = fit_lenslet_point(profile, geom, image, region)
+    if region.kind == "line" or (fit.ok and fit.misfit > LINE_TRIGGER * fit.noise_floor):
+        line = fit_lenslet_line(profile, geom, image, region, fit)
+        if line.ok and (not fit.ok or region.kind == "line"
+                        or line.misfit < LINE_GAIN * fit.misfit):
+            return _line_measurement(profile, geom, line)
+    if not fit.ok:
+        return Measurement.failed(fit.reason, geom.d_in_mm)
+    source, misfit, sigma_d = fit.source_mm, fit.misfit, fit.sigma_distance_mm
+    nan = float("nan")
+    distance = profile.main_lens.front_vertex_z_mm - float(source[2])
+    offset = float(np.hypot(source[0], source[1]))
+    fw = forward(profile, geom.d_in_mm, distance, offset)
+    if fw.status != 0:
+        return Measurement(nan, nan, nan, distance, offset, sigma_d, "out-of-domain",
+                           geom.d_in_mm)
+    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
+    fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
+    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
+    sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+                       misfit=misfit)
+
+
+def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:
+    """A line fit as a ``kind="line"`` measurement (rim heights of both endpoints)."""
+    nan = float("nan")
+    distance = profile.main_lens.front_vertex_z_mm - float(line.source_mm[2])
+    ends = []
+    for pt in line.ends_mm:
+        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
+        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
+    y1 = 0.5 * (ends[0][0] + ends[1][0])
+    y2 = 0.5 * (ends[0][1] + ends[1][1])
+    return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
+                       line.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       misfit=line.misfit, endpoints=tuple(ends))

@@ -1,0 +1,162 @@
+"""Issue 17: the ``lenslet`` method (exact forward model fitted to per-lenslet moments), the
+parallel region pool and ``method="auto"``, against the renderer's truth."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lfcam.calibrate import load_calibration
+from lfcam.camera import load_profile
+from lfcam.distance import run_distance
+from lfcam.io import load_capture
+from lfcam.measure import METHODS, Geometry, prepare_geometry
+from lfcam.measure.fastfit import _pixel_boxes, _two_cells, lattice_of, vogel_disc
+from lfcam.measure.lenslets import build_lenslet_map
+from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
+from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_method
+from lfcam.sim.capture import apply_overrides, simulate
+from lfcam.sim.render import Renderer
+from lfcam.sim.scene import scene_from_dict
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
+_GEOMETRY: dict = {}
+
+
+def _capture(name, system):
+    prof = load_profile(DATA / f"{name}.profile.toml")
+    cal = load_calibration(DATA / f"calib_{system}.json")
+    img = load_capture(DATA / f"{name}.png", prof).grey()
+    geom = _GEOMETRY.setdefault(system, prepare_geometry(prof, cal, img.shape))
+    truth = json.loads((DATA / f"{name}.truth.json").read_text())["sources"][0]
+    return img, prof, cal, geom, truth
+
+
+@pytest.mark.parametrize(("system", "dist", "dh"), [
+    ("system1", 300, 0), ("system1", 900, 5), ("system1", 3000, 10),
+    ("system2", 450, 10), ("system2", 1100, 5), ("system2", 3250, 10),
+])
+def test_lenslet_points_hit_the_truth(system, dist, dh):
+    img, prof, cal, geom, truth = _capture(f"point_{system}_{dist}mm_dh{dh}", system)
+    run = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom)
+    assert len(run.regions) == 1
+    r = run.regions[0]
+    assert r.kind == "spot" and r.status == "ok"
+    assert abs(r.distance_mm / truth["distance_mm"] - 1.0) < 0.003  # target: max 1 %
+    assert r.offset_mm == pytest.approx(truth["offset_mm"], abs=0.01 * dist / 100 + 0.1)
+    assert 0.0 < run.timings_s["region_s"][0] < 5.0
+
+
+def test_lenslet_line_is_a_line():
+    img, prof, cal, geom, truth = _capture("line_system1_1500mm", "system1")
+    run = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom)
+    r = run.regions[0]
+    assert r.kind == "line" and r.status == "ok"
+    assert abs(r.distance_mm / truth["distance_mm"] - 1.0) < 0.005
+
+
+def _truth_geometry(profile, size):
+    rend = Renderer(profile)
+    lens_mm = np.stack([rend.lcx, rend.lcy], 1)
+    mag = 1 + profile.mla.focal_length_mm / (profile.d_in_mm - profile.main_lens.exit_pupil_z_mm)
+    pitch_px = profile.mla.pitch_mm / profile.sensor.pixel_pitch_mm * mag
+    lmap = build_lenslet_map(rend.predicted_centres_px(), (size, size), 0.54 * pitch_px)
+    return Geometry(lmap, lens_mm, pitch_px, profile.d_in_mm)
+
+
+def _render(camera, objects, rays=300_000, seed=4):
+    base = load_profile("system2")
+    scene = {"seed": seed, "rays_per_source": rays, "camera": camera,
+             "sensor": {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0},
+             "objects": objects}
+    raw, used, truth = simulate(base, scene_from_dict(scene))
+    return raw.astype(np.float64), used, truth
+
+
+@pytest.mark.parametrize(("focus", "distance"), [(1000.0, 3500.0), (1500.0, 700.0)])
+def test_lenslet_both_sides_of_focus(focus, distance):
+    """Behind focus (2–4 px spots, noise clipped at zero) and in front of it."""
+    size = 1024
+    camera = {"mla": {"focus_mm": focus, "rotation_rad": 0.012},
+              "sensor": {"width_px": size, "height_px": size}}
+    base = apply_overrides(load_profile("system2"), camera)
+    prof = base.with_d_in(base.d_in_mm)
+    mag = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
+    xy = chief_ray_offset(prof, prof.d_in_mm, distance, np.array([1.5, 1.0]) / mag)
+    img, used, _ = _render(camera, [{"type": "point", "distance_mm": distance,
+                                     "position_mm": [float(xy[0]), float(xy[1])]}])
+    run = run_distance(img, used, None, model="exact", method="lenslet",
+                       geometry=_truth_geometry(used, size))
+    best = max((r for r in run.regions if r.status == "ok"), key=lambda r: r.diameter_mm)
+    assert abs(best.distance_mm / distance - 1.0) < 0.005
+
+
+def test_parallel_equals_serial():
+    size = 1024
+    camera = {"sensor": {"width_px": size, "height_px": size}}
+    objects = [{"type": "point", "distance_mm": d, "position_mm": [x, y]}
+               for d, x, y in ((900.0, -60.0, -60.0), (1300.0, 80.0, -70.0),
+                               (2500.0, -150.0, 160.0))]
+    img, used, _ = _render(camera, objects, rays=150_000)
+    geom = _truth_geometry(used, size)
+    serial = run_distance(img, used, None, model="auto", method="lenslet", geometry=geom, jobs=1)
+    parallel = run_distance(img, used, None, model="auto", method="lenslet", geometry=geom,
+                            jobs=2)
+    assert len(serial.regions) == 3 and parallel.timings_s["jobs"] == 2
+    for a, b in zip(serial.regions, parallel.regions, strict=True):
+        for key, va in a.__dict__.items():
+            vb = b.__dict__[key]
+            if isinstance(va, float) and math.isnan(va):
+                assert math.isnan(vb)
+            else:
+                assert va == vb, key
+    np.testing.assert_array_equal(serial.distance_map, parallel.distance_map)
+    assert len(parallel.timings_s["region_s"]) == 3
+
+
+def test_auto_method_choice_reads_the_error_table():
+    assert "lenslet" in METHODS and "auto" in METHODS
+    for kind in ("spot", "line"):
+        table = METHOD_MAX_ERROR_PCT[kind]
+        assert choose_method(60.0, kind) == "diameter"
+        assert choose_method(table["lenslet"], kind) == "lenslet"
+        best = min(METHOD_COST_ORDER, key=table.get)
+        assert choose_method(None, kind) == best and choose_method(1e-6, kind) == best
+
+
+def test_soft_binning_is_continuous_and_exact_in_the_limit():
+    # a ray's pixel share moves continuously; a vanishing box is nearest-pixel binning
+    px = np.array([3.49, 3.51])
+    cols, _, w = _pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 0.2)
+    assert set(np.round(w, 6)) <= {0.45, 0.55} and set(cols) == {3, 4}
+    cols, _, w = _pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 1e-9)
+    assert list(cols[w > 0.5]) == [3, 4]
+    # two nearest cells: the gap is the distance to their border
+    centres = np.array([[i * 0.25, j * 0.25] for i in range(-3, 4) for j in range(-3, 4)])
+    lat = LocalLattice.fit(centres, 0.25)
+    n1x, _, n2x, _, gap = _two_cells(lat, np.array([0.1]), np.array([0.01]))
+    assert n1x[0] == pytest.approx(0.0) and n2x[0] == pytest.approx(0.25)
+    assert gap[0] == pytest.approx(0.025)
+    u, v = vogel_disc(1000)
+    assert np.all(u * u + v * v <= 1.0) and abs(u.mean()) < 1e-2
+    assert lattice_of is not None
+
+
+def test_cli_json_reports_region_times(tmp_path):
+    name = "point_system2_1100mm_dh5"
+    out = subprocess.run(
+        [sys.executable, "-m", "lfcam", "distance", str(DATA / f"{name}.png"), "--calibration",
+         str(DATA / "calib_system2.json"), "--method", "lenslet", "--model", "exact",
+         "--jobs", "2", "--json", "-q", "-o", str(tmp_path / "o")],
+        capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert doc["regions"][0]["time_ms"] > 0
+    assert doc["regions"][0]["distance_mm"] == pytest.approx(1100.0, rel=0.003)
+    assert len(doc["timings_s"]["region_s"]) == len(doc["regions"])
