@@ -355,7 +355,8 @@ def run_batch(
         raise BatchError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     root = Path(input_dir).resolve()
     out = Path(output_dir).resolve()
-    load_calibration(calibration)  # fail early, with the calibration's own message
+    # fail early, with the calibration's own message; a poor one is refused unless accepted
+    load_calibration(calibration).check_quality()
     cal_bytes = Path(calibration).read_bytes()
     cal_sha = hashlib.sha256(cal_bytes).hexdigest()
     if profile is not None:

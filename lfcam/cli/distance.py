@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     with terminal_progress(args.quiet) as bar:
         bar("loading", 0, 1)
         calibration = load_calibration(args.calibration)
+        calibration.check_quality()
         cap = load_capture(capture_path, profile, verify=verify_mode(args))
         check_saturation(cap)
         image = cap.grey()
