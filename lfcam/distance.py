@@ -252,10 +252,11 @@ def _gate_regions(profile, geom, stats, regions, results, measurements) -> tuple
     return out, checks
 
 
-def write_outputs(outdir: str | Path, run: DistanceRun) -> None:
-    """``regions.csv``, ``distance.tiff``, ``distance.png`` (docs/distance.md), atomically."""
+def write_outputs(outdir: str | Path, run: DistanceRun, title: str = "") -> None:
+    """``regions.csv``, ``distance.tiff``, ``distance.png`` (docs/distance.md), atomically;
+    ``title`` heads the preview (e.g. capture name and model)."""
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     write_regions_csv(out / "regions.csv", run.regions)
     write_distance_tiff(out / "distance.tiff", run.distance_map)
-    write_distance_png(out / "distance.png", run.distance_map, run.regions)
+    write_distance_png(out / "distance.png", run.distance_map, run.regions, title)

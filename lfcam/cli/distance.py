@@ -77,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
                               method=args.method, tolerance_pct=args.tolerance, fast=args.fast,
                               progress=counts(bar, "regions"))
         bar("writing", 0, 1)
-        write_outputs(out, result)
+        write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "
+                      f"{args.method}{' (fast)' if args.fast else ''}")
         bar("writing", 1, 1)
     ok = sum(r.status == "ok" for r in result.regions)
     if args.json:
