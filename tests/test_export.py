@@ -77,7 +77,7 @@ def test_nice_ticks():
 
     assert nice_ticks(500, 3000) == [500, 1000, 1500, 2000, 2500, 3000]
     assert nice_ticks(0, 1023, 4) == [0, 500, 1000]
-    assert nice_ticks(1423.7, 1576.3) == [1440, 1460, 1480, 1500, 1520, 1540, 1560]
+    assert nice_ticks(1423.7, 1576.3) == [1450, 1500, 1550]
 
 
 def test_csv_cells_with_commas_and_quotes_round_trip(tmp_path):
