@@ -298,13 +298,17 @@ def _run_dask(jobs: list[Job], cal_bytes: bytes, scheduler: str | None, client, 
         futures = [client.submit(process_capture, j, pure=False, key=f"lfcam-{i}-{j.sha256[:12]}")
                    for i, j in enumerate(jobs)]
         by_key = {f.key: j for f, j in zip(futures, jobs, strict=True)}
-        for fut in as_completed(futures):
-            try:
-                on_result(fut.result())
-            except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
-                on_result({"rel": by_key[fut.key].rel, "status": "failed",
-                           "error_class": type(exc).__name__,
-                           "message": " ".join(str(exc).split())})
+        try:
+            for fut in as_completed(futures):
+                try:
+                    on_result(fut.result())
+                except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
+                    on_result({"rel": by_key[fut.key].rel, "status": "failed",
+                               "error_class": type(exc).__name__,
+                               "message": " ".join(str(exc).split())})
+        except KeyboardInterrupt:  # Ctrl-C: the cluster drops what has not finished
+            client.cancel(futures)
+            raise
     finally:
         if own:
             client.close()
