@@ -232,7 +232,8 @@ def main() -> int:
     try:
         pristine.mkdir()
         build(pristine)
-        shutil.copytree(pristine, tmp, symlinks=False)
+        shutil.copytree(pristine, tmp, symlinks=False, ignore_dangling_symlinks=True)
+        (tmp / "in" / "gone.png").symlink_to(tmp / "nowhere.png")
         os.unlink(tmp / "hard.png")
         os.link(tmp / "cap.png", tmp / "hard.png")
         os.unlink(tmp / "sym.png")
