@@ -232,7 +232,7 @@ def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
     assert time.monotonic() - t < 30  # prompt
     assert proc.returncode == 130
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and "interrupted" in lines[0] and "Traceback" not in err
+    assert len(lines) == 1 and "interrupted" in lines[0] and "Traceback" not in err, err
     import csv
 
     summary = list(csv.DictReader(open(out / "summary.csv")))

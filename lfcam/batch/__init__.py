@@ -445,7 +445,11 @@ def run_batch(
     if interrupted:
         done = set(computed) | set(failed)
         for j in todo:
-            if j.rel not in done:
+            if j.rel in done:
+                continue
+            if is_finished(j):  # finished on disk, its result not yet reported back
+                computed.append(j.rel)
+            else:
                 failed[j.rel] = Failure(j.rel, "Interrupted",
                                         "not processed: the batch was interrupted")
 
