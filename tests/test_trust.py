@@ -24,7 +24,7 @@ from lfcam.cli.main import main
 from lfcam.distance import run_distance
 from lfcam.errors import CalibrationMismatchError, CalibrationQualityError
 from lfcam.io import load_capture
-from lfcam.measure.verify import RegionCheck, _same_blur
+from lfcam.measure.verify import _same_blur
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "synthetic"
@@ -151,22 +151,26 @@ def test_profile_pitch_disagreeing_with_calibration(tmp_path, capture, capsys):
     assert len(err) == 1 and "wrong profile" in err[0]
 
 
-def _chk(cx, r):
-    return RegionCheck(0.01, 0.0, 1.0, (cx, 0.0), r, "ok")
-
-
 class _M:
     def __init__(self, d):
         self.distance_mm, self.offset_mm = d, 0.0
 
 
+def _disc(cx: float, r: float):
+    from scipy.spatial import cKDTree
+
+    g = np.arange(-r, r + 1e-9, 1.34)
+    xx, yy = np.meshgrid(g, g)
+    keep = xx**2 + yy**2 <= r * r
+    return cKDTree(np.column_stack([xx[keep] + cx, yy[keep]]))
+
+
 def test_fragment_rule():
-    # a large predicted blur reaching the other region's light: same blur
-    a, b = _chk(0.0, 5.0), _chk(20.0, 0.5)
-    assert _same_blur(a, b, (0.0, 0.0), (5.5, 0.0), ("ok", _M(300), (0, 0), 1.0),
-                      ("ok", _M(5000), (9, 0), 50.0), 1.34)
-    # two separate small blurs far apart at different distances: two sources
-    assert not _same_blur(_chk(0.0, 0.5), _chk(20.0, 0.5), (0.0, 0.0), (20.0, 0.0),
+    # a large predicted footprint reaching the other region's light: one blur
+    assert _same_blur(_disc(0.0, 5.0), _disc(20.0, 0.5), (0.0, 0.0), (5.5, 0.0),
+                      ("ok", _M(300), (0, 0), 1.0), ("ok", _M(5000), (9, 0), 50.0), 1.34)
+    # two small footprints far apart at different distances: two sources
+    assert not _same_blur(_disc(0.0, 0.5), _disc(20.0, 0.5), (0.0, 0.0), (20.0, 0.0),
                           ("ok", _M(3000), (0, 0), 5.0), ("ok", _M(1500), (40, 0), 2.0),
                           1.34)
 

@@ -8,11 +8,12 @@ After every region has been measured, :func:`verify_regions` checks each ``ok`` 
     ``noise_misfit`` is the misfit white pixel noise alone would give (σ of the blurred patch ×
     √pixels / ‖patch‖).
 (b) **unexplained-footprint** — less than ``MIN_EXPLAINED`` of the region's energy falls on
-    lenslets inside the blur that the fitted source predicts on the MLA plane (exact rim rays,
-    plus ``MARGIN_PITCH`` lenslet pitches for aberration halos and the lenslets' own width).
-(c) **fragment-of-N** — two ``ok`` regions whose predicted blurs contain each other's
-    centroid, or whose sources coincide within their uncertainties, are one blur cut in two:
-    the one with less energy is marked a fragment of the other.
+    lenslets within ``MARGIN_PITCH`` lenslet pitch of those the fitted source lights in the
+    exact forward model (traced through the main lens: aberrations, coma and vignetting
+    included).
+(c) **fragment-of-N** — two ``ok`` regions of which one's predicted footprint reaches the
+    other's light centroid, or whose sources coincide within their uncertainties, are one blur
+    cut in two: the one with less energy is marked a fragment of the other.
 """
 
 from __future__ import annotations
@@ -21,14 +22,17 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from lfcam.optics.trace import forward
+from lfcam.measure.pointfit import pupil_pattern, simulate_lenslets
 
 MISFIT_FLOOR = 0.12
 NOISE_FACTOR = 3.0
 MIN_EXPLAINED = 0.8
 MARGIN_PITCH = 1.0
 COINCIDE_SIGMAS = 3.0
+PUPIL_SAMPLES = 48  # pupil grid of the footprint prediction (about 1 800 rays)
+LIT_FRACTION = 1e-3
 
 
 @dataclass(frozen=True)
@@ -38,8 +42,7 @@ class RegionCheck:
     misfit: float
     noise_misfit: float
     explained: float
-    centre_mm: tuple[float, float]
-    radius_mm: float
+    predicted_lenslets: int
     status: str
 
 
@@ -52,17 +55,18 @@ def noise_misfit(noise: float, blur_px: float, npix: int, norm: float) -> float:
     return noise / (2.0 * math.sqrt(math.pi) * blur_px) * math.sqrt(npix) / norm
 
 
-def predicted_blur(profile, d_in_mm: float, distance_mm: float, source_xy_mm) -> tuple:
-    """(centre (x, y) mm, radius mm) of the blur the source makes on the MLA plane."""
-    sx, sy = float(source_xy_mm[0]), float(source_xy_mm[1])
-    off = math.hypot(sx, sy)
-    fw = forward(profile, d_in_mm, distance_mm, off, z_plane_mm=d_in_mm)
-    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
-    if not (math.isfinite(y1) and math.isfinite(y2)):
-        return (float("nan"), float("nan")), float("nan")
-    ux, uy = (sx / off, sy / off) if off > 0 else (0.0, 0.0)
-    mid = 0.5 * (y1 + y2)
-    return (ux * mid, uy * mid), 0.5 * abs(y1 - y2)
+def predicted_lit(profile, d_in_mm: float, distance_mm: float, source_xy_mm, tree: cKDTree,
+                  centres_mm: np.ndarray) -> np.ndarray:
+    """Centres (mm) of the lenslets the fitted source lights, by the exact forward model
+    (:func:`lfcam.measure.pointfit.simulate_lenslets`, ``PUPIL_SAMPLES``² pupil points):
+    every lenslet receiving more than ``LIT_FRACTION`` of the brightest one's energy."""
+    z = profile.main_lens.front_vertex_z_mm - float(distance_mm)
+    source = np.array([float(source_xy_mm[0]), float(source_xy_mm[1]), z])
+    e, _ = simulate_lenslets(profile, d_in_mm, source, tree, centres_mm,
+                             pupil_pattern(PUPIL_SAMPLES))
+    if not (e.size and np.isfinite(e).all() and e.max() > 0):
+        return np.zeros((0, 2))
+    return centres_mm[e > LIT_FRACTION * e.max()]
 
 
 def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]:
@@ -75,7 +79,7 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
     stats : LensletStats
     regions : list of Region
     measured : list of (status, Measurement or None, source_xy_mm or None, sigma_mm)
-        What the measurement gave for each region.
+        What the measurement gave for each region; only ``ok`` entries are checked.
 
     Returns
     -------
@@ -84,40 +88,49 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
     """
     lens = geom.lens_centres_mm
     pitch_mm = float(profile.mla.pitch_mm)
+    reach = MARGIN_PITCH * pitch_mm
     nan = float("nan")
+    tree = None
     checks: list[RegionCheck] = []
-    for reg, (status, meas, xy, _sig) in zip(regions, measured, strict=True):
+    lit: dict[int, cKDTree | None] = {}
+    for k, (reg, (status, meas, xy, _sig)) in enumerate(zip(regions, measured, strict=True)):
         if status != "ok" or meas is None or xy is None:
-            checks.append(RegionCheck(nan, nan, nan, (nan, nan), nan, status))
+            checks.append(RegionCheck(nan, nan, nan, 0, status))
             continue
+        if tree is None:
+            tree = cKDTree(lens)
         mf = float(meas.misfit)
         nm = float(getattr(meas, "noise_misfit", nan))
-        centre, radius = predicted_blur(profile, geom.d_in_mm, meas.distance_mm, xy)
+        pred = predicted_lit(profile, geom.d_in_mm, meas.distance_mm, xy, tree, lens)
+        lit[k] = cKDTree(pred) if len(pred) else None
         e = np.clip(stats.energy[reg.lenslets], 0.0, None)
-        d = np.hypot(lens[reg.lenslets, 0] - centre[0], lens[reg.lenslets, 1] - centre[1])
-        inside = d <= radius + MARGIN_PITCH * pitch_mm
-        explained = float(e[inside].sum() / e.sum()) if e.sum() > 0 else nan
-        if math.isfinite(mf) and mf > max(MISFIT_FLOOR, NOISE_FACTOR * (nm if math.isfinite(nm)
-                                                                        else 0.0)):
+        if lit[k] is None or e.sum() <= 0:
+            explained = 0.0
+        else:
+            dist, _ = lit[k].query(lens[reg.lenslets])
+            explained = float(e[dist <= reach].sum() / e.sum())
+        limit = max(MISFIT_FLOOR, NOISE_FACTOR * (nm if math.isfinite(nm) else 0.0))
+        if math.isfinite(mf) and mf > limit:
             status = "poor-fit"
-        elif not (explained >= MIN_EXPLAINED):
+        elif explained < MIN_EXPLAINED:
             status = "unexplained-footprint"
-        checks.append(RegionCheck(mf, nm, explained, centre, radius, status))
-    # (c) fragments: among the regions still ok, the weaker of two overlapping blurs
+        checks.append(RegionCheck(mf, nm, explained, len(pred), status))
+    # (c) fragments: among the regions still ok, the weaker of two that are one blur
     ok = [k for k, c in enumerate(checks) if c.status == "ok"]
     centroid = {k: _centroid_mm(geom, stats, regions[k]) for k in ok}
     order = sorted(ok, key=lambda k: -float(regions[k].energy))
-    for a_pos, a in enumerate(order):
+    for pos, a in enumerate(order):
         if checks[a].status != "ok":
             continue
-        for b in order[a_pos + 1:]:
+        for b in order[pos + 1:]:
             if checks[b].status != "ok":
                 continue
-            if _same_blur(checks[a], checks[b], centroid[a], centroid[b], measured[a],
-                          measured[b], pitch_mm):
+            if _same_blur(lit[a], lit[b], centroid[a], centroid[b], measured[a], measured[b],
+                          reach):
                 c = checks[b]
-                checks[b] = RegionCheck(c.misfit, c.noise_misfit, c.explained, c.centre_mm,
-                                        c.radius_mm, f"fragment-of-{regions[a].region_id}")
+                checks[b] = RegionCheck(c.misfit, c.noise_misfit, c.explained,
+                                        c.predicted_lenslets,
+                                        f"fragment-of-{regions[a].region_id}")
     return checks
 
 
@@ -127,17 +140,19 @@ def _centroid_mm(geom, stats, reg) -> np.ndarray:
     return (xy * e[:, None]).sum(axis=0) / e.sum() if e.sum() > 0 else xy.mean(axis=0)
 
 
-def _same_blur(ca: RegionCheck, cb: RegionCheck, pa, pb, ma, mb, pitch_mm: float) -> bool:
-    """Do two regions' predicted blurs reach each other's light, or their sources coincide?"""
-    for c, p in ((ca, pb), (cb, pa)):
-        if math.hypot(p[0] - c.centre_mm[0], p[1] - c.centre_mm[1]) <= c.radius_mm + pitch_mm:
+def _same_blur(lit_a, lit_b, pa, pb, ma, mb, reach: float) -> bool:
+    """Does one region's predicted blur reach the other's light centroid, or do their sources
+    coincide within their uncertainties?"""
+    for lit, p in ((lit_a, pb), (lit_b, pa)):
+        if lit is not None and lit.query(np.asarray(p, dtype=np.float64))[0] <= reach:
             return True
     (_, m1, xy1, s1), (_, m2, xy2, s2) = ma, mb
     sig = math.hypot(s1, s2) if math.isfinite(s1) and math.isfinite(s2) else 0.0
     if sig > 0 and abs(m1.distance_mm - m2.distance_mm) <= COINCIDE_SIGMAS * sig:
-        # same distance within the uncertainty: the same source only if also laterally close
+        # the same distance: the same source only if also at the same place (lateral σ
+        # taken as the distance σ scaled by the field angle, plus one lenslet pitch)
         lateral = math.hypot(xy1[0] - xy2[0], xy1[1] - xy2[1])
-        return lateral <= COINCIDE_SIGMAS * sig * lateral_per_distance(m1) + pitch_mm
+        return lateral <= COINCIDE_SIGMAS * sig * lateral_per_distance(m1) + reach
     return False
 
 
