@@ -23,8 +23,9 @@ Two JSON forms are read (docs/calibration.md):
       "white_sha256": hex | null, "dark_sha256": hex | null,
       "rejected": {"reason": count, ...}, "rejected_px": [[x, y, reason], ...],
       "d_in_mm": float | null, "d_in_method": str | null,
-      "diagnostics": {...}
-    }
+      "diagnostics": {...},
+      "quality": {"verdict": "ok" | "poor", "reasons": [...], "accepted_poor": bool, ...}
+    }                                         # quality absent: unknown (not poor)
 
 * the minimal interchange form of the command-line contract (docs/calibration.md): ``grid``,
   ``pitch_px``, ``rotation_rad``, ``offset_px``, ``centres_px`` and optionally
