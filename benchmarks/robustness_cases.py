@@ -95,6 +95,32 @@ def build(tmp: Path) -> None:
     import cv2
 
     cv2.imwrite(str(tmp / "sat.png"), np.full((1024, 1024), 65535, np.uint16))
+    # issue 18, second part: a white with heavy Monte-Carlo noise (1 sample per boundary
+    # pixel), 640² crop and full sensor, of system 2
+    from lfcam.camera import load_profile
+    from lfcam.sim.capture import simulate, write_capture
+    from lfcam.sim.scene import scene_from_dict
+
+    for name, size in (("badwhite.png", 640), ("badwhite_full.png", None)):
+        scene = {"seed": 3, "samples_per_pixel": 1, "objects": [{"type": "white"}]}
+        if size:
+            scene["camera"] = {"sensor": {"width_px": size, "height_px": size}}
+        raw, used, truth = simulate(load_profile("system2"), scene_from_dict(scene))
+        write_capture(tmp / name, raw, used, truth)
+    d = json.loads((SYN / "calib_system2.json").read_text())
+    d["quality"] = {"verdict": "poor", "accepted_poor": False, "reasons": [
+        "coverage 0.323 (2016 of 6241 fully visible lenses measured; limit 0.9)"]}
+    (tmp / "poor.json").write_text(json.dumps(d))
+    shutil.copy(SYN / "point_system2_300mm_dh0.png", tmp / "cap2.png")
+    shutil.copy(SYN / "point_system2_300mm_dh0.profile.toml", tmp / "cap2.profile.toml")
+    shutil.copy(SYN / "calib_system2.json", tmp / "calib2.json")
+    (tmp / "pitch1000.toml").write_text(
+        (tmp / "cap.profile.toml").read_text().replace("pitch_mm = 1.34", "pitch_mm = 1000",
+                                                       1))
+    (tmp / "in").mkdir()
+    shutil.copy(tmp / "cap.png", tmp / "in" / "cap.png")
+    shutil.copy(tmp / "cap.profile.toml", tmp / "in" / "cap.profile.toml")
+    (tmp / "in" / "gone.png").symlink_to(tmp / "nowhere.png")
 
 
 D = ["--calibration", "calib.json", "--profile", "cap.profile.toml"]
@@ -136,6 +162,28 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                               "1000"], []),
     ("5g calibrate --help", ["calibrate", "--help"], []),
     ("7 all-saturated frame", ["distance", "sat.png", *D, "--fast", "-o", "out7"], []),
+    ("8a calibrate a bad white", ["calibrate", "badwhite.png", "-o", "bad.json"],
+     ["badwhite.png"]),
+    ("8b calibrate --accept-poor", ["calibrate", "badwhite_full.png", "--accept-poor", "-o",
+                                    "badfull.json"], ["badwhite_full.png"]),
+    ("8c distance, poor calibration", ["distance", "cap2.png", "--calibration", "poor.json",
+                                       "--fast", "-o", "out8c"], ["cap2.png", "poor.json"]),
+    ("8d decode, poor calibration", ["decode", "cap2.png", "--calibration", "poor.json", "-o",
+                                     "lf8d"], ["cap2.png", "poor.json"]),
+    ("8e refocus, poor calibration", ["refocus", "cap2.png", "--calibration", "poor.json",
+                                      "--shift", "0", "-o", "r8e.png"], ["cap2.png"]),
+    ("8f batch, poor calibration", ["batch", "in", "--calibration", "poor.json", "-o",
+                                    "out8f", "--fast", "--workers", "1"], ["poor.json"]),
+    ("9 one source, accepted poor calibration", ["distance", "cap2.png", "--calibration",
+                                                 "badfull.json", "--fast", "-o", "out9"],
+     ["cap2.png"]),
+    ("10 profile mla.pitch_mm = 1000", ["distance", "cap.png", "--calibration", "calib.json",
+                                        "--profile", "pitch1000.toml", "-o", "out10"],
+     ["cap.png"]),
+    ("11 guide: 512² calibration, 1024² capture", ["distance", "cap.png", "--calibration",
+                                                   "guide.json", "-o", "out11"], ["cap.png"]),
+    ("12 batch: dangling symlink", ["batch", "in", "--calibration", "calib.json", "-o",
+                                    "out12", "--fast", "--workers", "1"], []),
 ]
 
 
@@ -184,7 +232,8 @@ def main() -> int:
     try:
         pristine.mkdir()
         build(pristine)
-        shutil.copytree(pristine, tmp, symlinks=False)
+        shutil.copytree(pristine, tmp, symlinks=False, ignore_dangling_symlinks=True)
+        (tmp / "in" / "gone.png").symlink_to(tmp / "nowhere.png")
         os.unlink(tmp / "hard.png")
         os.link(tmp / "cap.png", tmp / "hard.png")
         os.unlink(tmp / "sym.png")
@@ -196,7 +245,11 @@ def main() -> int:
             if args.only and not any(cid.startswith(o) for o in args.only):
                 continue
             before = {f: sha(tmp / f) for f in inputs}
-            t = 15.0 if cid.startswith("4a") else args.timeout
+            t = 15.0 if cid.startswith("4a") else 600.0 if cid.startswith("9") else \
+                args.timeout
+            if cid.startswith("11") and not (tmp / "guide.json").exists():
+                run_case(tmp, ["calibrate", str(SYN / "white_system1_rect.png"), "-o",
+                               "guide.json"], args.timeout)
             code, last, dt, rss, so = run_case(tmp, argv, t)
             changed = [f for f in inputs if sha(tmp / f) != before[f]]
             inp = ("CHANGED: " + ", ".join(changed)) if changed else ("unchanged" if inputs

@@ -57,6 +57,7 @@ from lfcam.measure import (
     noise_sigma,
     prepare_geometry,
 )
+from lfcam.measure.verify import verify_regions
 from lfcam.models import auto, check_distance_model
 from lfcam.models import line as line_model
 from lfcam.models.base import Status
@@ -73,6 +74,7 @@ class DistanceRun:
     regions: list[RegionResult]
     distance_map: np.ndarray
     timings_s: dict = field(default_factory=dict)
+    checks: list = field(default_factory=list)  # lfcam.measure.verify.RegionCheck per region
 
 
 def _apply_line_model(profile: CameraProfile, meas: Measurement, model: str) -> tuple:
@@ -123,13 +125,14 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
 def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, reg: Region,
               noise: float, model: str, method: str, tolerance_pct: float | None,
               fast: bool) -> tuple:
-    """(kind, model name, distance, offset, diameter, sigma, status) of one region."""
+    """(kind, model name, distance, offset, diameter, sigma, status, Measurement or None) of
+    one region."""
     nan = float("nan")
     if reg.kind not in ("spot", "line"):
-        return reg.kind, model, nan, nan, nan, nan, f"unsupported-{reg.kind}"
+        return reg.kind, model, nan, nan, nan, nan, f"unsupported-{reg.kind}", None
     if model == "refocus":
         d, sig, status = measure_refocus(profile, geom, img, reg)
-        return reg.kind, "refocus", d, nan, nan, sig, status
+        return reg.kind, "refocus", d, nan, nan, sig, status, None
     if method == "auto":
         method = auto.choose_method(tolerance_pct, reg.kind)
     if method == "lightfield":
@@ -139,7 +142,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     else:
         meas = measure_diameter(profile, geom, img, stats, reg, noise)
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
-    return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status
+    return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
 
 
 def run_distance(
@@ -229,8 +232,9 @@ def run_distance(
     results = []
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     nan = float("nan")
+    measurements = []
     for reg, (est, _) in zip(regions, estimates, strict=True):
-        kind, name, d, off, diameter, sig, status = est
+        kind, name, d, off, diameter, sig, status, meas = est
         if status != "ok" or not np.isfinite(d):
             # no estimate: no numbers, whatever the model computed on the way
             status = status if status != "ok" else "out-of-domain"
@@ -240,12 +244,15 @@ def run_distance(
             kind=kind, model=name, distance_mm=d, offset_mm=off, diameter_mm=diameter,
             uncertainty_mm=sig, status=status, bbox_px=reg.box_px,
         ))
-        if status == "ok":
-            paint_region(dmap, reg, geom.lmap, geom.pitch_px, d)
+        measurements.append(meas)
+    results, checks = _gate_regions(profile, geom, stats, regions, results, measurements)
+    for reg, res in zip(regions, results, strict=True):
+        if res.status == "ok":
+            paint_region(dmap, reg, geom.lmap, geom.pitch_px, res.distance_mm)
     t3 = time.perf_counter()
     return DistanceRun(results, dmap, {"geometry": t1 - t0, "regions": t2 - t1,
                                        "measure": t3 - t2, "jobs": jobs,
-                                       "region_s": [t for _, t in estimates]})
+                                       "region_s": [t for _, t in estimates]}, checks)
 
 
 def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
@@ -257,7 +264,7 @@ def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
                         fast)
     except _REGION_FAILURES as exc:
         nan = float("nan")
-        est = (reg.kind, model, nan, nan, nan, nan, f"failed: {type(exc).__name__}")
+        est = (reg.kind, model, nan, nan, nan, nan, f"failed: {type(exc).__name__}", None)
     return est, time.process_time() - t
 
 
@@ -337,10 +344,32 @@ def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, pr
             shm.unlink()
 
 
-def write_outputs(outdir: str | Path, run: DistanceRun) -> None:
-    """``regions.csv``, ``distance.tiff``, ``distance.png`` (docs/distance.md), atomically."""
+def _gate_regions(profile, geom, stats, regions, results, measurements) -> tuple[list, list]:
+    """``ok`` is earned (lfcam.measure.verify): demote regions that fail a gate."""
+    from dataclasses import replace
+
+    measured = []
+    for res, meas in zip(results, measurements, strict=True):
+        usable = (res.status == "ok" and meas is not None and res.kind == "spot"
+                  and len(meas.source_xy_mm) == 2)
+        measured.append((res.status if usable else "skip", meas,
+                         meas.source_xy_mm if usable else None, res.uncertainty_mm))
+    checks = verify_regions(profile, geom, stats, regions, measured)
+    nan = float("nan")
+    out = []
+    for res, chk, (st, _, _, _) in zip(results, checks, measured, strict=True):
+        if st == "ok" and chk.status != "ok":
+            res = replace(res, status=chk.status, distance_mm=nan, offset_mm=nan,
+                          uncertainty_mm=nan)
+        out.append(res)
+    return out, checks
+
+
+def write_outputs(outdir: str | Path, run: DistanceRun, title: str = "") -> None:
+    """``regions.csv``, ``distance.tiff``, ``distance.png`` (docs/distance.md), atomically;
+    ``title`` heads the preview (e.g. capture name and model)."""
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     write_regions_csv(out / "regions.csv", run.regions)
     write_distance_tiff(out / "distance.tiff", run.distance_map)
-    write_distance_png(out / "distance.png", run.distance_map, run.regions)
+    write_distance_png(out / "distance.png", run.distance_map, run.regions, title)

@@ -42,6 +42,14 @@ class CalibrationError(LfcamError):
     """A calibration could not be computed or a calibration file is invalid."""
 
 
+class CalibrationQualityError(CalibrationError):
+    """A calibration failed its quality gates (coverage, lattice residual, model misfit)."""
+
+
+class CalibrationMismatchError(CalibrationError):
+    """A profile and a calibration disagree (e.g. on the micro-image pitch)."""
+
+
 class OutputPathError(LfcamError):
     """An output path would overwrite an input, or its folder cannot be written."""
 

@@ -62,12 +62,22 @@ def test_preview_png_has_colours_outline_and_bar(tmp_path):
     dmap = np.full((100, 120), np.nan, np.float32)
     dmap[10:40, 10:40] = 500.0
     dmap[60:90, 60:110] = 3000.0
-    write_distance_png(tmp_path / "distance.png", dmap, _regions())
+    write_distance_png(tmp_path / "distance.png", dmap, _regions(), title="cap.png  exact")
     img = cv2.imread(str(tmp_path / "distance.png"))
-    assert img.shape[0] == 100 and img.shape[1] > 120 + 16  # map + colour bar + labels
-    near, far = img[25, 25].astype(int), img[75, 80].astype(int)
+    top, left = 24, 44  # title band and y-axis labels
+    assert img.shape[0] == 100 + top + 22 and img.shape[1] > left + 120 + 16
+    near, far = img[top + 25, left + 25].astype(int), img[top + 75, left + 80].astype(int)
     assert near[0] > near[2] and far[2] > far[0]  # turbo: near blue, far red
-    assert tuple(img[0, 0]) == (40, 40, 40)  # NaN background
+    assert tuple(img[top + 95, left + 5]) == (40, 40, 40)  # NaN background
+    assert (img[:top] < 128).any()  # the title is drawn
+
+
+def test_nice_ticks():
+    from lfcam.export import nice_ticks
+
+    assert nice_ticks(500, 3000) == [500, 1000, 1500, 2000, 2500, 3000]
+    assert nice_ticks(0, 1023, 4) == [0, 500, 1000]
+    assert nice_ticks(1423.7, 1576.3) == [1450, 1500, 1550]
 
 
 def test_csv_cells_with_commas_and_quotes_round_trip(tmp_path):

@@ -397,7 +397,7 @@ def test_dot_calibration_prints_no_nan(work, capsys, monkeypatch):
 
     cal = SimpleNamespace(grid="rect", pitch_px=16.4, rotation_rad=0.0, offset_px=(1.0, 2.0),
                           n_lenses=9, model="projective", residual_rms_px=0.01, rejected={},
-                          d_in_mm=104.7, d_in_method="reference")
+                          d_in_mm=104.7, d_in_method="reference", is_poor=False, quality=None)
     din = SimpleNamespace(d_in_mm=104.7, sigma_mm=float("nan"), d_in_paraxial_mm=float("nan"),
                           n_dots=1, distance_mm=1000.0)
     monkeypatch.setattr(lfcam.calibrate, "calibrate_white_file", lambda *a, **k: cal)

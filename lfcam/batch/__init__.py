@@ -96,14 +96,16 @@ class BatchResult:
     elapsed_s: float = 0.0
 
 
-def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ()) -> list[Path]:
+def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = (),
+                      problems: list | None = None) -> list[Path]:
     """Every file under ``input_dir`` that is, or claims to be, a capture (sorted).
 
     A file is taken when its content is a supported capture (``lfcam.io.sniff_kind``) whatever
     its name, or when its extension is a capture extension (``.png``, ``.lfp``, ``.raw``,
     camera raws, …) whatever its content — such a file that is not readable becomes a failure
     rather than being ignored. Hidden files and folders, and the ``exclude`` folders (the
-    output folder), are skipped.
+    output folder), are skipped. A folder that cannot be listed and a dangling symbolic link
+    are appended to ``problems`` (when given) as ``(path, OSError)``: they become failures.
     """
     from lfcam.io import sniff_kind
 
@@ -112,7 +114,11 @@ def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ())
         raise BatchError(f"input folder not found: {root}")
     excl = [Path(e).resolve() for e in exclude]
     found: list[Path] = []
-    for dirpath, dirnames, filenames in os.walk(root):
+    def unreadable(exc: OSError) -> None:
+        if problems is not None and exc.filename is not None:
+            problems.append((Path(exc.filename), exc))
+
+    for dirpath, dirnames, filenames in os.walk(root, onerror=unreadable):
         d = Path(dirpath)
         dirnames[:] = sorted(n for n in dirnames if not n.startswith(".")
                              and not any((d / n).resolve() == e for e in excl))
@@ -120,6 +126,11 @@ def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = ())
             if name.startswith("."):
                 continue
             p = d / name
+            if p.is_symlink() and not p.exists():
+                if problems is not None:
+                    problems.append((p, FileNotFoundError(
+                        2, f"dangling symbolic link (to {os.readlink(p)})", str(p))))
+                continue
             if not p.is_file():
                 continue
             try:
@@ -252,8 +263,14 @@ def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> No
                 on_result({"rel": futures[fut].rel, "status": "failed",
                            "error_class": type(exc).__name__,
                            "message": "a worker process died while processing this capture"})
-    except BaseException:  # Ctrl-C: drop the queued captures instead of finishing them
+    except BaseException:  # Ctrl-C: drop the queued captures, stop the running ones
+        procs = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in procs:
+            proc.join(timeout=5)
         raise
     pool.shutdown(wait=True)
 
@@ -281,13 +298,17 @@ def _run_dask(jobs: list[Job], cal_bytes: bytes, scheduler: str | None, client, 
         futures = [client.submit(process_capture, j, pure=False, key=f"lfcam-{i}-{j.sha256[:12]}")
                    for i, j in enumerate(jobs)]
         by_key = {f.key: j for f, j in zip(futures, jobs, strict=True)}
-        for fut in as_completed(futures):
-            try:
-                on_result(fut.result())
-            except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
-                on_result({"rel": by_key[fut.key].rel, "status": "failed",
-                           "error_class": type(exc).__name__,
-                           "message": " ".join(str(exc).split())})
+        try:
+            for fut in as_completed(futures):
+                try:
+                    on_result(fut.result())
+                except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker: record, go on
+                    on_result({"rel": by_key[fut.key].rel, "status": "failed",
+                               "error_class": type(exc).__name__,
+                               "message": " ".join(str(exc).split())})
+        except KeyboardInterrupt:  # Ctrl-C: the cluster drops what has not finished
+            client.cancel(futures)
+            raise
     finally:
         if own:
             client.close()
@@ -355,16 +376,21 @@ def run_batch(
         raise BatchError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     root = Path(input_dir).resolve()
     out = Path(output_dir).resolve()
-    load_calibration(calibration)  # fail early, with the calibration's own message
+    # fail early, with the calibration's own message; a poor one is refused unless accepted
+    load_calibration(calibration).check_quality()
     cal_bytes = Path(calibration).read_bytes()
     cal_sha = hashlib.sha256(cal_bytes).hexdigest()
     if profile is not None:
         load_profile(profile)  # a wrong --profile is a usage error, not N failures
     settings = Settings(model, method, tolerance_pct, bool(fast), profile)
-    paths = discover_captures(root, exclude=[out])
+    problems: list = []
+    paths = discover_captures(root, exclude=[out], problems=problems)
     out.mkdir(parents=True, exist_ok=True)
 
     failures: list[Failure] = []
+    for p, exc in problems:  # unreadable folders, dangling links: failures, not silence
+        rel = p.relative_to(root).as_posix() if p.is_relative_to(root) else str(p)
+        failures.append(Failure(rel, type(exc).__name__, str(exc.strerror or exc)))
     jobs: list[Job] = []
     for p in paths:
         rel = p.relative_to(root).as_posix()
@@ -405,14 +431,27 @@ def run_batch(
         if on_result is not None:
             on_result(res)
 
+    interrupted = False
     try:
         if todo:
             if scheduler or client is not None:
                 _run_dask(todo, cal_bytes, scheduler, client, handle)
             else:
                 _run_local(todo, cal_bytes, workers or os.cpu_count() or 1, handle)
+    except KeyboardInterrupt:  # Ctrl-C: no new capture; still write what finished
+        interrupted = True
     finally:
         bar.close()
+    if interrupted:
+        done = set(computed) | set(failed)
+        for j in todo:
+            if j.rel in done:
+                continue
+            if is_finished(j):  # finished on disk, its result not yet reported back
+                computed.append(j.rel)
+            else:
+                failed[j.rel] = Failure(j.rel, "Interrupted",
+                                        "not processed: the batch was interrupted")
 
     duplicates: dict[str, str] = {}
     for j in jobs:
@@ -423,7 +462,7 @@ def run_batch(
         if src.rel in failed:
             f = failed[src.rel]
             failed[j.rel] = Failure(j.rel, f.error_class, f"duplicate of {src.rel}: {f.message}")
-        elif force or not is_finished(j):
+        elif (force or not is_finished(j)) and is_finished(src):
             _copy_outputs(src, j)
 
     failures += [failed[j.rel] for j in jobs if j.rel in failed]
@@ -440,6 +479,10 @@ def run_batch(
     write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
     write_csv(out / "failures.csv", FAILURE_COLUMNS,
               ([f.capture, f.error_class, f.message] for f in failures))
+    if interrupted:
+        n_done = len(computed) + len(skipped)
+        raise BatchInterrupted(f"interrupted: {n_done} of {len(originals)} captures finished; "
+                               f"{out / 'summary.csv'} and failures.csv list them")
     return BatchResult(
         summary=[_typed(r) for r in rows], failures=failures, captures=[j.rel for j in jobs],
         computed=sorted(computed), skipped=skipped, duplicates=duplicates,
@@ -447,7 +490,12 @@ def run_batch(
     )
 
 
+class BatchInterrupted(KeyboardInterrupt):
+    """A batch stopped by Ctrl-C/SIGINT after writing summary.csv and failures.csv."""
+
+
 __all__ = [
-    "BatchError", "BatchResult", "Failure", "Job", "Settings", "discover_captures",
+    "BatchError", "BatchInterrupted", "BatchResult", "Failure", "Job", "Settings",
+    "discover_captures",
     "init_worker", "is_finished", "process_capture", "run_batch",
 ]

@@ -144,7 +144,8 @@ def process_capture(job: Job) -> dict:
                            fast=s.fast, geometry=geom)
         outdir = Path(job.outdir)
         (outdir / DONE_FILE).unlink(missing_ok=True)
-        write_outputs(outdir, run)
+        write_outputs(outdir, run, f"{job.rel}  model {s.model}, method {s.method}"
+                      f"{' (fast)' if s.fast else ''}")
         write_done(outdir, job)
         out.update(status="ok", regions=len(run.regions))
     except Exception as exc:  # noqa: BLE001 - one bad capture must never stop the batch

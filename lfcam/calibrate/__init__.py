@@ -22,7 +22,7 @@ from lfcam.calibrate.model import (
 __all__ = [
     "Calibration", "GridFit", "calibrate_reference", "calibrate_reference_file",
     "calibrate_white", "calibrate_white_file", "find_centres",
-    "load_calibration", "prepare_white", "save_calibration",
+    "load_calibration", "prepare_white", "save_calibration", "with_quality",
 ]
 
 
@@ -35,17 +35,28 @@ def calibrate_white(white, dark=None, bayer: str = "none", pitch_hint_px: float 
     fit = find_centres(img, pitch_hint_px=pitch_hint_px, **kwargs)
     cal = calibration_from_fit(fit, (img.shape[1], img.shape[0]), white_sha256, dark_sha256)
     cal.diagnostics["hot_pixels_replaced"] = n_hot
-    return cal
+    return with_quality(cal)
+
+
+def with_quality(cal: Calibration, accepted_poor: bool = False) -> Calibration:
+    """Copy of ``cal`` with its quality block (:func:`lfcam.calibrate.quality.assess`)."""
+    from dataclasses import replace
+
+    from lfcam.calibrate.quality import assess
+
+    return replace(cal, quality=assess(cal).to_dict(accepted_poor))
 
 
 def calibrate_white_file(white_path, dark=None, profile=None, output=None,
-                         progress=None) -> Calibration:
+                         progress=None, accept_poor: bool = False) -> Calibration:
     """Read WHITE (and DARK), calibrate, optionally save atomically to ``output``.
 
     WHITE and DARK may be anything :func:`lfcam.io.load_capture` reads (Lytro ``.lfp``/``.lfr``
     containers and bare packed raws, camera raws, PNG/TIFF rasters). The capture's black
     level is removed (when no dark frame is given) and its Bayer pattern, or else the
-    profile's, is equalised.
+    profile's, is equalised. The result carries its quality block; a ``poor`` calibration
+    is not written to ``output`` (:class:`~lfcam.errors.CalibrationQualityError`) unless
+    ``accept_poor`` (then it is marked ``accepted_poor``).
     """
     from lfcam.camera import load_profile
     from lfcam.io import load_capture
@@ -62,6 +73,14 @@ def calibrate_white_file(white_path, dark=None, profile=None, output=None,
         dark_img = np.asarray(load_capture(dark, prof).raw, dtype=np.float32)
     cal = calibrate_white(white, dark_img, bayer, hint, progress,
                           sha256_file(white_path), None if dark is None else sha256_file(dark))
+    if accept_poor and cal.is_poor:
+        cal = with_quality(cal, accepted_poor=True)
+    elif cal.is_poor and output is not None:
+        from lfcam.errors import CalibrationQualityError
+
+        raise CalibrationQualityError(
+            f"{white_path}: poor calibration, not written: {'; '.join(cal.quality['reasons'])}"
+            " (pass --accept-poor to write it anyway)")
     if output is not None:
         save_calibration(cal, Path(output))
     return cal

@@ -23,8 +23,9 @@ Two JSON forms are read (docs/calibration.md):
       "white_sha256": hex | null, "dark_sha256": hex | null,
       "rejected": {"reason": count, ...}, "rejected_px": [[x, y, reason], ...],
       "d_in_mm": float | null, "d_in_method": str | null,
-      "diagnostics": {...}
-    }
+      "diagnostics": {...},
+      "quality": {"verdict": "ok" | "poor", "reasons": [...], "accepted_poor": bool, ...}
+    }                                         # quality absent: unknown (not poor)
 
 * the minimal interchange form of the command-line contract (docs/calibration.md): ``grid``,
   ``pitch_px``, ``rotation_rad``, ``offset_px``, ``centres_px`` and optionally
@@ -44,7 +45,7 @@ import numpy as np
 
 from lfcam.atomic import atomic_write_text
 from lfcam.calibrate.grid import RADIAL_NORM_PX, REJECT_REASONS, GridFit, predict_lattice
-from lfcam.errors import CalibrationError
+from lfcam.errors import CalibrationError, CalibrationQualityError
 from lfcam.optics.mla import lattice_basis, lattice_index, rotation_matrix, row_column
 from lfcam.validate import read_json
 
@@ -87,6 +88,10 @@ class Calibration:
     diagnostics : dict
     lattice_radial : tuple or None
         (cx, cy, k1, k2) of the radial term of ``projective+radial`` (ρ in units of 1000 px).
+    quality : dict or None
+        The quality block (:mod:`lfcam.calibrate.quality`: coverage, residual, misfit,
+        ``verdict`` ``ok``/``poor``, ``reasons``, ``accepted_poor``); None = unknown (a
+        minimal-form file, or one written before the gates existed).
     source : str
         Where it was read from (for messages); empty for an in-memory calibration.
     """
@@ -110,6 +115,7 @@ class Calibration:
     centre_definition: str = "intensity-centroid"
     diagnostics: dict = field(default_factory=dict)
     lattice_radial: tuple | None = None
+    quality: dict | None = None
     source: str = ""
 
     def __post_init__(self) -> None:
@@ -275,6 +281,37 @@ class Calibration:
         """Per-lens residual vectors (measured − model)."""
         return self.centres_px - self.predict(self.indices)
 
+    @property
+    def is_poor(self) -> bool:
+        """True when the quality block says ``poor`` (unknown quality is not poor)."""
+        return self.quality is not None and self.quality.get("verdict") == "poor"
+
+    def check_quality(self) -> None:
+        """Refuse a calibration that failed its quality gates, unless it was accepted.
+
+        A ``poor`` calibration written with ``lfcam calibrate --accept-poor``
+        (``accepted_poor: true``) passes with a :class:`UserWarning`; one without a quality
+        block (minimal form, older files) is of unknown quality and passes silently.
+
+        Raises
+        ------
+        CalibrationQualityError
+            The calibration is ``poor`` and was not accepted; the message names the gate(s).
+        """
+        if not self.is_poor:
+            return
+        where = self.source or "calibration"
+        reasons = "; ".join(self.quality.get("reasons") or ["failed its quality gates"])
+        if self.quality.get("accepted_poor") is True:
+            import warnings
+
+            warnings.warn(f"{where} is a poor calibration, accepted explicitly: {reasons}",
+                          stacklevel=2)
+            return
+        raise CalibrationQualityError(
+            f"{where} is a poor calibration: {reasons}; recalibrate (better white image), "
+            "or accept it with lfcam calibrate --accept-poor")
+
     def with_d_in(self, d_in_mm: float, method: str) -> Calibration:
         """Copy with the reference-plane d_in stored."""
         if not (math.isfinite(d_in_mm) and d_in_mm > 0):
@@ -359,6 +396,7 @@ def to_json_dict(cal: Calibration) -> dict:
         "rejected": dict(cal.rejected),
         "rejected_px": [[round(x, 4), round(y, 4), r] for x, y, r in cal.rejected_px],
         "diagnostics": cal.diagnostics,
+        **({} if cal.quality is None else {"quality": cal.quality}),
         "centres_px": np.round(cal.centres_px, 5).tolist(),
         "indices": cal.indices.tolist(),
     }
@@ -521,10 +559,30 @@ def calibration_from_dict(d: Any, source: str = "") -> Calibration:
         centre_definition=str(d.get("centre_definition", "intensity-centroid")),
         diagnostics=d.get("diagnostics", {}) if isinstance(d.get("diagnostics"), dict) else {},
         lattice_radial=radial,
+        quality=_quality_from_dict(d.get("quality"), where),
         source=source,
     )
     _check_plausible(cal, where)
     return cal
+
+
+def _quality_from_dict(q: Any, where: str) -> dict | None:
+    """Validate the optional ``quality`` block (None: quality unknown)."""
+    if q is None:
+        return None
+    if not isinstance(q, dict):
+        raise CalibrationError(f"{where}: quality must be an object or null")
+    if q.get("verdict") not in ("ok", "poor"):
+        raise CalibrationError(f"{where}: quality.verdict must be 'ok' or 'poor', "
+                               f"got {q.get('verdict')!r}")
+    reasons = q.get("reasons", [])
+    if not (isinstance(reasons, list) and all(isinstance(r, str) for r in reasons)):
+        raise CalibrationError(f"{where}: quality.reasons must be a list of strings")
+    if not isinstance(q.get("accepted_poor", False), bool):
+        raise CalibrationError(f"{where}: quality.accepted_poor must be true or false")
+    if q["verdict"] == "poor" and not reasons:
+        raise CalibrationError(f"{where}: a poor quality verdict must state its reasons")
+    return dict(q)
 
 
 def _from_minimal(d: dict, source: str, where: str) -> Calibration:

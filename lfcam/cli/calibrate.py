@@ -16,7 +16,7 @@ from lfcam.cli.common import (
     positive_float,
     profile_file,
 )
-from lfcam.errors import CalibrationError
+from lfcam.errors import CalibrationError, CalibrationQualityError
 from lfcam.progress import fractions, terminal_progress
 
 
@@ -38,6 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reference-distance", metavar="MM", type=positive_float,
                    help="dot plane → front vertex of the main lens, mm")
     p.add_argument("-o", "--output", required=True, help="calibration JSON to write")
+    p.add_argument("--accept-poor", action="store_true",
+                   help="write a calibration that fails the quality gates (coverage, lattice "
+                   "residual, model misfit; docs/robustness.md), marked accepted_poor; commands "
+                   "then use it with a warning instead of refusing it")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     add_quiet(p)
     p.set_defaults(func=run)
@@ -62,7 +66,16 @@ def run(args: argparse.Namespace) -> int:
     with terminal_progress(args.quiet) as bar:
         cal = calibrate_white_file(args.white, dark=args.dark, profile=args.profile,
                                    output=None if ref is not None else out,
-                                   progress=fractions(bar))
+                                   progress=fractions(bar), accept_poor=args.accept_poor)
+    if cal.is_poor and not args.accept_poor:  # the reference route: nothing written yet
+        raise CalibrationQualityError(
+            f"{args.white}: poor calibration, not written: {'; '.join(cal.quality['reasons'])}"
+            " (pass --accept-poor to write it anyway)")
+    if cal.is_poor:
+        import sys
+
+        print(f"lfcam calibrate: warning: poor calibration accepted: "
+              f"{'; '.join(cal.quality['reasons'])}", file=sys.stderr)
     din = None
     if ref is not None:
         from lfcam.calibrate import calibrate_reference_file, save_calibration
@@ -74,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         "rotation_rad": cal.rotation_rad, "offset_px": list(cal.offset_px),
         "n_lenses": cal.n_lenses, "model": cal.model, "residual_rms_px": cal.residual_rms_px,
         "rejected": cal.rejected, "d_in_mm": cal.d_in_mm, "d_in_method": cal.d_in_method,
+        "quality": cal.quality,
     }
     if din is not None:
         summary.update(d_in_sigma_mm=din.sigma_mm, d_in_paraxial_mm=din.d_in_paraxial_mm,
@@ -84,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         rej = ", ".join(f"{k} {v}" for k, v in sorted(cal.rejected.items())) or "none"
         print(f"{cal.n_lenses} lenses, {cal.grid} grid, pitch {cal.pitch_px:.5f} px, rotation "
               f"{cal.rotation_rad:.6f} rad, {cal.model} model, residual RMS "
-              f"{cal.residual_rms_px:.4f} px; rejected: {rej} -> {out}")
+              f"{cal.residual_rms_px:.4f} px; rejected: {rej}; quality "
+              f"{cal.quality['verdict'] if cal.quality else 'unknown'} -> {out}")
         if din is not None:
             # σ needs at least two dots; the paraxial seed may not exist: print only numbers
             sigma = f" ± {din.sigma_mm:.4f}" if math.isfinite(din.sigma_mm) else ""

@@ -81,6 +81,7 @@ def _load(args: argparse.Namespace, bar: Progress):
     bar("loading", 0, 1)
     profile = load_profile(args.profile) if args.profile else None
     grid = load_calibration(args.calibration)
+    grid.check_quality()
     verify = verify_mode(args)
     cap = load_capture(args.capture, profile, verify=verify)
     check_saturation(cap)

@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"      region {done}/{total}", file=sys.stderr, flush=True)
 
     result = run_distance(image, prof, calibration, model="exact", progress=progress)
-    write_outputs(out, result)
+    write_outputs(out, result, "lfcam demo scene  model exact, method lightfield")
     _say(f"4/4 wrote {out}/regions.csv, distance.tiff, distance.png "
          f"({time.perf_counter() - t0:.0f} s)\n")
     head = (f"{'#':>2} {'kind':5} {'true mm':>8} {'lfcam mm':>10} {'± mm':>7} {'error %':>8}   "

@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     with terminal_progress(args.quiet) as bar:
         bar("loading", 0, 1)
         calibration = load_calibration(args.calibration)
+        calibration.check_quality()
         cap = load_capture(capture_path, profile, verify=verify_mode(args))
         check_saturation(cap)
         image = cap.grey()
@@ -84,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
                               progress=counts(bar, "regions"), jobs=args.jobs)
         bar("writing", 0, 1)
-        write_outputs(out, result)
+        write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "
+                      f"{args.method}{' (fast)' if args.fast else ''}")
         bar("writing", 1, 1)
     ok = sum(r.status == "ok" for r in result.regions)
     if args.json:

@@ -81,8 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     except BrokenPipeError:  # e.g. `lfcam demo | head`: the reader left, nothing to report
         sys.stderr.close()
         return 0
-    except KeyboardInterrupt:
-        print(f"lfcam {args.command}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"lfcam {args.command}: {str(exc) or 'interrupted'}", file=sys.stderr)
         return 130
     except MemoryError:
         if args.debug:

@@ -62,10 +62,40 @@ def write_lightfield(folder: str | Path, lf: LightField, png_views: bool = True)
 
     ``views.tiff`` is a float32 stack of ``nv·nu`` pages, page ``v·nu + u`` = view (v, u).
     PNG views share one scale so their brightness compares.
+
+    Everything is written into a temporary folder next to ``folder`` first. A new ``folder``
+    is that temporary folder renamed when complete; into an existing one the files are moved
+    one by one (each an atomic replace), ``lightfield.json`` last. An interrupted decode
+    therefore leaves no half folder under the output name (only the temporary one, removed
+    on the way out).
     """
+    import os
+    import shutil
+    import tempfile
+
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputFileError(f"output {folder} exists and is not a folder")
+    parent = folder.parent if str(folder.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=parent))
+    try:
+        written = _write_lightfield_files(tmp, lf, png_views)
+        rel = [w.relative_to(tmp) for w in written]
+        if not folder.exists():
+            os.rename(tmp, folder)
+        else:
+            order = sorted(rel, key=lambda r: r.name == "lightfield.json")
+            for r in order:
+                (folder / r).parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp / r, folder / r)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return [folder / r for r in rel]
+
+
+def _write_lightfield_files(folder: Path, lf: LightField, png_views: bool) -> list[Path]:
+    """The files of :func:`write_lightfield`, written into ``folder``."""
     nv, nu, t_count, s_count = lf.data.shape
     written = []
     for name, payload in (

@@ -76,16 +76,36 @@ def write_distance_tiff(path: str | Path, distance_mm: np.ndarray) -> None:
         metadata={"unit": "mm", "description": "lfcam distance map"}))
 
 
+def nice_ticks(lo: float, hi: float, target: int = 5) -> list[float]:
+    """Round tick values (1, 2, 2.5 or 5 × 10ⁿ steps) inside [lo, hi]."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return [lo]
+    raw = (hi - lo) / max(1, target)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw)
+    first = math.ceil(lo / step) * step
+    ticks = []
+    v = first
+    while v <= hi + 1e-9 * step:
+        ticks.append(round(v, 10))
+        v += step
+    return ticks
+
+
 def render_preview(
     distance_mm: np.ndarray,
     regions: Sequence[RegionResult] = (),
     max_side_px: int = 1024,
     colormap: int = cv2.COLORMAP_TURBO,
+    title: str = "",
 ) -> np.ndarray:
-    """Colour preview (BGR uint8): distance colour map, region outlines and a scale bar.
+    """Colour preview (BGR uint8): title, distance colour map with pixel axes, region outlines
+    and a colour bar with round ticks in millimetres.
 
     NaN pixels are dark grey. The colour range spans the finite distances (near = blue,
-    far = red); the bar on the right is labelled in millimetres.
+    far = red). Each ``ok`` region is outlined in white with a line width that grows with its
+    relative uncertainty (1 px below 0.5 %, 2 px below 2 %, 3 px above) and labelled
+    ``#id d ± σ mm``; other regions are outlined in red and labelled with their status.
     """
     d = np.asarray(distance_mm, dtype=np.float64)
     h, w = d.shape
@@ -97,37 +117,62 @@ def render_preview(
         lo, hi = mid - 0.05 * abs(mid) - 0.5, mid + 0.05 * abs(mid) + 0.5
     norm = np.zeros_like(d)
     norm[finite] = (d[finite] - lo) / (hi - lo)
-    img = cv2.applyColorMap((norm * 255).astype(np.uint8), colormap)
+    img = cv2.applyColorMap((np.clip(norm, 0, 1) * 255).astype(np.uint8), colormap)
     img[~finite] = (40, 40, 40)
     if scale < 1.0:
         img = cv2.resize(img, (max(1, int(w * scale)), max(1, int(h * scale))),
                          interpolation=cv2.INTER_AREA)
+    font, fs = cv2.FONT_HERSHEY_SIMPLEX, 0.35
     for r in regions:
         x0, y0, x1, y1 = (int(round(v * scale)) for v in r.bbox_px)
-        colour = (255, 255, 255) if r.status == "ok" else (0, 0, 255)
-        cv2.rectangle(img, (x0, y0), (max(x0, x1 - 1), max(y0, y1 - 1)), colour, 1)
-        cv2.putText(img, str(r.region_id), (x0, max(10, y0 - 3)), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.35, colour, 1, cv2.LINE_AA)
-    ih = img.shape[0]
-    bar_w, margin, label_w = 16, 8, 90
-    canvas = np.full((ih, img.shape[1] + bar_w + label_w + 2 * margin, 3), 255, np.uint8)
-    canvas[:, : img.shape[1]] = img
+        if r.status == "ok":
+            rel = r.uncertainty_mm / r.distance_mm if r.distance_mm else float("inf")
+            thick = 1 if rel < 0.005 else 2 if rel < 0.02 else 3
+            colour, label = (255, 255, 255), f"#{r.region_id} {r.distance_mm:.0f}"
+            if math.isfinite(r.uncertainty_mm):
+                label += f" +/- {r.uncertainty_mm:.2g} mm"
+        else:
+            thick, colour, label = 1, (0, 0, 255), f"#{r.region_id} {r.status}"
+        cv2.rectangle(img, (x0, y0), (max(x0, x1 - 1), max(y0, y1 - 1)), colour, thick)
+        cv2.putText(img, label, (x0, max(10, y0 - 3)), font, fs, colour, 1, cv2.LINE_AA)
+    ih, iw = img.shape[:2]
+    top, left, bottom = 24, 44, 22
+    bar_w, margin, label_w = 16, 8, 70
+    canvas = np.full((ih + top + bottom, left + iw + bar_w + label_w + 2 * margin, 3), 255,
+                     np.uint8)
+    canvas[top : top + ih, left : left + iw] = img
+    cv2.putText(canvas, title or "lfcam distance map", (left, 16), font, 0.45, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    # pixel axes: ticks in raw sensor pixels
+    for v in nice_ticks(0, w - 1, 4):
+        x = left + int(round(v * scale))
+        cv2.line(canvas, (x, top + ih), (x, top + ih + 4), (0, 0, 0), 1)
+        cv2.putText(canvas, f"{v:g}", (max(0, x - 10), top + ih + 15), font, fs, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    for v in nice_ticks(0, h - 1, 4):
+        y = top + int(round(v * scale))
+        cv2.line(canvas, (left - 4, y), (left, y), (0, 0, 0), 1)
+        cv2.putText(canvas, f"{v:g}", (2, min(top + ih, y + 4)), font, fs, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    cv2.putText(canvas, "px", (left + iw - 14, top + ih + bottom - 2), font, fs, (0, 0, 0), 1,
+                cv2.LINE_AA)
     ramp = np.linspace(255, 0, ih).astype(np.uint8)[:, None].repeat(bar_w, axis=1)
-    x_bar = img.shape[1] + margin
-    canvas[:, x_bar : x_bar + bar_w] = cv2.applyColorMap(ramp, colormap)
-    for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
-        y = int(round((1 - frac) * (ih - 1)))
-        value = lo + frac * (hi - lo)
+    x_bar = left + iw + margin
+    canvas[top : top + ih, x_bar : x_bar + bar_w] = cv2.applyColorMap(ramp, colormap)
+    for value in nice_ticks(lo, hi, 5):
+        frac = (value - lo) / (hi - lo)
+        y = top + int(round((1 - frac) * (ih - 1)))
         cv2.line(canvas, (x_bar + bar_w, y), (x_bar + bar_w + 4, y), (0, 0, 0), 1)
-        cv2.putText(canvas, f"{value:.4g} mm", (x_bar + bar_w + 6, min(ih - 3, max(10, y + 4))),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(canvas, f"{value:g}", (x_bar + bar_w + 6, y + 4), font, fs, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    cv2.putText(canvas, "mm", (x_bar, top + ih + 15), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
     return canvas
 
 
 def write_distance_png(path: str | Path, distance_mm: np.ndarray,
-                       regions: Sequence[RegionResult] = ()) -> None:
+                       regions: Sequence[RegionResult] = (), title: str = "") -> None:
     """Write the colour preview (see :func:`render_preview`) as PNG."""
-    ok, buf = cv2.imencode(".png", render_preview(distance_mm, regions))
+    ok, buf = cv2.imencode(".png", render_preview(distance_mm, regions, title=title))
     if not ok:  # pragma: no cover - cv2 failure
         raise OSError("PNG encoding failed")
     atomic_write_bytes(path, buf.tobytes())

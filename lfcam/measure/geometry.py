@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lfcam.calibrate.quality import check_profile_pitch
 from lfcam.camera import CameraProfile
 from lfcam.errors import CalibrationError
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map
@@ -174,12 +175,15 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
     ------
     CalibrationError
         The calibration was made on a white image of another size, or holds no centre.
+    CalibrationMismatchError
+        The profile's predicted micro-image pitch is more than 5 % off the calibration's.
     """
     calibration.check_image(shape)
     if not calibration.n_lenses:
         raise CalibrationError(f"{calibration.source or 'calibration'}: no measured centres")
     centres = np.asarray(calibration.centres_px, dtype=np.float64)
     d_in = calibration.d_in_mm if calibration.d_in_mm is not None else profile.d_in_mm
+    check_profile_pitch(profile, calibration, d_in)  # a wrong profile, before any heavy work
     lmap = build_lenslet_map(centres, shape, 0.5 * calibration.pitch_px * 1.08)
     lens_mm = lenslet_centres_mm(profile, d_in, centres)
     lens_mm, _ = regularise_to_lattice(lens_mm, calibration.indices, profile.mla.pitch_mm)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
@@ -18,6 +19,7 @@ from lfcam.measure.base import Measurement, neighbours, region_pixels_mask
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
+    MATCH_BLUR_PX,
     SpotExtraction,
     _Patch,
     find_spots,
@@ -25,6 +27,7 @@ from lfcam.measure.pointfit import (
     fit_point_image,
 )
 from lfcam.measure.regions import Region
+from lfcam.measure.verify import noise_misfit
 from lfcam.optics.trace import forward
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
@@ -116,8 +119,18 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
     dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
+    noise_mf = float("nan") if fast else _noise_misfit(image, box, noise)
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
-                       misfit=misfit)
+                       misfit=misfit, noise_misfit=noise_mf,
+                       source_xy_mm=(float(source[0]), float(source[1])))
+
+
+def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], noise: float) -> float:
+    """The relative misfit pixel noise alone gives on the fitted patch (same blur as the fit)."""
+    x0, y0, x1, y1 = box
+    blur = float(np.sqrt(MATCH_BLUR_PX**2 + 1.0 / 12.0))
+    data = cv2.GaussianBlur(np.asarray(image[y0:y1, x0:x1], np.float64), (0, 0), blur)
+    return noise_misfit(noise, blur, int(data.size), float(np.sqrt((data * data).sum())))
 
 
 def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
