@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +60,7 @@ from lfcam.measure.verify import verify_regions
 from lfcam.models import auto, check_distance_model
 from lfcam.models import line as line_model
 from lfcam.models.base import Status
+from lfcam.progress import Progress
 
 # numerical failures of one region's fit that must not take down the capture
 _REGION_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError, cv2.error, LfcamError)
@@ -153,7 +153,7 @@ def run_distance(
     method: str = "lightfield",
     tolerance_pct: float | None = None,
     fast: bool = False,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
     geometry: Geometry | None = None,
     jobs: int | None = 1,
 ) -> DistanceRun:
@@ -175,7 +175,8 @@ def run_distance(
     fast : bool
         ``lightfield``: keep the triangulation, skip the per-pixel fit.
     progress : callable, optional
-        Called as ``progress(done, total)`` after each region.
+        A :data:`lfcam.progress.Progress`, called as ``progress("regions", done, total)``
+        after each region.
     geometry : Geometry, optional
         Reuse a prepared geometry (batches).
     jobs : int or None
@@ -228,7 +229,7 @@ def run_distance(
         for i, reg in enumerate(regions):
             estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args))
             if progress:
-                progress(i + 1, len(regions))
+                progress("regions", i + 1, len(regions))
     results = []
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     nan = float("nan")
@@ -336,7 +337,7 @@ def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, pr
             for done, fut in enumerate(as_completed(futures), start=1):
                 out[futures[fut]] = fut.result()
                 if progress:
-                    progress(done, len(regions))
+                    progress("regions", done, len(regions))
         return out
     finally:
         for shm in shms:

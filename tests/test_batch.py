@@ -220,12 +220,12 @@ def test_cli_exit_codes(folder, tmp_path, capsys):
     assert "calibration" in capsys.readouterr().err
 
 
-def test_progress_line_counts(capsys):
-    from lfcam.batch import _Progress
-
-    bar = _Progress(3, enabled=True)
-    bar.update(True)
-    bar.update(False)
-    bar.close()
-    last = capsys.readouterr().err.rstrip("\n").split("\r")[-1]
-    assert "done 1  failed 1  remaining 1" in last and last.endswith("/min")
+def test_progress_counts_finished_and_failed_captures(folder, tmp_path):
+    calls = []
+    res = run_batch(folder, CALIB, tmp_path, fast=True, workers=1,
+                    progress=lambda stage, done, total: calls.append((stage, done, total)))
+    todo = calls[0][2]
+    failed = sum(1 for r in res.worker_stats if r.get("status") != "ok")
+    assert todo == len(res.worker_stats) and failed > 0  # the folder holds broken captures
+    assert [d for _, d, _ in calls] == list(range(todo + 1))  # a call a capture, from 0
+    assert calls[-1][0] == f"captures ({failed} failed)"

@@ -28,7 +28,6 @@ import csv
 import hashlib
 import os
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterable
@@ -54,6 +53,7 @@ from lfcam.export import REGION_COLUMNS, write_csv
 from lfcam.io.capture import RAW_EXTENSIONS
 from lfcam.measure import METHODS
 from lfcam.models import check_distance_model
+from lfcam.progress import Progress, TerminalProgress
 
 SUMMARY_COLUMNS = ("capture", "duplicate_of", *REGION_COLUMNS)
 FAILURE_COLUMNS = ("capture", "error_class", "message")
@@ -193,36 +193,22 @@ def _typed(row: list[str]) -> dict[str, Any]:
     return d
 
 
-class _Progress:
-    """``done / failed / remaining`` and rate on one stderr line (only on a terminal)."""
+def _captures_progress(progress: Progress | bool | None, total: int):
+    """(report(ok), close()) that tell ``progress`` — a :data:`lfcam.progress.Progress`, or a
+    flag for the terminal line — how many captures are finished and how many failed."""
+    term = None
+    if not callable(progress):
+        term = TerminalProgress(enabled=progress)
+        progress = term
+    n = {"ok": 0, "failed": 0}
 
-    def __init__(self, total: int, enabled: bool | None = None) -> None:
-        self.total, self.done, self.failed = total, 0, 0
-        self.t0 = time.perf_counter()
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
-        self.show()
+    def report(ok: bool | None = None) -> None:
+        if ok is not None:
+            n["ok" if ok else "failed"] += 1
+        stage = f"captures ({n['failed']} failed)" if n["failed"] else "captures"
+        progress(stage, n["ok"] + n["failed"], total)
 
-    def update(self, ok: bool) -> None:
-        if ok:
-            self.done += 1
-        else:
-            self.failed += 1
-        self.show()
-
-    def show(self) -> None:
-        if not self.enabled:
-            return
-        n = self.done + self.failed
-        dt = time.perf_counter() - self.t0
-        rate = 60.0 * n / dt if dt > 0 and n else 0.0
-        width = 30
-        fill = int(width * n / self.total) if self.total else width
-        print(f"\r[{'#' * fill}{'.' * (width - fill)}] done {self.done}  failed {self.failed}  "
-              f"remaining {self.total - n}  {rate:.1f}/min", end="", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.enabled:
-            print(file=sys.stderr, flush=True)
+    return report, (term.close if term is not None else (lambda: None))
 
 
 def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> None:
@@ -328,7 +314,7 @@ def run_batch(
     scheduler: str | None = None,
     client: Any = None,
     force: bool = False,
-    progress: bool | None = None,
+    progress: Progress | bool | None = None,
     on_result: Callable[[dict], None] | None = None,
 ) -> BatchResult:
     """Run the distance pipeline on every capture under ``input_dir``.
@@ -354,8 +340,9 @@ def run_batch(
         An existing Dask client (instead of ``scheduler``).
     force : bool
         Recompute every capture, even finished ones.
-    progress : bool, optional
-        Progress line on stderr (default: when stderr is a terminal).
+    progress : Progress or bool, optional
+        A :data:`lfcam.progress.Progress` told ``("captures", finished, to do)``, or a flag
+        for the progress line on stderr (default: when stderr is a terminal).
     on_result : callable, optional
         Called with each worker result dict as it arrives (coordinator side).
 
@@ -414,7 +401,8 @@ def run_batch(
     todo = [j for j in originals if force or not is_finished(j)]
     skipped = [j.rel for j in originals if j not in todo]
 
-    bar = _Progress(len(todo), progress)
+    bar, close_bar = _captures_progress(progress, len(todo))
+    bar()
     computed: list[str] = []
     failed: dict[str, Failure] = {}
     worker_stats: list[dict] = []
@@ -427,7 +415,7 @@ def run_batch(
             failed[res["rel"]] = Failure(res["rel"], res.get("error_class", "Error"),
                                          res.get("message", ""))
         worker_stats.append(res)
-        bar.update(ok)
+        bar(ok)
         if on_result is not None:
             on_result(res)
 
@@ -441,7 +429,7 @@ def run_batch(
     except KeyboardInterrupt:  # Ctrl-C: no new capture; still write what finished
         interrupted = True
     finally:
-        bar.close()
+        close_bar()
     if interrupted:
         done = set(computed) | set(failed)
         for j in todo:

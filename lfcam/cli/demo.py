@@ -112,8 +112,8 @@ def run(args: argparse.Namespace) -> int:
     image = to_grey(raw, "none", prof.sensor.black_level, prof.sensor.white_level)
     calibration = load_calibration(calib_path)
 
-    def progress(done: int, total: int) -> None:
-        print(f"      region {done}/{total}", file=sys.stderr, flush=True)
+    def progress(stage: str, done: int, total: int) -> None:
+        print(f"      {stage} {done}/{total}", file=sys.stderr, flush=True)
 
     result = run_distance(image, prof, calibration, model="exact", progress=progress)
     write_outputs(out, result, "lfcam demo scene  model exact, method lightfield")

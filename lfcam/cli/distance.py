@@ -20,7 +20,7 @@ from lfcam.cli.common import (
 )
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
-from lfcam.progress import counts, terminal_progress
+from lfcam.progress import terminal_progress
 
 OUTPUT_FILES = ("regions.csv", "distance.tiff", "distance.png")
 
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
                                  else "lightfield")
         result = run_distance(image, profile, calibration, model=args.model,
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
-                              progress=counts(bar, "regions"), jobs=args.jobs)
+                              progress=bar, jobs=args.jobs)
         bar("writing", 0, 1)
         write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "
                       f"{args.method}{' (fast)' if args.fast else ''}")
