@@ -61,6 +61,7 @@ from lfcam.models import auto, check_distance_model
 from lfcam.models import line as line_model
 from lfcam.models.base import Status
 from lfcam.progress import Progress
+from lfcam.status import RegionStatus, failed, unsupported
 
 # numerical failures of one region's fit that must not take down the capture
 _REGION_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError, cv2.error, LfcamError)
@@ -81,14 +82,14 @@ def _apply_line_model(profile: CameraProfile, meas: Measurement, model: str) -> 
     """Lines: ``exact``/``auto`` keep the exact fit; the closed-form choices run the seed's
     line model (eqs. 18–20) on the endpoints' rim-ray heights."""
     if model in ("exact", "auto"):
-        return "exact", meas.distance_mm, meas.offset_mm, meas.sigma_distance_mm, "ok"
+        return "exact", meas.distance_mm, meas.offset_mm, meas.sigma_distance_mm, RegionStatus.OK
     (a1, a2), (b1, b2) = meas.endpoints
     inv = line_model.invert(profile, meas.plane_d_in_mm, a1, a2, b1, b2)
     status = Status(int(inv.status)).label
     d = float(inv.distance_mm)
     table = auto.error_table(profile, meas.plane_d_in_mm)
     model_err = float("nan")
-    if status == "ok":
+    if status == RegionStatus.OK:
         model_err = float(table.predict("offaxis", d, meas.offset_mm)) * d
     return "line", d, abs(float(inv.offset_mm)), model_err, status
 
@@ -97,7 +98,7 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
                  tolerance_pct: float | None) -> tuple:
     """(model name, distance, offset, sigma, status) for one measured region."""
     nan = float("nan")
-    if meas.status != "ok":
+    if meas.status != RegionStatus.OK:
         return model, nan, nan, nan, meas.status
     if meas.kind == "line":
         return _apply_line_model(profile, meas, model)
@@ -116,7 +117,7 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
     status = Status(int(inv.status[0])).label
     d = float(inv.distance_mm[0])
     s = float(sigma[0])
-    if name == "exact" and np.isfinite(meas.distance_mm) and status == "ok":
+    if name == "exact" and np.isfinite(meas.distance_mm) and status == RegionStatus.OK:
         # the lightfield fit already located the source exactly: use its own uncertainty
         d, s = meas.distance_mm, meas.sigma_distance_mm
     return name, d, abs(float(inv.offset_mm[0])), s, status
@@ -129,7 +130,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     one region."""
     nan = float("nan")
     if reg.kind not in ("spot", "line"):
-        return reg.kind, model, nan, nan, nan, nan, f"unsupported-{reg.kind}", None
+        return reg.kind, model, nan, nan, nan, nan, unsupported(reg.kind), None
     if model == "refocus":
         d, sig, status = measure_refocus(profile, geom, img, reg)
         return reg.kind, "refocus", d, nan, nan, sig, status, None
@@ -236,9 +237,9 @@ def run_distance(
     measurements = []
     for reg, (est, _) in zip(regions, estimates, strict=True):
         kind, name, d, off, diameter, sig, status, meas = est
-        if status != "ok" or not np.isfinite(d):
+        if status != RegionStatus.OK or not np.isfinite(d):
             # no estimate: no numbers, whatever the model computed on the way
-            status = status if status != "ok" else "out-of-domain"
+            status = status if status != RegionStatus.OK else RegionStatus.OUT_OF_DOMAIN
             d = off = sig = nan
         results.append(RegionResult(
             region_id=reg.region_id, x_px=reg.centroid_px[0], y_px=reg.centroid_px[1],
@@ -248,7 +249,7 @@ def run_distance(
         measurements.append(meas)
     results, checks = _gate_regions(profile, geom, stats, regions, results, measurements)
     for reg, res in zip(regions, results, strict=True):
-        if res.status == "ok":
+        if res.status == RegionStatus.OK:
             paint_region(dmap, reg, geom.lmap, geom.pitch_px, res.distance_mm)
     t3 = time.perf_counter()
     return DistanceRun(results, dmap, {"geometry": t1 - t0, "regions": t2 - t1,
@@ -265,7 +266,7 @@ def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
                         fast)
     except _REGION_FAILURES as exc:
         nan = float("nan")
-        est = (reg.kind, model, nan, nan, nan, nan, f"failed: {type(exc).__name__}", None)
+        est = (reg.kind, model, nan, nan, nan, nan, failed(type(exc).__name__), None)
     return est, time.process_time() - t
 
 
@@ -351,7 +352,7 @@ def _gate_regions(profile, geom, stats, regions, results, measurements) -> tuple
 
     measured = []
     for res, meas in zip(results, measurements, strict=True):
-        usable = (res.status == "ok" and meas is not None and res.kind == "spot"
+        usable = (res.status == RegionStatus.OK and meas is not None and res.kind == "spot"
                   and len(meas.source_xy_mm) == 2)
         measured.append((res.status if usable else "skip", meas,
                          meas.source_xy_mm if usable else None, res.uncertainty_mm))
@@ -359,7 +360,7 @@ def _gate_regions(profile, geom, stats, regions, results, measurements) -> tuple
     nan = float("nan")
     out = []
     for res, chk, (st, _, _, _) in zip(results, checks, measured, strict=True):
-        if st == "ok" and chk.status != "ok":
+        if st == RegionStatus.OK and chk.status != RegionStatus.OK:
             res = replace(res, status=chk.status, distance_mm=nan, offset_mm=nan,
                           uncertainty_mm=nan)
         out.append(res)

@@ -19,6 +19,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletStats
 from lfcam.measure.pointfit import assign_spots, find_spots
 from lfcam.measure.regions import Region
+from lfcam.status import RegionStatus
 
 DIAMETER_SIGMA_PITCH = 0.1  # 1-σ error of footprint edges, in lenslet pitches (heuristic)
 
@@ -47,7 +48,7 @@ def measure_diameter(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     e = stats.energy[region.lenslets]
     plateau = float(np.percentile(e, 90))
     if plateau <= 0 or len(e) < 3:
-        return Measurement.failed("near-focus", geom.d_in_mm)
+        return Measurement.failed(RegionStatus.NEAR_FOCUS, geom.d_in_mm)
     pitch = profile.mla.pitch_mm
     cell = pitch * pitch * (math.sqrt(3) / 2 if profile.mla.grid == "hex" else 1.0)
     area = float(_covered_fraction(geom, stats, region).sum()) * cell
@@ -62,7 +63,7 @@ def measure_diameter(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     peak = float(sub[mask].max()) if mask.any() else 0.0
     spots, energy = find_spots(sub, mask, max(6.0 * noise, 0.03 * peak))
     if len(spots) < 3:
-        return Measurement.failed("near-focus", geom.d_in_mm)
+        return Measurement.failed(RegionStatus.NEAR_FOCUS, geom.d_in_mm)
     spots = spots + np.array([x0, y0])
     pp = profile.sensor.pixel_pitch_mm
     ax, ay = profile.sensor.axis_xy_px
@@ -80,7 +81,7 @@ def measure_diameter(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sign = -1.0 if divergence > 0 else 1.0
     y1 = radial + sign * 0.5 * diameter
     y2 = radial - sign * 0.5 * diameter
-    return Measurement(y1, y2, DIAMETER_SIGMA_PITCH * pitch, nan, nan, nan, "ok",
+    return Measurement(y1, y2, DIAMETER_SIGMA_PITCH * pitch, nan, nan, nan, RegionStatus.OK,
                        geom.d_in_mm - fx)
 
 

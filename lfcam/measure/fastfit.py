@@ -42,6 +42,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.optics.trace import forward, trace_source_fast
+from lfcam.status import RegionStatus
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
@@ -547,7 +548,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     mom = data_moments(geom, image, box)
     nan3 = np.full(3, np.nan)
     if not mom.norm > 0 or len(mom.ids) < 3:
-        return LensletFit(nan3, np.nan, np.nan, 0, False, "empty")
+        return LensletFit(nan3, np.nan, np.nan, 0, False, RegionStatus.EMPTY)
     n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     frame = _Frame(profile)
@@ -587,7 +588,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         sigma_d = np.inf
     evals = scan.evaluations + coarse.evaluations + fine.evaluations
     if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
-        return LensletFit(source, misfit, sigma_d, evals, False, "no-solution")
+        return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
     return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
 
 
@@ -686,13 +687,13 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     offset = float(np.hypot(source[0], source[1]))
     fw = forward(profile, geom.d_in_mm, distance, offset)
     if fw.status != 0:
-        return Measurement(nan, nan, nan, distance, offset, sigma_d, "out-of-domain",
+        return Measurement(nan, nan, nan, distance, offset, sigma_d, RegionStatus.OUT_OF_DOMAIN,
                            geom.d_in_mm)
     y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
     fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
     dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
-    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, RegionStatus.OK, geom.d_in_mm,
                        misfit=misfit)
 
 
@@ -707,5 +708,5 @@ def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) 
     y1 = 0.5 * (ends[0][0] + ends[1][0])
     y2 = 0.5 * (ends[0][1] + ends[1][1])
     return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
-                       line.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       line.sigma_distance_mm, RegionStatus.OK, geom.d_in_mm, kind="line",
                        misfit=line.misfit, endpoints=tuple(ends))

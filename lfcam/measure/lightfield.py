@@ -29,6 +29,7 @@ from lfcam.measure.pointfit import (
 from lfcam.measure.regions import Region
 from lfcam.measure.verify import noise_misfit
 from lfcam.optics.trace import forward
+from lfcam.status import RegionStatus
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
@@ -95,24 +96,24 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
                              fit.source_mm if fit.ok else None)
         if not fi.ok:
-            return Measurement.failed(fi.reason or "no-solution", geom.d_in_mm)
+            return Measurement.failed(fi.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm)
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
     if not fast:
         # point or line is decided from the pixels, on both sides of focus: the region's
         # elongation only forces the line fit to be tried
         if misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
             line = measure_line(profile, geom, image, box, near)
-            if line.status == "ok" and line.misfit < LINE_GAIN * misfit:
+            if line.status == RegionStatus.OK and line.misfit < LINE_GAIN * misfit:
                 if line.misfit > POOR_FIT_MISFIT:
-                    return Measurement.failed("poor-fit", geom.d_in_mm, kind="line")
+                    return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
                 return line
         if not misfit <= POOR_FIT_MISFIT:
-            return Measurement.failed("poor-fit", geom.d_in_mm)
+            return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     distance = profile.main_lens.front_vertex_z_mm - float(source[2])
     offset = float(np.hypot(source[0], source[1]))
     fw = forward(profile, geom.d_in_mm, distance, offset)
     if fw.status != 0:
-        return Measurement(nan, nan, nan, distance, offset, sigma_d, "out-of-domain",
+        return Measurement(nan, nan, nan, distance, offset, sigma_d, RegionStatus.OUT_OF_DOMAIN,
                            geom.d_in_mm)
     y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
     # height uncertainty equivalent to the distance uncertainty (for model selection)
@@ -120,7 +121,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
     noise_mf = float("nan") if fast else _noise_misfit(image, box, noise)
-    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, "ok", geom.d_in_mm,
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, RegionStatus.OK, geom.d_in_mm,
                        misfit=misfit, noise_misfit=noise_mf,
                        source_xy_mm=(float(source[0]), float(source[1])))
 
@@ -155,7 +156,7 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     nan = float("nan")
     lf = fit_line_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near])
     if not lf.ok:
-        return Measurement.failed(lf.reason or "no-solution", geom.d_in_mm, kind="line")
+        return Measurement.failed(lf.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm, kind="line")
     z_front = profile.main_lens.front_vertex_z_mm
     distance = z_front - float(lf.start_mm[2])
     ends = []
@@ -166,5 +167,5 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     y1 = 0.5 * (ends[0][0] + ends[1][0])
     y2 = 0.5 * (ends[0][1] + ends[1][1])
     return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
-                       lf.sigma_distance_mm, "ok", geom.d_in_mm, kind="line",
+                       lf.sigma_distance_mm, RegionStatus.OK, geom.d_in_mm, kind="line",
                        misfit=lf.misfit, endpoints=tuple(ends))

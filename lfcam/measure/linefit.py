@@ -29,6 +29,7 @@ from lfcam.measure.pointfit import (
     chief_ray_offset,
     pupil_pattern,
 )
+from lfcam.status import RegionStatus
 
 LINE_POINTS = 24
 LINE_PUPIL = 64  # per side of the pupil grid for each line point (~3.2 k rays)
@@ -78,7 +79,7 @@ def fit_line_image(
     pattern = pupil_pattern(LINE_PUPIL)
     nan3 = np.full(3, np.nan)
     if patch.norm <= 0:
-        return LineFit(nan3, nan3, 1.0, np.nan, 0, False, "empty")
+        return LineFit(nan3, nan3, 1.0, np.nan, 0, False, RegionStatus.EMPTY)
     _, var, axis = _moments(np.clip(patch.data, 0, None))
     image_len_px = float(np.sqrt(max(12.0 * (var[1] - var[0]), 0.0)))
     pp = profile.sensor.pixel_pitch_mm

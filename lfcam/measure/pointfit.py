@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from lfcam.camera import CameraProfile
 from lfcam.optics.trace import trace_backward_fast, trace_source_fast
+from lfcam.status import RegionStatus
 
 MIN_SPOTS = 6
 PARTIAL_FRACTION = 0.5  # lenslets dimmer than this × the median are edge (partially lit) ones
@@ -321,15 +322,15 @@ def fit_point(
     ax, ay = profile.sensor.axis_xy_px
     nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
     if len(spots_px) < MIN_SPOTS:
-        return PointFit(nan3, nan33, len(spots_px), np.nan, False, "near-focus")
+        return PointFit(nan3, nan33, len(spots_px), np.nan, False, RegionStatus.NEAR_FOCUS)
     mag = 1.0 + fx / (d_in_mm - lens.exit_pupil_z_mm)
     measured, lit = _spot_statistic(profile, d_in_mm, spots_px, energy, lens_centres_mm, mag)
     n_lit = int(len(lit))
     if measured is None:
-        return PointFit(nan3, nan33, n_lit, np.nan, False, "near-focus")
+        return PointFit(nan3, nan33, n_lit, np.nan, False, RegionStatus.NEAR_FOCUS)
     t_meas, cov, rms = measured
     if not (np.isfinite(t_meas).all() and t_meas[2] < lens.front_vertex_z_mm):
-        return PointFit(t_meas, cov, n_lit, rms, False, "no-solution")
+        return PointFit(t_meas, cov, n_lit, rms, False, RegionStatus.NO_SOLUTION)
     if extraction is not None:
         return _fit_point_spots(profile, d_in_mm, lens_centres_mm, mag, extraction, t_meas,
                                 cov, rms, n_lit)
@@ -346,11 +347,11 @@ def fit_point(
         lit_sim = e_sim > 0
         sim = _statistic(lens, d_in_mm, fx, centres[lit_sim], e_sim[lit_sim], land_sim[lit_sim])
         if sim is None:
-            return PointFit(source, cov, int(len(lit)), rms, False, "near-focus")
+            return PointFit(source, cov, int(len(lit)), rms, False, RegionStatus.NEAR_FOCUS)
         step = t_meas - sim[0]
         source = source + step
         if not (np.isfinite(source).all() and source[2] < lens.front_vertex_z_mm):
-            return PointFit(source, cov, int(len(lit)), rms, False, "no-solution")
+            return PointFit(source, cov, int(len(lit)), rms, False, RegionStatus.NO_SOLUTION)
         if abs(step[2]) < 1e-6 * abs(source[2]):
             break
     return PointFit(source, cov, int(len(lit)), rms, True)
@@ -375,11 +376,11 @@ def _fit_point_spots(profile, d_in_mm, lens_centres_mm, mag, extraction, t_meas,
                                        lens_centres_mm, pattern)
         sim, _ = _spot_statistic(profile, d_in_mm, spots, energy, lens_centres_mm, mag)
         if sim is None:
-            return PointFit(source, cov, n_lit, rms, False, "near-focus")
+            return PointFit(source, cov, n_lit, rms, False, RegionStatus.NEAR_FOCUS)
         step = t_meas - sim[0]
         source = source + step
         if not (np.isfinite(source).all() and source[2] < lens.front_vertex_z_mm):
-            return PointFit(source, cov, n_lit, rms, False, "no-solution")
+            return PointFit(source, cov, n_lit, rms, False, RegionStatus.NO_SOLUTION)
         history.append(source.copy())
         if abs(step[2]) < 1e-5 * abs(source[2]):
             break
@@ -661,7 +662,7 @@ def fit_point_image(
     lens = profile.main_lens
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
     if patch.norm <= 0:
-        return ImageFit(np.full(3, np.nan), 1.0, np.nan, 0, False, "empty")
+        return ImageFit(np.full(3, np.nan), 1.0, np.nan, 0, False, RegionStatus.EMPTY)
     pp = profile.sensor.pixel_pitch_mm
     ax, ay = profile.sensor.axis_xy_px
     h, w = patch.shape

@@ -8,6 +8,7 @@ from lfcam.camera import CameraProfile
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.regions import Region
 from lfcam.models import hahne
+from lfcam.status import RegionStatus
 
 
 def measure_refocus(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -39,7 +40,7 @@ def measure_refocus(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     mask = np.isin(labels, region.lenslets)
     w = np.clip(image[y0:y1, x0:x1][mask], 0.0, None)
     if w.sum() <= 0:
-        return float("nan"), float("nan"), "near-focus"
+        return float("nan"), float("nan"), RegionStatus.NEAR_FOCUS
     ys, xs = np.nonzero(mask)
     k = labels[mask]
     centre = geom.lmap.centres_px[k]
@@ -50,7 +51,7 @@ def measure_refocus(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     cov = float((wn * ((j - jm) * (u - um)).sum(axis=1)).sum())
     var_j = float((wn * ((j - jm) ** 2).sum(axis=1)).sum())
     if cov == 0.0 or var_j <= 0:
-        return float("nan"), float("nan"), "near-focus"
+        return float("nan"), float("nan"), RegionStatus.NEAR_FOCUS
     # regress u on j, not j on u: a sample's true crossing differs from its lenslet centre by
     # up to half a pitch, an error correlated with u (which is set by the crossing) but not
     # with j — the j-on-u regression would be diluted toward zero shift
@@ -65,5 +66,5 @@ def measure_refocus(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sigma_a = a_star * a_star * slope_sigma  # a = −1/slope
     d2 = float(hahne.refocus_distance(params, a_star + 1e-3).distance_mm) - offset
     sigma_d = abs(d2 - d) / 1e-3 * sigma_a
-    status = "ok" if np.isfinite(d) and d > 0 else "out-of-domain"
+    status = RegionStatus.OK if np.isfinite(d) and d > 0 else RegionStatus.OUT_OF_DOMAIN
     return d, sigma_d, status

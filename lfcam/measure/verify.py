@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lfcam.measure.pointfit import pupil_pattern, simulate_lenslets
+from lfcam.status import RegionStatus, fragment_of
 
 MISFIT_FLOOR = 0.12
 NOISE_FACTOR = 3.0
@@ -94,7 +95,7 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
     checks: list[RegionCheck] = []
     lit: dict[int, cKDTree | None] = {}
     for k, (reg, (status, meas, xy, _sig)) in enumerate(zip(regions, measured, strict=True)):
-        if status != "ok" or meas is None or xy is None:
+        if status != RegionStatus.OK or meas is None or xy is None:
             checks.append(RegionCheck(nan, nan, nan, 0, status))
             continue
         if tree is None:
@@ -111,26 +112,26 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
             explained = float(e[dist <= reach].sum() / e.sum())
         limit = max(MISFIT_FLOOR, NOISE_FACTOR * (nm if math.isfinite(nm) else 0.0))
         if math.isfinite(mf) and mf > limit:
-            status = "poor-fit"
+            status = RegionStatus.POOR_FIT
         elif explained < MIN_EXPLAINED:
-            status = "unexplained-footprint"
+            status = RegionStatus.UNEXPLAINED_FOOTPRINT
         checks.append(RegionCheck(mf, nm, explained, len(pred), status))
     # (c) fragments: among the regions still ok, the weaker of two that are one blur
-    ok = [k for k, c in enumerate(checks) if c.status == "ok"]
+    ok = [k for k, c in enumerate(checks) if c.status == RegionStatus.OK]
     centroid = {k: _centroid_mm(geom, stats, regions[k]) for k in ok}
     order = sorted(ok, key=lambda k: -float(regions[k].energy))
     for pos, a in enumerate(order):
-        if checks[a].status != "ok":
+        if checks[a].status != RegionStatus.OK:
             continue
         for b in order[pos + 1:]:
-            if checks[b].status != "ok":
+            if checks[b].status != RegionStatus.OK:
                 continue
             if _same_blur(lit[a], lit[b], centroid[a], centroid[b], measured[a], measured[b],
                           reach):
                 c = checks[b]
                 checks[b] = RegionCheck(c.misfit, c.noise_misfit, c.explained,
                                         c.predicted_lenslets,
-                                        f"fragment-of-{regions[a].region_id}")
+                                        fragment_of(regions[a].region_id))
     return checks
 
 

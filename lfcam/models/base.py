@@ -7,6 +7,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from lfcam.status import RegionStatus
+
 
 class Status(IntEnum):
     """Per-element outcome of an inversion (``status`` strings of docs/conventions.md via
@@ -20,8 +22,8 @@ class Status(IntEnum):
 
     @property
     def label(self) -> str:
-        """Contract spelling: ``ok``, ``no-solution``, ``ill-conditioned``, ..."""
-        return self.name.lower().replace("_", "-")
+        """Contract spelling (:class:`lfcam.status.RegionStatus`): ``ok``, ``no-solution``, …"""
+        return RegionStatus[self.name].value
 
 
 STATUS_LABELS = np.array([s.label for s in Status])
