@@ -150,6 +150,11 @@ class MainLens:
         return self.front_vertex_z_mm + self._rx.stop_pupils[2]
 
     @property
+    def exit_pupil_diameter_mm(self) -> float:
+        """Paraxial diameter of the exit pupil (the stop's edge circle imaged backward)."""
+        return self._rx.stop_pupils[3]
+
+    @property
     def f_number(self) -> float:
         """Working f-number at infinity focus, f / D."""
         return self.focal_length_mm / self.pupil_diameter_mm
