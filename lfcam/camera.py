@@ -84,7 +84,7 @@ class MainLens:
         return self.prescription is None
 
     @property
-    def surfaces(self) -> Prescription:
+    def as_prescription(self) -> Prescription:
         """The lens as a :class:`~lfcam.optics.lens.Prescription` (the singlet's two
         surfaces for the singlet form). Its z frame starts at the front vertex; add
         :attr:`front_vertex_z_mm` to get this lens's frame."""

@@ -149,15 +149,15 @@ def invert(profile: CameraProfile, d_in_mm: float | None, y1_mm, y2_mm) -> Inver
     t1, t2, ok, _ = invert_slopes(profile, d_in_mm, y1, y2)
     z_ref = lens.rim_z_mm - lens.front_vertex_z_mm  # aperture plane, prescription frame
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        a1, s1, ok1 = stop_edge_object_rays(lens.surfaces, 1.0, t1, z_ref)
-        a2, s2, ok2 = stop_edge_object_rays(lens.surfaces, -1.0, t2, z_ref)
+        a1, s1, ok1 = stop_edge_object_rays(lens.as_prescription, 1.0, t1, z_ref)
+        a2, s2, ok2 = stop_edge_object_rays(lens.as_prescription, -1.0, t2, z_ref)
     ok = ok & ok1 & ok2
     spread = s1 - s2
     status = np.full(y1.shape, Status.OK, dtype=np.uint8)
     status[~ok] = Status.OUT_OF_DOMAIN
     status[~(np.isfinite(y1) & np.isfinite(y2))] = Status.INVALID_INPUT
     with np.errstate(divide="ignore", invalid="ignore"):
-        if lens.surfaces.stop_index == 0:  # the seed's closed form, exactly
+        if lens.as_prescription.stop_index == 0:  # the seed's closed form, exactly
             half_d = 0.5 * lens.pupil_diameter_mm
             along = lens.pupil_diameter_mm / spread
             offset = -half_d * (t1 + t2) / spread

@@ -91,7 +91,7 @@ def exact_distance_for_shift(
     d_in = profile.d_in_mm if d_in_mm is None else float(d_in_mm)
     lens = profile.main_lens
     pattern = pupil_pattern(n_rays, "fibonacci")
-    near = 1.002 * max(-lens.surfaces.paraxial.front_focal_z_mm, 1e-3)
+    near = 1.002 * max(-lens.as_prescription.paraxial.front_focal_z_mm, 1e-3)
 
     def g(v: float, target: float) -> float:
         return _shift_one(profile, d_in, 1.0 / v if v > 0 else math.inf, pattern) - target

@@ -76,7 +76,7 @@ def trace_rays(
     o = np.asarray(origins_mm, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     shift = np.array([0.0, 0.0, lens.front_vertex_z_mm])
-    res = rt.trace(lens.surfaces, o - shift, d, z_plane_mm - lens.front_vertex_z_mm)
+    res = rt.trace(lens.as_prescription, o - shift, d, z_plane_mm - lens.front_vertex_z_mm)
     return TraceResult(res.points + shift, res.directions, legacy_status(res.status, res.surface))
 
 
@@ -120,7 +120,7 @@ def forward(
     ForwardResult
     """
     lens = profile.main_lens
-    p = lens.surfaces
+    p = lens.as_prescription
     fv = lens.front_vertex_z_mm
     d_in = profile.d_in_mm if d_in_mm is None else float(d_in_mm)
     z_plane = d_in + profile.mla.focal_length_mm if z_plane_mm is None else float(z_plane_mm)
@@ -178,7 +178,7 @@ def meridional_rim_heights(
     ok : ndarray of bool
     """
     return rt.stop_edge_heights(
-        lens.surfaces, rim_sign, slope, z_plane_mm - lens.front_vertex_z_mm
+        lens.as_prescription, rim_sign, slope, z_plane_mm - lens.front_vertex_z_mm
     )
 
 
@@ -205,7 +205,7 @@ def pupil_map(lens: MainLens, source_xyz_mm) -> tuple[float, float, float, float
 
     Identity for a stop on the front surface (the singlet's rim is a real circle there).
     """
-    p = lens.surfaces
+    p = lens.as_prescription
     if p.stop_index == 0:
         return 0.0, 0.0, 1.0, 1.0
     fv = lens.front_vertex_z_mm
@@ -252,14 +252,14 @@ def trace_source_fast(
     sx, sy, sz = (float(v) for v in source_xyz_mm)
     rim_x = np.asarray(rim_x_mm, dtype=np.float64)
     rim_y = np.asarray(rim_y_mm, dtype=np.float64)
-    if map_pupil and lens.surfaces.stop_index != 0:
+    if map_pupil and lens.as_prescription.stop_index != 0:
         cx, cy, ax, ay = pupil_map(lens, (sx, sy, sz))
         rim_x, rim_y = cx + ax * rim_x, cy + ay * rim_y
     fv = lens.front_vertex_z_mm
     dx = rim_x - sx
     dy = rim_y - sy
     dz = np.broadcast_to(lens.rim_z_mm - sz, dx.shape)
-    res = rt.trace_components(lens.surfaces, sx, sy, sz - fv, dx, dy, dz, z_plane_mm - fv)
+    res = rt.trace_components(lens.as_prescription, sx, sy, sz - fv, dx, dy, dz, z_plane_mm - fv)
     return FastTrace(res.x, res.y, res.z + fv, res.dx, res.dy, res.dz, res.status == 0)
 
 
@@ -296,7 +296,7 @@ def trace_backward_fast(
     inv = 1.0 / np.sqrt(1.0 + sx * sx + sy * sy)
     fv = lens.front_vertex_z_mm
     res = rt.trace_components(
-        lens.surfaces, x_mm, y_mm, z_mm - fv, -sx * inv, -sy * inv, -inv, None, reverse=True,
+        lens.as_prescription, x_mm, y_mm, z_mm - fv, -sx * inv, -sy * inv, -inv, None, reverse=True,
         clip=not ratio, ratio=ratio,
     )
     rho = None

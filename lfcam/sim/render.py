@@ -180,7 +180,7 @@ class Renderer:
         # the real stop seen from the source, on the aperture plane (identity for the singlet,
         # whose stop is the front rim); a 3 % margin, the tracer clips at the real stop
         cx, cy, ex, ey = pupil_map(self.lens, source_xyz)
-        if not self.lens.surfaces.stop_index == 0:
+        if not self.lens.as_prescription.stop_index == 0:
             ex, ey = 1.03 * ex, 1.03 * ey
         area = math.pi * half_d * half_d * abs(ex * ey)
         lz = self.lens.rim_z_mm - sz
