@@ -215,7 +215,8 @@ class MainLens:
             }
         from lfcam.optics.zmx import prescription_to_toml_dict
 
-        return prescription_to_toml_dict(self._rx)["main_lens"]
+        table = prescription_to_toml_dict(self._rx)["main_lens"]
+        return {"name": self._rx.name, **table} if self._rx.name else table
 
 
 @dataclass(frozen=True)
