@@ -156,6 +156,8 @@ class Renderer:
 
     def _mla_to_sensor(self, x, y, dx, dy, dz, ok):
         """Ideal lenslets: rays at MLA points (x, y) with directions → sensor px, lens idx."""
+        x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)  # failed rays carry NaN
+        dz = np.where(ok, dz, 1.0)
         i, j, cx, cy = self.grid.nearest(x, y)
         ok = ok & self.grid.in_aperture(x - cx, y - cy)
         sx = cx + self.f_x * dx / dz
