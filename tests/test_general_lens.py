@@ -150,3 +150,18 @@ def test_lens_import_and_info(tmp_path, capsys):
     text = capsys.readouterr().out
     assert '"efl_mm": 100.00' in text and png.stat().st_size > 1000
     assert main(["lens", "info", "system1"]) == 0
+
+
+def test_optics_forward_and_inverse_cli_on_a_prescription(capsys):
+    import json
+
+    assert main(["optics", "forward", "--profile", "cooke_triplet", "--focus", "1000",
+                 "--distance", "600", "--offset", "3", "--json"]) == 0
+    fw = json.loads(capsys.readouterr().out)
+    assert main(["optics", "inverse", "--profile", "cooke_triplet", "--focus", "1000",
+                 "--model", "exact", "--y1", repr(fw["y1_mm"]), "--y2", repr(fw["y2_mm"]),
+                 "--json"]) == 0
+    inv = json.loads(capsys.readouterr().out)
+    assert inv["status"] == "ok"
+    assert inv["distance_mm"] == pytest.approx(600.0, rel=1e-9)
+    assert inv["offset_mm"] == pytest.approx(3.0, abs=1e-6)
