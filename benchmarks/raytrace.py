@@ -1,11 +1,12 @@
-"""Speed of the general tracer (lfcam.optics.raytrace) against the legacy singlet tracers.
+"""Speed of the general tracer (lfcam.optics.raytrace) against the former singlet tracers.
 
 Run: ``PYTHONPATH=. python benchmarks/raytrace.py [n_rays]`` (default 10⁶ rays, best of 3).
 Prints rays/s for, in the same run:
 
-* the seed singlet (``calibration/system1.toml``): legacy ``trace_source_fast`` /
-  ``trace_backward_fast`` (component-wise, hand-unrolled two spheres), legacy ``trace_rays``
-  ((N, 3) reference), and the new :func:`~lfcam.optics.raytrace.trace` /
+* the seed singlet (``calibration/system1.toml``): the former hand-unrolled two-sphere tracers
+  (``legacy_singlet_trace.py``: ``trace_source_fast`` / ``trace_backward_fast`` /
+  ``trace_rays``), the stages' wrappers that replaced them (``lfcam.optics.trace``, now over
+  the general tracer), and :func:`~lfcam.optics.raytrace.trace` /
   :func:`~lfcam.optics.raytrace.trace_backward` on the same rays;
 * the new tracer on the Cooke triplet and the double Gauss of ``tests/data/lenses``;
 * ray aiming (:func:`~lfcam.optics.raytrace.rays_from_angle`, Newton on the real trace).
@@ -22,8 +23,16 @@ import numpy as np
 
 from lfcam.camera import load_profile
 from lfcam.optics import raytrace as rt
+from lfcam.optics import trace as stage
 from lfcam.optics.lens import Prescription
-from lfcam.optics.trace import trace_backward_fast, trace_rays, trace_source_fast
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from legacy_singlet_trace import (  # noqa: E402
+    trace_backward_fast,
+    trace_rays,
+    trace_source_fast,
+)
+
 from lfcam.optics.zmx import load_zmx
 
 LENS_DIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "lenses"
@@ -61,6 +70,8 @@ def main() -> None:
     src = (2.0, 3.0, lens.front_vertex_z_mm - 1000.0)
     t = best(lambda: trace_source_fast(lens, src, qx.copy(), qy.copy(), z_sensor))
     rows.append(("singlet", "legacy trace_source_fast (forward)", n / t))
+    t = best(lambda: stage.trace_source_fast(lens, src, qx, qy, z_sensor))
+    rows.append(("singlet", "stage trace_source_fast (general)", n / t))
     origins = np.tile(src, (n, 1))
     dirs = np.column_stack([qx - src[0], qy - src[1], np.full(n, lens.rim_z_mm - src[2])])
     t = best(lambda: trace_rays(lens, origins, dirs, z_sensor))
@@ -74,6 +85,8 @@ def main() -> None:
     sx, sy = rng.uniform(-0.2, 0.2, n), rng.uniform(-0.2, 0.2, n)
     t = best(lambda: trace_backward_fast(lens, x, y, z_sensor, sx, sy))
     rows.append(("singlet", "legacy trace_backward_fast", n / t))
+    t = best(lambda: stage.trace_backward_fast(lens, x, y, z_sensor, sx, sy))
+    rows.append(("singlet", "stage trace_backward_fast (general)", n / t))
     o_b = np.column_stack([x, y, np.full(n, z_sensor + shift)])
     d_b = -np.column_stack([sx, sy, np.ones(n)])
     t = best(lambda: rt.trace_backward(singlet, o_b, d_b, None))

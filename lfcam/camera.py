@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from lfcam.errors import OpticsError, ProfileError
+from lfcam.optics.lens import Prescription
 from lfcam.validate import Fields
 
 if sys.version_info >= (3, 11):
@@ -30,82 +31,128 @@ FOCAL_LENGTH_RTOL = 1e-4  # docs/profiles.md: a stated focal length must agree t
 
 @dataclass(frozen=True)
 class MainLens:
-    """Symmetric biconvex thick lens with the aperture stop at the front rim.
+    """The main lens: a sequential prescription placed in lfcam's optical-axis frame.
+
+    Two forms (docs/profiles.md). The seed paper's **singlet** (``radius_mm``,
+    ``thickness_mm``, ``refractive_index``, ``pupil_diameter_mm``) is the two-surface
+    prescription :meth:`Prescription.from_singlet` (aperture stop = the front rim circle,
+    diameter D) with the frame origin at the lens centre (mid-thickness), so ``d_in_mm`` keeps
+    the seed's meaning (lens centre → MLA). A general **prescription** (``prescription``) has
+    its origin at its front vertex, so ``d_in_mm`` is front vertex → MLA. Every property
+    below comes from the prescription (paraxial y–nu traces, :mod:`lfcam.optics.lens`), never
+    from singlet formulas, and is in this frame.
 
     Parameters
     ----------
-    radius_mm : float
-        Radius of curvature R of both surfaces.
-    thickness_mm : float
-        Centre thickness T.
-    refractive_index : float
-        Refractive index n of the glass.
-    pupil_diameter_mm : float
-        Clear aperture D at the front surface (the aperture stop).
+    radius_mm, thickness_mm, refractive_index : float or None
+        Singlet form: R of both surfaces, centre thickness T, glass index n.
+    pupil_diameter_mm : float or None
+        Singlet form: the clear aperture D at the front rim (the stop). Filled in for a
+        prescription with the diameter of the aperture seen from object space (see
+        :attr:`rim_z_mm`).
+    prescription : Prescription or None
+        General form; leave the singlet fields unset.
     """
 
-    radius_mm: float
-    thickness_mm: float
-    refractive_index: float
-    pupil_diameter_mm: float
+    radius_mm: float | None = None
+    thickness_mm: float | None = None
+    refractive_index: float | None = None
+    pupil_diameter_mm: float | None = None
+    prescription: Prescription | None = field(default=None, compare=True)
+
+    def __post_init__(self) -> None:
+        singlet = (self.radius_mm, self.thickness_mm, self.refractive_index)
+        if self.prescription is None:
+            if any(v is None for v in singlet) or self.pupil_diameter_mm is None:
+                raise ProfileError("main lens: give R, T, n, D (singlet) or a prescription")
+            p = Prescription.from_singlet(
+                self.radius_mm, self.thickness_mm, self.refractive_index, self.pupil_diameter_mm
+            )
+            object.__setattr__(self, "_rx", p)
+        else:
+            if any(v is not None for v in singlet):
+                raise ProfileError("main lens: give either the singlet keys or a prescription")
+            object.__setattr__(self, "_rx", self.prescription)
+            if self.pupil_diameter_mm is None:
+                object.__setattr__(self, "pupil_diameter_mm", self._rx.stop_pupils[1])
+
+    # ------------------------------------------------------------------ form and frame
 
     @property
-    def focal_length_mm(self) -> float:
-        """Effective focal length from the thick-lens lensmaker's equation."""
-        r, t, n = self.radius_mm, self.thickness_mm, self.refractive_index
-        power = (n - 1.0) * (2.0 / r - (n - 1.0) * t / (n * r * r))
-        return 1.0 / power
+    def is_singlet(self) -> bool:
+        """True for the seed's symmetric biconvex singlet form."""
+        return self.prescription is None
 
     @property
-    def principal_depth_mm(self) -> float:
-        """Distance from each vertex inward to its principal plane (symmetric lens)."""
-        r, t, n = self.radius_mm, self.thickness_mm, self.refractive_index
-        return self.focal_length_mm * (n - 1.0) * t / (n * r)
+    def as_prescription(self) -> Prescription:
+        """The lens as a :class:`~lfcam.optics.lens.Prescription` (the singlet's two
+        surfaces for the singlet form). Its z frame starts at the front vertex; add
+        :attr:`front_vertex_z_mm` to get this lens's frame."""
+        return self._rx
 
     @property
     def front_vertex_z_mm(self) -> float:
-        """z of the front vertex."""
-        return -0.5 * self.thickness_mm
+        """z of the front vertex (−T/2 for the singlet, 0 for a prescription)."""
+        return -0.5 * self.thickness_mm if self.is_singlet else 0.0
 
     @property
     def back_vertex_z_mm(self) -> float:
-        """z of the back vertex."""
-        return 0.5 * self.thickness_mm
+        """z of the last (rear) vertex."""
+        return self.front_vertex_z_mm + self._rx.last_vertex_z_mm
+
+    # ------------------------------------------------------------------ paraxial data
+
+    @property
+    def focal_length_mm(self) -> float:
+        """Effective focal length (paraxial trace)."""
+        return self._rx.paraxial.efl_mm
 
     @property
     def front_principal_z_mm(self) -> float:
         """z of the object-side principal plane H1."""
-        return self.front_vertex_z_mm + self.principal_depth_mm
+        return self.front_vertex_z_mm + self._rx.paraxial.front_principal_z_mm
 
     @property
     def back_principal_z_mm(self) -> float:
         """z of the image-side principal plane H2."""
-        return self.back_vertex_z_mm - self.principal_depth_mm
+        return self.front_vertex_z_mm + self._rx.paraxial.back_principal_z_mm
 
     @property
-    def rim_sag_mm(self) -> float:
-        """Axial depth of the front rim (height D/2) behind the front vertex."""
-        r, h = self.radius_mm, 0.5 * self.pupil_diameter_mm
-        return h * h / (r + math.sqrt(r * r - h * h))
+    def principal_depth_mm(self) -> float:
+        """Front vertex → H1 along +z (for the symmetric singlet also H2 → back vertex)."""
+        return self.front_principal_z_mm - self.front_vertex_z_mm
 
     @property
     def rim_z_mm(self) -> float:
-        """z of the plane through the front rim (where the aperture stop sits)."""
-        return self.front_vertex_z_mm + self.rim_sag_mm
+        """z of the aperture as object-space rays meet it: the plane of the stop's edge
+        circle when the stop is the first surface (the seed's front rim), else the paraxial
+        entrance pupil of that circle."""
+        return self.front_vertex_z_mm + self._rx.stop_pupils[0]
+
+    @property
+    def rim_sag_mm(self) -> float:
+        """Front vertex → aperture plane (:attr:`rim_z_mm`) along +z."""
+        return self.rim_z_mm - self.front_vertex_z_mm
 
     @property
     def edge_radius_mm(self) -> float:
-        """Height at which the two spherical surfaces meet (the lens's physical edge)."""
-        r, t = self.radius_mm, self.thickness_mm
-        return math.sqrt(max(r * r - (r - 0.5 * t) ** 2, 0.0))
+        """Singlet: height at which the two spherical surfaces meet (the lens edge).
+        Prescription: the largest clear semi-diameter."""
+        if self.is_singlet:
+            r, t = self.radius_mm, self.thickness_mm
+            return math.sqrt(max(r * r - (r - 0.5 * t) ** 2, 0.0))
+        return max(s.semi_diameter_mm for s in self._rx.surfaces)
 
     @property
     def exit_pupil_z_mm(self) -> float:
-        """Paraxial z of the exit pupil: the stop (rim plane) imaged by the back surface."""
-        n, r = self.refractive_index, self.radius_mm
-        s = self.back_vertex_z_mm - self.rim_z_mm  # stop to back vertex, inside glass
-        inv = (n - 1.0) / r - n / s
-        return self.back_vertex_z_mm + 1.0 / inv
+        """Paraxial z of the exit pupil: the stop's edge circle imaged by the surfaces
+        behind it (:attr:`Prescription.stop_pupils`)."""
+        return self.front_vertex_z_mm + self._rx.stop_pupils[2]
+
+    @property
+    def exit_pupil_diameter_mm(self) -> float:
+        """Paraxial diameter of the exit pupil (the stop's edge circle imaged backward)."""
+        return self._rx.stop_pupils[3]
 
     @property
     def f_number(self) -> float:
@@ -126,7 +173,7 @@ class MainLens:
         return out if out.ndim else float(out)
 
     def d_in_for_focus(self, focus_mm: float) -> float:
-        """MLA distance d_in (lens centre → MLA) that paraxially focuses an object at
+        """MLA distance d_in (frame origin → MLA) that paraxially focuses an object at
         ``focus_mm`` (from the front vertex; ``math.inf`` for infinity focus).
 
         Raises
@@ -153,6 +200,23 @@ class MainLens:
         if s_img <= f:
             return math.inf
         return 1.0 / (1.0 / f - 1.0 / s_img) - self.principal_depth_mm
+
+    def to_prescription_z(self, z_mm):
+        """This frame's z → the prescription's (front vertex = 0)."""
+        return z_mm - self.front_vertex_z_mm
+
+    def to_dict(self) -> dict:
+        """The ``[main_lens]`` table of a profile (singlet keys or ``surfaces``)."""
+        if self.is_singlet:
+            return {
+                "radius_mm": self.radius_mm, "thickness_mm": self.thickness_mm,
+                "refractive_index": self.refractive_index,
+                "pupil_diameter_mm": self.pupil_diameter_mm,
+            }
+        from lfcam.optics.zmx import prescription_to_toml_dict
+
+        table = prescription_to_toml_dict(self._rx)["main_lens"]
+        return {"name": self._rx.name, **table} if self._rx.name else table
 
 
 @dataclass(frozen=True)
@@ -259,6 +323,16 @@ class CameraProfile:
         """z of the sensor plane, d_in + f_x."""
         return self.d_in_mm + self.mla.focal_length_mm
 
+    @property
+    def mla_z_mm(self) -> float:
+        """z of the MLA plane in the lens frame (= ``d_in_mm``; docs/conventions.md)."""
+        return self.d_in_mm
+
+    @property
+    def gap_mm(self) -> float:
+        """Last lens vertex → MLA (the prescription form's ``mla.gap_mm``)."""
+        return self.d_in_mm - self.main_lens.back_vertex_z_mm
+
     def with_d_in(self, d_in_mm: float) -> CameraProfile:
         """Return a copy with the MLA distance set (and ``focus_mm`` cleared)."""
         _check_positive("mla.distance_mm", d_in_mm)
@@ -303,6 +377,89 @@ def _required(table: dict, section: str, key: str) -> Any:
     return table[key]
 
 
+_SINGLET_KEYS = {"radius_mm", "thickness_mm", "refractive_index", "pupil_diameter_mm",
+                 "focal_length_mm"}
+
+
+def _main_lens_from_table(ml: dict, source: str = "") -> MainLens:
+    """``[main_lens]``: the singlet keys, ``surfaces = [...]`` or ``zmx = "lens.zmx"``."""
+    forms = [k for k in ("surfaces", "zmx") if k in ml]
+    if forms:
+        if len(forms) > 1 or set(ml) & (_SINGLET_KEYS - {"focal_length_mm"}):
+            raise ProfileError(
+                "main_lens: give one form: the singlet keys (radius_mm, ...), surfaces = [...] "
+                "or zmx = \"file.zmx\""
+            )
+        _known_keys(ml, "main_lens", {"surfaces", "zmx", "focal_length_mm", "name"})
+        from lfcam.optics.zmx import load_zmx, prescription_from_toml_dict
+
+        if "zmx" in ml:
+            if not isinstance(ml["zmx"], str):
+                raise ProfileError(f"main_lens.zmx: expected a path, got {ml['zmx']!r}")
+            path = Path(ml["zmx"]).expanduser()
+            if not path.is_absolute() and source:
+                path = Path(source).parent / path
+            if not path.is_file():
+                raise ProfileError(f"main_lens.zmx: file not found: {path}")
+            rx = load_zmx(path).prescription
+        else:
+            rx = prescription_from_toml_dict(ml)
+        if "name" in ml:
+            if not isinstance(ml["name"], str):
+                raise ProfileError("main_lens.name: expected a string")
+            rx = Prescription(rx.surfaces, name=ml["name"])
+        try:
+            efl = rx.paraxial.efl_mm
+        except OpticsError as exc:
+            raise ProfileError(f"main_lens.surfaces: {exc}") from None
+        if not efl > 0.0:
+            raise ProfileError(f"main_lens.surfaces: not a converging lens (EFL {efl:.4g} mm)")
+        lens = MainLens(prescription=rx)
+    else:
+        _known_keys(ml, "main_lens", _SINGLET_KEYS)
+        lens = _singlet_from_table(ml)
+    if "focal_length_mm" in ml:
+        stated = _check_positive("main_lens.focal_length_mm", ml["focal_length_mm"])
+        derived = lens.focal_length_mm
+        if abs(stated - derived) > FOCAL_LENGTH_RTOL * derived:
+            raise ProfileError(
+                f"main_lens.focal_length_mm: stated {stated} mm disagrees with {derived:.4f} mm "
+                "derived from the lens by more than 0.01 %"
+            )
+    return lens
+
+
+def _singlet_from_table(ml: dict) -> MainLens:
+    """The seed singlet's keys, validated."""
+    r = _check_positive("main_lens.radius_mm", _required(ml, "main_lens", "radius_mm"))
+    t = _check_positive("main_lens.thickness_mm", _required(ml, "main_lens", "thickness_mm"))
+    n = _check_positive(
+        "main_lens.refractive_index", _required(ml, "main_lens", "refractive_index")
+    )
+    d = _check_positive(
+        "main_lens.pupil_diameter_mm", _required(ml, "main_lens", "pupil_diameter_mm")
+    )
+    if n <= 1.0:
+        raise ProfileError(f"main_lens.refractive_index: must exceed 1, got {n}")
+    if d >= 2.0 * r:
+        raise ProfileError(
+            f"main_lens.pupil_diameter_mm: D = {d} must be smaller than 2R = {2 * r}"
+        )
+    if t >= 2.0 * r:
+        raise ProfileError("main_lens.thickness_mm: T must be smaller than 2R")
+    edge = math.sqrt(max(r * r - (r - 0.5 * t) ** 2, 0.0))
+    if 0.5 * d >= edge:
+        raise ProfileError(
+            f"main_lens.pupil_diameter_mm: D/2 = {0.5 * d} reaches the lens "
+            f"edge ({edge:.4g} mm, where the surfaces meet); increase "
+            "main_lens.thickness_mm or reduce the pupil"
+        )
+    lens = MainLens(radius_mm=r, thickness_mm=t, refractive_index=n, pupil_diameter_mm=d)
+    if lens.focal_length_mm <= 0.0:
+        raise ProfileError("main_lens: R, T, n give a non-positive focal length")
+    return lens
+
+
 def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
     """Validate a parsed profile mapping and build a :class:`CameraProfile`.
 
@@ -330,57 +487,14 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
         raise ProfileError(f"name: expected a string, got {name!r}")
 
     ml = _table(data, "main_lens")
-    _known_keys(
-        ml,
-        "main_lens",
-        {"radius_mm", "thickness_mm", "refractive_index", "pupil_diameter_mm", "focal_length_mm"},
-    )
-    lens = MainLens(
-        radius_mm=_check_positive("main_lens.radius_mm", _required(ml, "main_lens", "radius_mm")),
-        thickness_mm=_check_positive(
-            "main_lens.thickness_mm", _required(ml, "main_lens", "thickness_mm")
-        ),
-        refractive_index=_check_positive(
-            "main_lens.refractive_index", _required(ml, "main_lens", "refractive_index")
-        ),
-        pupil_diameter_mm=_check_positive(
-            "main_lens.pupil_diameter_mm", _required(ml, "main_lens", "pupil_diameter_mm")
-        ),
-    )
-    if lens.refractive_index <= 1.0:
-        raise ProfileError(
-            f"main_lens.refractive_index: must exceed 1, got {lens.refractive_index}"
-        )
-    if lens.pupil_diameter_mm >= 2.0 * lens.radius_mm:
-        raise ProfileError(
-            f"main_lens.pupil_diameter_mm: D = {lens.pupil_diameter_mm} must be smaller than "
-            f"2R = {2 * lens.radius_mm}"
-        )
-    if lens.thickness_mm >= 2.0 * lens.radius_mm:
-        raise ProfileError("main_lens.thickness_mm: T must be smaller than 2R")
-    if 0.5 * lens.pupil_diameter_mm >= lens.edge_radius_mm:
-        raise ProfileError(
-            f"main_lens.pupil_diameter_mm: D/2 = {0.5 * lens.pupil_diameter_mm} reaches the lens "
-            f"edge ({lens.edge_radius_mm:.4g} mm, where the surfaces meet); increase "
-            "main_lens.thickness_mm or reduce the pupil"
-        )
-    if lens.focal_length_mm <= 0.0:
-        raise ProfileError("main_lens: R, T, n give a non-positive focal length")
-    if "focal_length_mm" in ml:
-        stated = _check_positive("main_lens.focal_length_mm", ml["focal_length_mm"])
-        derived = lens.focal_length_mm
-        if abs(stated - derived) > FOCAL_LENGTH_RTOL * derived:
-            raise ProfileError(
-                f"main_lens.focal_length_mm: stated {stated} mm disagrees with {derived:.4f} mm "
-                "derived from R, T, n by more than 0.01 %"
-            )
+    lens = _main_lens_from_table(ml, source)
 
     mt = _table(data, "mla")
     _known_keys(
         mt,
         "mla",
         {
-            "focal_length_mm", "pitch_mm", "grid", "distance_mm", "focus_mm",
+            "focal_length_mm", "pitch_mm", "grid", "distance_mm", "focus_mm", "gap_mm",
             "rotation_rad", "offset_mm", "fill_factor",
         },
     )
@@ -389,6 +503,13 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
         raise ProfileError(f"mla.grid: must be one of {GRIDS}, got {grid!r}")
     distance = mt.get("distance_mm")
     focus = mt.get("focus_mm")
+    if "gap_mm" in mt:
+        if distance is not None:
+            raise ProfileError("mla.gap_mm and mla.distance_mm: give only one of them")
+        gap = _FIELDS.number("mla.gap_mm", mt["gap_mm"])
+        distance = lens.back_vertex_z_mm + gap
+        if distance <= 0.0 or gap <= 0.0:
+            raise ProfileError(f"mla.gap_mm: the MLA must lie behind the last vertex, got {gap}")
     if focus is not None:
         if isinstance(focus, str) and focus.lower() in ("inf", "infinity"):
             focus = math.inf

@@ -1,6 +1,8 @@
 """Deterministic generator of the synthetic capture set in this folder.
 
-Run from the repository root: ``python data/synthetic/make.py`` (about 3 minutes on one core).
+Run from the repository root: ``python data/synthetic/make.py`` (about 4 minutes on one core);
+``python data/synthetic/make.py PREFIX ...`` renders only the captures whose names start with a
+prefix (e.g. ``point_cooke_triplet``) and updates their entries in ``index.json``.
 Every capture is ``NAME.png`` (16-bit raw), ``NAME.profile.toml`` and ``NAME.truth.json``;
 ``index.json`` lists them. Choices that keep the set small are explained in docs/simulate.md.
 """
@@ -44,6 +46,17 @@ def captures() -> list[tuple[str, str, dict]]:
             "seed": SEED + dist, "rays_per_source": 1_000_000,
             "objects": [{"type": "line", "distance_mm": dist, "start_mm": [0, 0],
                          "end_mm": [0, 10]}]}))
+    # multi-element main lenses (calibration/cooke_triplet.toml, double_gauss.toml; focus 1 m):
+    # a few point sources in front of and behind focus, off axis, and one line
+    for lens, off in (("cooke_triplet", 2), ("double_gauss", 5)):
+        for dist in (300, 1000, 3500):
+            out.append((f"point_{lens}_{dist}mm_dh{off}", lens, {
+                "seed": SEED + dist + off, "rays_per_source": 300_000,
+                "objects": [{"type": "point", "distance_mm": dist, "offset_mm": off}]}))
+    out.append(("line_double_gauss_1500mm", "double_gauss", {
+        "seed": SEED + 1500, "rays_per_source": 1_000_000,
+        "objects": [{"type": "line", "distance_mm": 1500, "start_mm": [0, 0],
+                     "end_mm": [0, 10]}]}))
     out.append(("plane_system1_1500mm_checker", "system1", {
         "seed": SEED, "samples_per_pixel": 16, "interior_samples": 4,
         "objects": [{"type": "plane", "distance_mm": 1500, "texture": "checkerboard",
@@ -53,14 +66,23 @@ def captures() -> list[tuple[str, str, dict]]:
 
 
 def main() -> None:
+    prefixes = sys.argv[1:]
+    index_path = HERE / "index.json"
     index = []
+    if prefixes:
+        index = [e for e in json.loads(index_path.read_text(encoding="utf-8"))
+                 if not e["name"].startswith(tuple(prefixes))]
     for name, system, body in captures():
+        if prefixes and not name.startswith(tuple(prefixes)):
+            continue
         raw, used, truth = simulate(load_profile(system), scene_from_dict(body))
         img, prof, tru = write_capture(HERE / f"{name}.png", raw, used, truth)
         index.append({"name": name, "profile": system, "scene": body,
                       "files": [img.name, prof.name, tru.name]})
         print(name, raw.shape, img.stat().st_size + tru.stat().st_size, flush=True)
-    (HERE / "index.json").write_text(json.dumps(index, indent=1) + "\n", encoding="utf-8")
+    order = {name: k for k, (name, _, _) in enumerate(captures())}
+    index.sort(key=lambda e: order.get(e["name"], len(order)))
+    index_path.write_text(json.dumps(index, indent=1) + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":

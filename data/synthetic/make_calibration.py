@@ -1,6 +1,6 @@
 """Reference calibrations for the full-size synthetic captures in this folder.
 
-Run from the repository root: ``python data/synthetic/make_calibration.py`` (about 15 s).
+Run from the repository root: ``python data/synthetic/make_calibration.py`` (about 2 min).
 For each shipped profile it renders a full-sensor white image and writes
 ``calib_<system>.json`` in lfcam's calibration format (docs/calibration.md), with the
 micro-image centres set to the intensity centroids of the *traced rays* (what an error-free
@@ -31,9 +31,11 @@ from lfcam.sim.scene import scene_from_dict  # noqa: E402
 SEED = 20240601
 
 
-def reference_calibration(system: str) -> Calibration:
-    """Calibration of ``system``'s full-size white image (truth centroids)."""
-    _, profile, truth = simulate(load_profile(system),
+def reference_calibration(system) -> Calibration:
+    """Calibration of ``system``'s full-size white image (truth centroids); ``system`` is a
+    profile name or a :class:`~lfcam.camera.CameraProfile`."""
+    base = load_profile(system) if isinstance(system, str) else system
+    _, profile, truth = simulate(base,
                                  scene_from_dict({"seed": SEED, "objects": [{"type": "white"}]}))
     lenses = truth["lenses"]
     complete = np.asarray(lenses["complete"], dtype=bool)
@@ -65,13 +67,15 @@ def reference_calibration(system: str) -> Calibration:
         "d_in_method": "profile",
         "centre_definition": "intensity centroid of the white image (ray-traced truth)",
         "diagnostics": {"white_image": f"lfcam.sim white scene, seed {SEED}",
-                        "profile": system, "lattice_basis_px": basis.tolist()},
+                        "profile": profile.name, "lattice_basis_px": basis.tolist()},
     })
 
 
 def main() -> None:
-    """Write calib_system1.json and calib_system2.json."""
-    for system in ("system1", "system2"):
+    """Write calib_<profile>.json for the seed systems and the two multi-element lenses
+    (``python data/synthetic/make_calibration.py [PROFILE ...]`` for a subset)."""
+    systems = sys.argv[1:] or ["system1", "system2", "cooke_triplet", "double_gauss"]
+    for system in systems:
         path = HERE / f"calib_{system}.json"
         save_calibration(reference_calibration(system), path)
         print(f"wrote {path.name}")

@@ -15,6 +15,7 @@ from lfcam.io.lfp import CHECKSUM_HINT
 # Each module registers its own sub-command(s) through ``register(subparsers)``.
 COMMAND_MODULES = [
     "lfcam.cli.optics",
+    "lfcam.cli.lens",
     "lfcam.cli.demo",
     "lfcam.cli.info",
     "lfcam.cli.simulate",

@@ -30,7 +30,7 @@ import numpy as np
 from lfcam.camera import CameraProfile
 from lfcam.decode.lightfield import LightField
 from lfcam.errors import OpticsError
-from lfcam.models import hahne
+from lfcam.optics.refocus import exact_distance_for_shift, exact_shift_for_distance
 
 WARP_FLAGS = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 MAX_ABS_SHIFT = 100.0  # lenslets per angular pixel; beyond this nothing overlaps anyway
@@ -46,7 +46,10 @@ class Refocused:
 
 
 def shift_for_distance(profile: CameraProfile, distance_mm, d_in_mm: float | None = None):
-    """Hahne shift ``a`` that refocuses onto the plane ``distance_mm`` from the front vertex.
+    """Shift ``a`` that refocuses onto the plane ``distance_mm`` from the front vertex: the
+    shift of least RMS blur of a point there, from the exact trace through the main lens
+    (:func:`lfcam.optics.refocus.exact_shift_for_distance`; Hahne's paraxial closed form is
+    :func:`lfcam.models.hahne.shift_for_distance`).
 
     Parameters
     ----------
@@ -64,19 +67,19 @@ def shift_for_distance(profile: CameraProfile, distance_mm, d_in_mm: float | Non
     d = np.asarray(distance_mm, dtype=np.float64)
     if np.any(~(d > 0)):
         raise OpticsError(f"refocus distance must be positive, got {distance_mm}")
-    params = hahne.parameters_for(profile, d_in_mm)
-    from_mla = d + hahne.mla_to_front_vertex_mm(profile, d_in_mm)
-    a = hahne.shift_for_distance(params, from_mla)
+    try:
+        a = exact_shift_for_distance(profile, d, d_in_mm)
+    except OpticsError:
+        a = np.nan
     if not np.all(np.isfinite(a)):
         raise OpticsError(f"distance {distance_mm} mm cannot be refocused (at or inside f)")
     return a
 
 
 def distance_for_shift(profile: CameraProfile, shift, d_in_mm: float | None = None):
-    """Inverse of :func:`shift_for_distance` through Hahne's ray model (mm from front vertex)."""
-    params = hahne.parameters_for(profile, d_in_mm)
-    res = hahne.refocus_distance(params, shift)
-    return res.distance_mm - hahne.mla_to_front_vertex_mm(profile, d_in_mm)
+    """Inverse of :func:`shift_for_distance` (mm from the front vertex; NaN where no object
+    in front of the lens refocuses to ``shift``)."""
+    return exact_distance_for_shift(profile, shift, d_in_mm)
 
 
 def _check_shift(a: float) -> float:

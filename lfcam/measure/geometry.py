@@ -42,7 +42,9 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
     d_a = d_in_mm - lens.exit_pupil_z_mm
     radii = np.linspace(0.0, max_radius_mm, RADII)
     # slopes covering the pupil as seen from any lenslet out to the largest radius
-    reach = (0.5 * lens.pupil_diameter_mm + max_radius_mm + pitch) / d_a * 1.2
+    aperture = lens.pupil_diameter_mm if lens.is_singlet else max(
+        lens.pupil_diameter_mm, lens.exit_pupil_diameter_mm)
+    reach = (0.5 * aperture + max_radius_mm + pitch) / d_a * 1.2
     g = np.linspace(-reach, reach, SLOPE_GRID)
     sx, sy = np.meshgrid(g, g)
     sx, sy = sx.ravel(), sy.ravel()

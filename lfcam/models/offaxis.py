@@ -30,9 +30,14 @@ from lfcam.models.base import Inversion, Status, as_heights, finish
 def rim_angles(profile: CameraProfile, d_in_mm: float | None, v_mm: np.ndarray) -> np.ndarray:
     """tan φ of a rim ray from its in-frame sensor height ``v_mm`` (eqs. 8–9, 14–17).
 
-    NaN where the chain leaves the real domain of an arcsin or the line misses the surface.
+    NaN where the chain leaves the real domain of an arcsin or the line misses the surface,
+    and everywhere for a main lens that is not the seed's singlet: the derivation (eqs. 8–17)
+    needs its two equal spheres and the stop on the front rim, so ``offaxis``, ``onaxis`` and
+    ``line`` answer ``out-of-domain`` on a general prescription (docs/models.md).
     """
     lens = profile.main_lens
+    if not lens.is_singlet:
+        return np.full(np.shape(v_mm), np.nan)
     r, t, n, d = lens.radius_mm, lens.thickness_mm, lens.refractive_index, lens.pupil_diameter_mm
     d_in = profile.d_in_mm if d_in_mm is None else float(d_in_mm)
     l_s = profile.mla.focal_length_mm + d_in
@@ -56,8 +61,11 @@ def rim_angles(profile: CameraProfile, d_in_mm: float | None, v_mm: np.ndarray) 
 def from_angles(profile: CameraProfile, tan1: np.ndarray, tan2: np.ndarray):
     """Eq. 3: (distance_mm, offset_mm) from the two rim-ray tangents."""
     lens = profile.main_lens
-    r, t, d = lens.radius_mm, lens.thickness_mm, lens.pupil_diameter_mm
     total = tan1 + tan2
+    if not lens.is_singlet:  # out of the derivation's domain (tan φ are NaN already)
+        nan = np.full(np.shape(total), np.nan)
+        return nan, nan.copy(), total
+    r, t, d = lens.radius_mm, lens.thickness_mm, lens.pupil_diameter_mm
     offset = d * (tan2 - tan1) / (2.0 * total)
     d_out = d / total + np.sqrt(r * r - 0.25 * d * d) - r + 0.5 * t
     return d_out - 0.5 * t, offset, total

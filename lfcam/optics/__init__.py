@@ -1,10 +1,10 @@
-"""Optics shared by every stage: the exact ray trace through the main lens and the MLA grid.
+"""Optics shared by every stage: the main lens model, its exact ray trace and the MLA grid.
 
-Paraxial properties of the seed's singlet are methods of :class:`lfcam.camera.MainLens`.
-General sequential lenses: :mod:`lfcam.optics.lens` (model, paraxial data),
-:mod:`lfcam.optics.raytrace` (exact tracer; not re-exported here, its ``trace`` would shadow
-the legacy :mod:`lfcam.optics.trace` module) and :mod:`lfcam.optics.zmx` (lens files);
-see docs/lenses.md.
+Every main lens is a sequential prescription (:mod:`lfcam.optics.lens`; the seed singlet is the
+two-surface case), placed in a profile's frame by :class:`lfcam.camera.MainLens`, traced by
+the one exact tracer :mod:`lfcam.optics.raytrace` (not re-exported here: its ``trace`` would
+shadow the :mod:`lfcam.optics.trace` module, the stages' thin wrappers over it). Lens files:
+:mod:`lfcam.optics.zmx`; exact metric refocus: :mod:`lfcam.optics.refocus`; docs/lenses.md.
 """
 
 from lfcam.optics.lens import Prescription, Surface

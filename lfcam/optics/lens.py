@@ -428,3 +428,55 @@ class Prescription:
         from lfcam.optics.raytrace import best_focus_object_distance
 
         return best_focus_object_distance(self, image_plane_z_mm, n_rings=n_rings)
+
+    # ------------------------------------------------------------------ real stop circle
+
+    @property
+    def stop_plane_z_mm(self) -> float:
+        """z of the plane of the stop's edge circle: the stop vertex plus the stop surface's
+        sag at its semi-diameter (the vertex plane for a flat stop; the seed singlet's rim
+        plane, where its aperture really is, for a stop on a curved surface)."""
+        k = self.stop_index
+        s = self.surfaces[k]
+        return float(self.vertex_z_mm[k] + s.sag_mm(s.semi_diameter_mm))
+
+    @cached_property
+    def stop_pupils(self) -> tuple[float, float, float, float]:
+        """Paraxial pupils of the stop's edge circle: ``(entrance_z, entrance_diameter,
+        exit_z, exit_diameter)``.
+
+        The edge circle sits on the stop surface, so object-space rays reach it through the
+        surfaces in front of the stop only, and leave it through the surfaces behind it; its
+        plane (:attr:`stop_plane_z_mm`) is imaged through those. For a flat stop this is
+        :attr:`paraxial`'s pupils; for the seed singlet (stop = its front surface) the entrance
+        pupil is the rim circle itself and the exit pupil the rim plane imaged by the back
+        surface (the legacy ``MainLens.exit_pupil_z_mm``).
+        """
+        k = self.stop_index
+        last = len(self.surfaces) - 1
+        sd = self.surfaces[k].semi_diameter_mm
+        z_s = self.stop_plane_z_mm
+        vz = self.vertex_z_mm
+        n_img = self.image_index
+        if k == 0:
+            enp_z, enp_d = z_s, 2.0 * sd
+        else:
+            m = _transfer(z_s - vz[k - 1], self.surfaces[k - 1].refractive_index) @ self._matrix(
+                0, k - 1
+            )
+            (fa, fb), _ = m
+            enp_z = fb / fa
+            enp_d = 2.0 * sd / abs(fa)
+        n_k = self.surfaces[k].refractive_index
+        if k == last:
+            exp_z, exp_d = z_s, 2.0 * sd
+        else:
+            m = self._matrix(k + 1, last) @ _transfer(vz[k + 1] - z_s, n_k)
+            (pa, pb), (pc, pd) = m
+            if pd == 0.0:
+                exp_z, exp_d = math.inf, math.inf
+            else:
+                gap = -pb * n_img / pd
+                exp_z = vz[last] + gap
+                exp_d = 2.0 * sd * abs(pa + gap * pc / n_img)
+        return float(enp_z), float(enp_d), float(exp_z), float(exp_d)

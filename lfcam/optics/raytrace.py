@@ -93,11 +93,14 @@ def _run(
     status: np.ndarray,
     surface: np.ndarray,
     last_refracts: bool = True,
+    ratio: np.ndarray | None = None,
 ) -> None:
     """Carry component arrays ``rays = [x, y, z, dx, dy, dz]`` (in place) through ``order``.
 
     After the call the point is the intersection with the last surface of ``order``; the
-    direction is after its refraction (unless ``last_refracts`` is False).
+    direction is after its refraction (unless ``last_refracts`` is False). ``ratio``, if
+    given, is raised in place to the largest ρ²/semi-diameter² met (a continuous vignetting
+    measure: the ray passes every clear aperture iff it stays ≤ 1).
     """
     x, y, z, dx, dy, dz = rays
     vz = prescription.vertex_z_mm
@@ -137,9 +140,13 @@ def _run(
         if first_surface:
             _flag(status, surface, path < 0.0, RayStatus.BACKWARD, i)
             first_surface = False
+        if clip or ratio is not None:
+            r2 = x1 * x1 + y1 * y1
+            if ratio is not None:
+                np.maximum(ratio, r2 / (s.semi_diameter_mm * s.semi_diameter_mm), out=ratio)
         if clip:
             h2 = s.semi_diameter_mm * s.semi_diameter_mm * (1.0 + RIM_TOLERANCE)
-            _flag(status, surface, x1 * x1 + y1 * y1 > h2, RayStatus.VIGNETTED, i)
+            _flag(status, surface, r2 > h2, RayStatus.VIGNETTED, i)
         z1 = vz[i] + zl
         if reverse:
             n1, n2 = s.refractive_index, n_before[i]
@@ -289,6 +296,134 @@ def trace_backward(
         prescription's (front = 0) whatever the tracing order.
     """
     return _chunked(prescription, origins, directions, to_z_mm, clip, reverse=True)
+
+
+class RayComponents(NamedTuple):
+    """Component-wise trace result (no (N, 3) stacking): the renderer's and fitters' form."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
+    dz: np.ndarray
+    status: np.ndarray  # uint8 RayStatus
+    surface: np.ndarray  # int16 failing surface, -1 if none
+    ratio: np.ndarray | None  # max ρ²/semi-diameter² over the surfaces (if asked for)
+
+
+def trace_components(
+    prescription: Prescription,
+    x, y, z, dx, dy, dz,
+    to_z_mm: float | None,
+    *,
+    reverse: bool = False,
+    clip: bool = True,
+    ratio: bool = False,
+    surfaces: range | None = None,
+) -> RayComponents:
+    """:func:`trace` / :func:`trace_backward` on component arrays (broadcast, unit directions
+    expected but normalised here), in blocks of ``CHUNK`` rays.
+
+    ``surfaces`` restricts the sequence (e.g. ``range(k, n)`` starting on surface k); default
+    all, front to back (``reverse``: back to front). Positions at ``to_z_mm`` (``None``: on the
+    last surface traversed) are NaN where ``status`` is not OK.
+    """
+    arrs = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (x, y, z, dx, dy, dz)))
+    shape = arrs[0].shape
+    x, y, z, dx, dy, dz = (np.array(a, dtype=np.float64).ravel() for a in arrs)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    dx *= inv
+    dy *= inv
+    dz *= inv
+    n = x.size
+    status = np.zeros(n, dtype=np.uint8)
+    surface = np.full(n, NO_SURFACE, dtype=np.int16)
+    rat = np.zeros(n) if ratio else None
+    last = len(prescription.surfaces) - 1
+    if surfaces is None:
+        surfaces = range(last, -1, -1) if reverse else range(last + 1)
+    rays = [x, y, z, dx, dy, dz]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        for lo in range(0, n, CHUNK):
+            sl = slice(lo, min(lo + CHUNK, n))
+            part = [r[sl] for r in rays]
+            st, sf = status[sl], surface[sl]
+            going = part[5] < 0.0 if reverse else part[5] > 0.0
+            if len(surfaces):
+                _flag(st, sf, ~going, RayStatus.BACKWARD, surfaces[0])
+            _run(prescription, part, surfaces, reverse, clip, st, sf,
+                 ratio=None if rat is None else rat[sl])
+            for dst, src in zip(rays, part, strict=True):
+                dst[sl] = src
+        x, y, z, dx, dy, dz = rays
+        if to_z_mm is not None:
+            t = (float(to_z_mm) - z) / dz
+            x, y, z = x + t * dx, y + t * dy, np.full_like(x, float(to_z_mm))
+        bad = ~(np.isfinite(x) & np.isfinite(y) & np.isfinite(dz))
+    _flag(status, surface, bad & (status == 0), RayStatus.MISSED, NO_SURFACE)
+    fail = status != 0
+    x[fail] = np.nan
+    y[fail] = np.nan
+    z[fail] = np.nan
+    out = [a.reshape(shape) for a in (x, y, z, dx, dy, dz)]
+    return RayComponents(*out, status.reshape(shape), surface.reshape(shape),
+                         None if rat is None else rat.reshape(shape))
+
+
+def stop_edge_point(prescription: Prescription, sign: float) -> tuple[float, float]:
+    """(y, z) of the meridional stop-edge point: y = sign × stop semi-diameter, z on the stop
+    surface (its vertex plus sag)."""
+    k = prescription.stop_index
+    return sign * prescription.surfaces[k].semi_diameter_mm, prescription.stop_plane_z_mm
+
+
+def stop_edge_heights(
+    prescription: Prescription, sign: float, slope: np.ndarray, z_plane_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Heights at ``z_plane_mm`` of meridional rays through the stop edge (``sign`` = +1 upper,
+    −1 lower) with slope dy/dz ``slope`` in the medium just before the stop surface.
+
+    For the seed singlet (stop = front surface) that medium is object space, so ``slope`` is the
+    rim ray's object-side slope (the legacy ``meridional_rim_heights``). The general lens's y1,
+    y2 are these heights for the slopes whose rays come from the source
+    (:func:`stop_edge_object_rays`).
+
+    Returns
+    -------
+    y_mm, ok : ndarray
+    """
+    y0, z0 = stop_edge_point(prescription, sign)
+    t = np.asarray(slope, dtype=np.float64)
+    inv = 1.0 / np.sqrt(1.0 + t * t)
+    k = prescription.stop_index
+    res = trace_components(
+        prescription, 0.0, y0 - t * inv, z0 - inv, 0.0, t * inv, inv, z_plane_mm,
+        surfaces=range(k, len(prescription.surfaces)),
+    )
+    return res.y, res.status == 0
+
+
+def stop_edge_object_rays(
+    prescription: Prescription, sign: float, slope: np.ndarray, z_ref_mm: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Object-space lines of the stop-edge rays of :func:`stop_edge_heights`.
+
+    Returns ``(y_ref, object_slope, ok)``: the ray's height at the plane ``z_ref_mm`` and its
+    object-space slope dy/dz (traced back through the surfaces in front of the stop).
+    """
+    y0, z0 = stop_edge_point(prescription, sign)
+    t = np.asarray(slope, dtype=np.float64)
+    k = prescription.stop_index
+    if k == 0:
+        return y0 + t * (z_ref_mm - z0), t, np.ones(t.shape, dtype=bool)
+    inv = 1.0 / np.sqrt(1.0 + t * t)
+    res = trace_components(
+        prescription, 0.0, y0, z0, 0.0, -t * inv, -inv, z_ref_mm, reverse=True,
+        surfaces=range(k - 1, -1, -1),
+    )
+    return res.y, res.dy / res.dz, res.status == 0
 
 
 # ----------------------------------------------------------------------------- ray aiming

@@ -1,10 +1,16 @@
-"""Exact ray trace through the thick main lens (two spherical surfaces, Snell's law).
+"""The stages' ray-trace API on the main lens, in the lens's frame (:class:`MainLens`).
 
-Two implementations that share no code on purpose, so each checks the other in the tests:
+Every function here is a thin wrapper over the one general tracer
+(:mod:`lfcam.optics.raytrace`) for any main lens: the seed singlet is its two-surface
+prescription, a general lens its own. Coordinates are the profile's frame (origin at the
+singlet's centre, or at a prescription's front vertex; :attr:`MainLens.front_vertex_z_mm`).
 
-* :func:`trace_rays` / :func:`trace_from_front` — general skew rays in 3-D, vector Snell.
-* :func:`meridional_rim_heights` — the meridional rim ray parametrised by its object-side
-  slope, the inner loop of the exact inverse model.
+* :func:`trace_rays` / :func:`trace_from_front` — (N, 3) rays to a plane.
+* :func:`forward` — the two meridional stop-edge rays' sensor heights (y1, y2).
+* :func:`meridional_rim_heights` — a stop-edge ray's height as a function of its slope (the
+  inner loop of the exact inverse).
+* :func:`trace_source_fast`, :func:`trace_backward_fast` — component-wise forward and backward
+  traces for the renderer and the fitters.
 
 Rays that cannot pass are reported by a :class:`TraceStatus` code and carry NaN positions;
 callers must look at the status, never at NaN.
@@ -13,22 +19,25 @@ callers must look at the status, never at NaN.
 from __future__ import annotations
 
 from enum import IntEnum
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from lfcam.camera import CameraProfile, MainLens
+from lfcam.optics import raytrace as rt
 
-RIM_TOLERANCE = 1e-9  # relative slack on the aperture test (rim rays sit exactly on it)
+if TYPE_CHECKING:
+    from lfcam.camera import CameraProfile, MainLens
+
+RIM_TOLERANCE = rt.RIM_TOLERANCE  # relative slack on every clear aperture
 
 
 class TraceStatus(IntEnum):
     """Why a ray did or did not reach the target plane."""
 
     OK = 0
-    VIGNETTED = 1  # hits the front surface outside the aperture (or misses it)
-    EDGE = 2  # leaves the glass through the edge (back surface beyond where surfaces meet)
-    TIR = 3  # total internal reflection at the back surface
+    VIGNETTED = 1  # outside the front surface's clear aperture (or misses it)
+    EDGE = 2  # outside a later surface's clear aperture (the singlet: its edge)
+    TIR = 3  # total internal reflection
     BACKWARD = 4  # does not travel toward the target plane / source behind the lens
 
 
@@ -41,115 +50,45 @@ class TraceResult(NamedTuple):
 
 
 class ForwardResult(NamedTuple):
-    """Sensor heights of the two meridional rim rays of a point source."""
+    """Sensor heights of the two meridional stop-edge rays of a point source."""
 
-    y1_mm: np.ndarray  # ray entering at the upper front rim (+D/2)
-    y2_mm: np.ndarray  # ray entering at the lower front rim (−D/2)
+    y1_mm: np.ndarray  # ray through the upper stop edge (the singlet: front rim +D/2)
+    y2_mm: np.ndarray  # ray through the lower stop edge (−D/2)
     status: np.ndarray  # worst TraceStatus of the two rays
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("ij,ij->i", a, b)
-
-
-def _refract(d: np.ndarray, n: np.ndarray, eta: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vector Snell's law. ``n`` must face against ``d``; returns (direction, TIR mask)."""
-    cos_i = -_dot(n, d)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    tir = k < 0.0
-    root = np.sqrt(np.where(tir, 0.0, k))
-    t = eta * d + (eta * cos_i - root)[:, None] * n
-    return t, tir
-
-
-def trace_from_front(
-    lens: MainLens, entry_mm: np.ndarray, directions: np.ndarray, z_plane_mm: float
-) -> TraceResult:
-    """Trace rays that meet the front surface at known points to the plane ``z = z_plane_mm``.
-
-    Parameters
-    ----------
-    lens : MainLens
-    entry_mm : (N, 3) array
-        Points on the front surface where the rays enter.
-    directions : (N, 3) array
-        Unit directions of the incoming rays.
-    z_plane_mm : float
-        Target plane behind the lens.
-
-    Returns
-    -------
-    TraceResult
-    """
-    entry = np.asarray(entry_mm, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    r, n_glass = lens.radius_mm, lens.refractive_index
-    half_d = 0.5 * lens.pupil_diameter_mm
-    status = np.zeros(len(entry), dtype=np.uint8)
-
-    rho2 = entry[:, 0] ** 2 + entry[:, 1] ** 2
-    status[rho2 > (half_d * half_d) * (1.0 + RIM_TOLERANCE)] = TraceStatus.VIGNETTED
-    status[(d[:, 2] <= 0.0) & (status == 0)] = TraceStatus.BACKWARD
-
-    c1 = np.array([0.0, 0.0, lens.front_vertex_z_mm + r])
-    normal1 = (entry - c1) / r  # outward, faces the incoming light
-    inside, tir1 = _refract(d, normal1, 1.0 / n_glass)
-    status[tir1 & (status == 0)] = TraceStatus.TIR  # impossible from air, kept for safety
-
-    c2 = np.array([0.0, 0.0, lens.back_vertex_z_mm - r])
-    oc = entry - c2
-    b = _dot(inside, oc)
-    cc = _dot(oc, oc) - r * r
-    disc = b * b - cc
-    miss = disc < 0.0
-    s_exit = -b + np.sqrt(np.where(miss, 0.0, disc))
-    exit_pt = entry + s_exit[:, None] * inside
-    edge2 = lens.edge_radius_mm ** 2
-    beyond = (exit_pt[:, 0] ** 2 + exit_pt[:, 1] ** 2) > edge2
-    status[(miss | beyond | (s_exit <= 0.0)) & (status == 0)] = TraceStatus.EDGE
-
-    normal2 = -(exit_pt - c2) / r  # inward: faces the ray travelling out of the glass
-    out, tir2 = _refract(inside, normal2, n_glass)
-    status[tir2 & (status == 0)] = TraceStatus.TIR
-    status[(out[:, 2] <= 0.0) & (status == 0)] = TraceStatus.BACKWARD
-
-    ok = status == 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_plane = (z_plane_mm - exit_pt[:, 2]) / out[:, 2]
-        points = exit_pt + s_plane[:, None] * out
-    points[~ok] = np.nan
-    return TraceResult(points=points, directions=out, status=status)
+def legacy_status(status: np.ndarray, surface: np.ndarray) -> np.ndarray:
+    """:class:`~lfcam.optics.raytrace.RayStatus` (+ failing surface) → :class:`TraceStatus`."""
+    status = np.asarray(status)
+    out = np.zeros(status.shape, dtype=np.uint8)
+    clipped = (status == rt.RayStatus.VIGNETTED) | (status == rt.RayStatus.MISSED)
+    out[clipped & (surface <= 0)] = TraceStatus.VIGNETTED
+    out[clipped & (surface > 0)] = TraceStatus.EDGE
+    out[status == rt.RayStatus.TIR] = TraceStatus.TIR
+    out[status == rt.RayStatus.BACKWARD] = TraceStatus.BACKWARD
+    return out
 
 
 def trace_rays(
     lens: MainLens, origins_mm: np.ndarray, directions: np.ndarray, z_plane_mm: float
 ) -> TraceResult:
-    """Trace rays from arbitrary origins in front of the lens to ``z = z_plane_mm``.
-
-    The front-surface intersection uses the numerically stable near root, so sources up to
-    1e6 mm away keep sub-nanometre entry points.
-    """
+    """Trace rays from arbitrary origins in front of the lens to ``z = z_plane_mm``."""
     o = np.asarray(origins_mm, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    shift = np.array([0.0, 0.0, lens.front_vertex_z_mm])
+    res = rt.trace(lens.as_prescription, o - shift, d, z_plane_mm - lens.front_vertex_z_mm)
+    return TraceResult(res.points + shift, res.directions, legacy_status(res.status, res.surface))
+
+
+def trace_from_front(
+    lens: MainLens, entry_mm: np.ndarray, directions: np.ndarray, z_plane_mm: float
+) -> TraceResult:
+    """Trace rays that meet the front surface at known points to the plane ``z_plane_mm``
+    (each started 1 mm before its entry point)."""
+    entry = np.asarray(entry_mm, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    r = lens.radius_mm
-    c1 = np.array([0.0, 0.0, lens.front_vertex_z_mm + r])
-    oc = o - c1
-    b = _dot(d, oc)
-    cc = _dot(oc, oc) - r * r
-    disc = b * b - cc
-    miss = (disc < 0.0) | (b >= 0.0)
-    root = np.sqrt(np.where(miss, 0.0, disc))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_near = np.where(miss, 0.0, cc / (-b + root))
-    entry = o + s_near[:, None] * d
-    result = trace_from_front(lens, entry, d, z_plane_mm)
-    status = result.status
-    status[miss] = TraceStatus.VIGNETTED
-    # an entry on the far cap of the front sphere is not the front surface
-    status[(entry[:, 2] > lens.front_vertex_z_mm + r) & (status == 0)] = TraceStatus.VIGNETTED
-    result.points[status != 0] = np.nan
-    return result
+    return trace_rays(lens, entry - d, d, z_plane_mm)
 
 
 def forward(
@@ -159,7 +98,10 @@ def forward(
     offset_mm: np.ndarray | float = 0.0,
     z_plane_mm: float | None = None,
 ) -> ForwardResult:
-    """Sensor heights (y1, y2) of a point source's two meridional rim rays (docs/conventions.md).
+    """Sensor heights (y1, y2) of a point source's two meridional stop-edge rays.
+
+    For the seed singlet these are its rim rays (docs/conventions.md); for any lens, the rays
+    through the upper and lower edge of the real stop (docs/models.md).
 
     Parameters
     ----------
@@ -167,7 +109,7 @@ def forward(
     d_in_mm : float or None
         MLA distance; ``None`` takes the profile's.
     distance_mm : array_like
-        Object plane → front vertex; ``inf`` allowed.
+        Object plane → front vertex; ``inf`` allowed (axial source).
     offset_mm : array_like
         Source height above the axis (broadcast against ``distance_mm``).
     z_plane_mm : float, optional
@@ -176,9 +118,10 @@ def forward(
     Returns
     -------
     ForwardResult
-        ``y1_mm`` (upper rim ray), ``y2_mm`` (lower rim ray), ``status`` (worst of the two).
     """
     lens = profile.main_lens
+    p = lens.as_prescription
+    fv = lens.front_vertex_z_mm
     d_in = profile.d_in_mm if d_in_mm is None else float(d_in_mm)
     z_plane = d_in + profile.mla.focal_length_mm if z_plane_mm is None else float(z_plane_mm)
     dist, off = np.broadcast_arrays(
@@ -186,30 +129,33 @@ def forward(
     )
     shape = dist.shape
     dist, off = dist.ravel(), off.ravel()
-    n = dist.size
+    if p.stop_index != 0:
+        mh = rt.marginal_heights(p, dist, off, z_plane - fv)
+        st = np.where(mh.status == rt.RayStatus.BACKWARD, TraceStatus.BACKWARD,
+                      np.where(mh.status == 0, 0, TraceStatus.EDGE)).astype(np.uint8)
+        return ForwardResult(mh.y1_mm.reshape(shape), mh.y2_mm.reshape(shape), st.reshape(shape))
+    # stop on the front surface: the rim rays go straight from the source to the rim points
     half_d = 0.5 * lens.pupil_diameter_mm
-    z_rim = lens.rim_z_mm
-    along = dist + lens.rim_sag_mm  # source → rim plane, along z
+    z_rim = p.stop_plane_z_mm
+    along = dist + z_rim  # source → rim plane, along z
     far = np.isinf(dist)
     heights = {}
     statuses = []
     for sign in (1.0, -1.0):
-        entry = np.zeros((n, 3))
-        entry[:, 1] = sign * half_d
-        entry[:, 2] = z_rim
         rise = sign * half_d - off
-        direction = np.stack([np.zeros(n), np.where(far, 0.0, rise), np.where(far, 1.0, along)], 1)
-        norm = np.linalg.norm(direction, axis=1, keepdims=True)
+        dy = np.where(far, 0.0, rise)
+        dz = np.where(far, 1.0, along)
         with np.errstate(invalid="ignore", divide="ignore"):
-            direction = direction / norm
-        bad = ~np.isfinite(direction).all(axis=1) | (along <= 0.0) | np.isnan(dist) | np.isnan(off)
-        direction[bad] = (0.0, 0.0, 1.0)
-        res = trace_from_front(lens, entry, direction, z_plane)
-        st = res.status.copy()
+            inv = 1.0 / np.sqrt(dy * dy + dz * dz)
+            dy, dz = dy * inv, dz * inv
+        bad = ~(np.isfinite(dy) & np.isfinite(dz)) | (along <= 0.0) | np.isnan(dist) | np.isnan(off)
+        dy = np.where(bad, 0.0, dy)
+        dz = np.where(bad, 1.0, dz)
+        res = rt.trace_components(p, 0.0, sign * half_d - dy, z_rim - dz, 0.0, dy, dz,
+                                  z_plane - fv)
+        st = legacy_status(res.status, res.surface)
         st[bad] = TraceStatus.BACKWARD
-        y = res.points[:, 1].copy()
-        y[st != 0] = np.nan
-        heights[sign] = y
+        heights[sign] = np.where(st == 0, res.y, np.nan)
         statuses.append(st)
     status = np.maximum(statuses[0], statuses[1])
     y1, y2 = heights[1.0], heights[-1.0]
@@ -221,16 +167,9 @@ def forward(
 def meridional_rim_heights(
     lens: MainLens, rim_sign: float, slope: np.ndarray, z_plane_mm: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Height at ``z_plane_mm`` of the meridional ray entering the rim at ``rim_sign·D/2``.
-
-    Parameters
-    ----------
-    lens : MainLens
-    rim_sign : float
-        +1 for the upper rim (ray 1), −1 for the lower rim (ray 2).
-    slope : ndarray
-        Object-side slope dy/dz of the incoming ray.
-    z_plane_mm : float
+    """Height at ``z_plane_mm`` of the meridional ray through the stop edge ``rim_sign``
+    (+1 upper, −1 lower) with slope ``slope`` just before the stop surface (the singlet:
+    the rim ray's object-side slope). See :func:`lfcam.optics.raytrace.stop_edge_heights`.
 
     Returns
     -------
@@ -238,46 +177,12 @@ def meridional_rim_heights(
         Height at the plane (NaN where the ray does not pass).
     ok : ndarray of bool
     """
-    r, n_glass = lens.radius_mm, lens.refractive_index
-    half_d = rim_sign * 0.5 * lens.pupil_diameter_mm
-    z_a = lens.rim_z_mm
-    # outward normal at the rim point (faces the incoming light)
-    nz1 = (z_a - (lens.front_vertex_z_mm + r)) / r
-    ny1 = half_d / r
-    inv_len = 1.0 / np.sqrt(1.0 + slope * slope)
-    dz, dy = inv_len, slope * inv_len
-    eta = 1.0 / n_glass
-    cos_i = -(nz1 * dz + ny1 * dy)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    g = eta * cos_i - np.sqrt(np.maximum(k, 0.0))
-    tz = eta * dz + g * nz1
-    ty = eta * dy + g * ny1
-    # back surface: sphere about (z_c2, 0)
-    z_c2 = lens.back_vertex_z_mm - r
-    oz = z_a - z_c2
-    cc = oz * oz + half_d * half_d - r * r
-    b = tz * oz + ty * half_d
-    disc = b * b - cc
-    s = -b + np.sqrt(np.maximum(disc, 0.0))
-    qz = z_a + s * tz
-    qy = half_d + s * ty
-    # refraction out of the glass; normal faces the travelling ray
-    mz = -(qz - z_c2) / r
-    my = -qy / r
-    cos_o = -(mz * tz + my * ty)
-    k2 = 1.0 - n_glass * n_glass * (1.0 - cos_o * cos_o)
-    g2 = n_glass * cos_o - np.sqrt(np.maximum(k2, 0.0))
-    uz = n_glass * tz + g2 * mz
-    uy = n_glass * ty + g2 * my
-    y = qy + uy * ((z_plane_mm - qz) / uz)
-    ok = (k2 >= 0.0) & (disc >= 0.0) & (uz > 0.0) & (qy * qy <= lens.edge_radius_mm ** 2)
-    return y, ok
+    return rt.stop_edge_heights(
+        lens.as_prescription, rim_sign, slope, z_plane_mm - lens.front_vertex_z_mm
+    )
 
 
 # ----------------------------------------------------------------------------- fast paths
-# Component-wise (x, y, z arrays instead of (N, 3)) versions for the renderer (lfcam.sim),
-# where tens of millions of rays are traced. They are checked against ``trace_rays`` in the
-# tests; they share the geometry, not the code.
 
 
 class FastTrace(NamedTuple):
@@ -290,43 +195,36 @@ class FastTrace(NamedTuple):
     dy: np.ndarray
     dz: np.ndarray
     ok: np.ndarray  # bool, True where the ray passed
+    rho: np.ndarray | None = None  # max over surfaces of ρ/semi-diameter (if asked for)
 
 
-def _refract_xyz(dx, dy, dz, nx, ny, nz, eta):
-    """Vector Snell's law on components; ``n`` faces against ``d``. Returns (t, tir)."""
-    cos_i = -(nx * dx + ny * dy + nz * dz)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    tir = k < 0.0
-    g = eta * cos_i - np.sqrt(np.maximum(k, 0.0))
-    return eta * dx + g * nx, eta * dy + g * ny, eta * dz + g * nz, tir
+def pupil_map(lens: MainLens, source_xyz_mm) -> tuple[float, float, float, float]:
+    """Where the real stop appears from a source, on the aperture plane :attr:`rim_z_mm`:
+    ``(centre_x, centre_y, scale_x, scale_y)`` mapping the paraxial aperture disk (radius
+    D/2 about the axis) onto the ellipse through the aimed stop-edge rays.
 
-
-def _sphere_entry(px, py, pz, dx, dy, dz, zc: float, r: float):
-    """Near intersection of rays ``p + s·d`` entering a sphere (centre (0, 0, zc)) from outside.
-
-    Uses the cancellation-free form ``s = cc/(−b + √disc)``, so sources 10⁶ mm away keep
-    sub-nanometre entry points. Returns ``(x, y, z, hit)``.
+    Identity for a stop on the front surface (the singlet's rim is a real circle there).
     """
-    oz = pz - zc
-    b = dx * px + dy * py + dz * oz
-    cc = px * px + py * py + oz * oz - r * r
-    disc = b * b - cc
-    hit = (disc >= 0.0) & (b < 0.0)
-    s = cc / (-b + np.sqrt(np.maximum(disc, 0.0)))
-    return px + s * dx, py + s * dy, pz + s * dz, hit
-
-
-def _sphere_exit(px, py, pz, dx, dy, dz, zc: float, r: float):
-    """Far intersection of rays ``p + s·d`` leaving a sphere (centre (0, 0, zc)) from inside.
-
-    Returns ``(x, y, z, hit)``.
-    """
-    oz = pz - zc
-    b = dx * px + dy * py + dz * oz
-    cc = px * px + py * py + oz * oz - r * r
-    disc = b * b - cc
-    s = -b + np.sqrt(np.maximum(disc, 0.0))
-    return px + s * dx, py + s * dy, pz + s * dz, disc >= 0.0
+    p = lens.as_prescription
+    if p.stop_index == 0:
+        return 0.0, 0.0, 1.0, 1.0
+    fv = lens.front_vertex_z_mm
+    src = np.asarray(source_xyz_mm, dtype=np.float64) - [0.0, 0.0, fv]
+    if not np.isfinite(src).all():
+        return 0.0, 0.0, 1.0, 1.0
+    pupil = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    b = rt.aim_rays(p, pupil, points_mm=src)
+    if not b.aimed.all():
+        return 0.0, 0.0, 1.0, 1.0
+    z_ap = lens.rim_z_mm - fv
+    t = (z_ap - b.origins[:, 2]) / b.directions[:, 2]
+    hx = b.origins[:, 0] + t * b.directions[:, 0]
+    hy = b.origins[:, 1] + t * b.directions[:, 1]
+    half = 0.5 * lens.pupil_diameter_mm
+    cx = 0.5 * (hx[0] + hx[1])
+    cy = 0.5 * (hy[2] + hy[3])
+    return float(cx), float(cy), float(0.5 * (hx[0] - hx[1]) / half), float(
+        0.5 * (hy[2] - hy[3]) / half)
 
 
 def trace_source_fast(
@@ -335,23 +233,16 @@ def trace_source_fast(
     rim_x_mm: np.ndarray,
     rim_y_mm: np.ndarray,
     z_plane_mm: float,
+    *,
+    map_pupil: bool = True,
 ) -> FastTrace:
-    """Trace rays from one point source through given points of the front-rim plane.
+    """Trace rays from one point source through given points of the aperture plane.
 
-    Each ray runs from the source toward ``(rim_x, rim_y, lens.rim_z_mm)``; it enters the
-    front surface where that line meets the sphere (near root, stable for far sources) and is
-    traced exactly to the plane ``z = z_plane_mm``. Rays through rim-plane points within D/2
-    enter the front surface within D/2 (the cap is convex toward the source).
-
-    Parameters
-    ----------
-    lens : MainLens
-    source_xyz_mm : tuple of float
-        Source position (z in front of the front vertex).
-    rim_x_mm, rim_y_mm : ndarray
-        Aim points on the rim plane.
-    z_plane_mm : float
-        Target plane behind the lens.
+    Each ray runs from the source toward ``(rim_x, rim_y, lens.rim_z_mm)`` and is traced
+    exactly (vignetted by every clear aperture) to the plane ``z = z_plane_mm``. For a stop
+    behind the front surface and ``map_pupil``, the aim points (given on the paraxial aperture
+    disk) are first mapped onto the real stop's image from this source (:func:`pupil_map`),
+    so samples uniform on the disk stay uniform on the real pupil.
 
     Returns
     -------
@@ -359,32 +250,17 @@ def trace_source_fast(
         Positions at the target plane and unit directions after the lens.
     """
     sx, sy, sz = (float(v) for v in source_xyz_mm)
-    r, n_glass = lens.radius_mm, lens.refractive_index
-    half_d = 0.5 * lens.pupil_diameter_mm
-    dx = rim_x_mm - sx
-    dy = rim_y_mm - sy
-    dzs = lens.rim_z_mm - sz
-    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dzs * dzs)
-    dx *= inv
-    dy *= inv
-    dz = dzs * inv
-    # front sphere, centre on axis at zc1
-    zc1 = lens.front_vertex_z_mm + r
-    ex, ey, ez, ok = _sphere_entry(sx, sy, sz, dx, dy, dz, zc1, r)
-    ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
-    nx, ny, nz = ex / r, ey / r, (ez - zc1) / r
-    tx, ty, tz, tir = _refract_xyz(dx, dy, dz, nx, ny, nz, 1.0 / n_glass)
-    ok &= ~tir
-    # back sphere, centre zc2; far root from inside
-    zc2 = lens.back_vertex_z_mm - r
-    qx, qy, qz, hit = _sphere_exit(ex, ey, ez, tx, ty, tz, zc2, r)
-    ok &= hit
-    ok &= qx * qx + qy * qy <= lens.edge_radius_mm ** 2
-    nx, ny, nz = -qx / r, -qy / r, -(qz - zc2) / r
-    ux, uy, uz, tir = _refract_xyz(tx, ty, tz, nx, ny, nz, n_glass)
-    ok &= ~tir & (uz > 0.0)
-    t = (z_plane_mm - qz) / np.where(uz > 0.0, uz, 1.0)
-    return FastTrace(qx + t * ux, qy + t * uy, np.full_like(qx, z_plane_mm), ux, uy, uz, ok)
+    rim_x = np.asarray(rim_x_mm, dtype=np.float64)
+    rim_y = np.asarray(rim_y_mm, dtype=np.float64)
+    if map_pupil and lens.as_prescription.stop_index != 0:
+        cx, cy, ax, ay = pupil_map(lens, (sx, sy, sz))
+        rim_x, rim_y = cx + ax * rim_x, cy + ay * rim_y
+    fv = lens.front_vertex_z_mm
+    dx = rim_x - sx
+    dy = rim_y - sy
+    dz = np.broadcast_to(lens.rim_z_mm - sz, dx.shape)
+    res = rt.trace_components(lens.as_prescription, sx, sy, sz - fv, dx, dy, dz, z_plane_mm - fv)
+    return FastTrace(res.x, res.y, res.z + fv, res.dx, res.dy, res.dz, res.status == 0)
 
 
 def trace_backward_fast(
@@ -394,39 +270,38 @@ def trace_backward_fast(
     z_mm: float,
     slope_x: np.ndarray,
     slope_y: np.ndarray,
+    *,
+    ratio: bool = False,
 ) -> FastTrace:
     """Trace image-side rays backward through the lens to the front surface.
 
     A ray that travels toward +z with slopes ``(slope_x, slope_y) = (dx/dz, dy/dz)`` and
-    crosses the plane ``z = z_mm`` (behind the lens) at ``(x, y)`` is followed back: into the
-    back surface, through the glass, out of the front surface. It passes when it leaves the
-    front surface within the clear aperture D/2 (the stop) and inside the lens edge.
+    crosses the plane ``z = z_mm`` (behind the lens) at ``(x, y)`` is followed back through
+    every surface; it passes when it stays inside every clear aperture (the stop's included).
+
+    Parameters
+    ----------
+    ratio : bool
+        Also return ``rho``: the largest ρ/semi-diameter over the surfaces, traced without
+        clipping (a continuous measure, ≤ 1 exactly where the ray passes).
 
     Returns
     -------
     FastTrace
         ``x, y, z``: where the ray leaves the front surface; ``dx, dy, dz``: unit direction
-        toward the object (dz < 0); ``ok``: passed the aperture.
+        toward the object (dz < 0); ``ok``: passed.
     """
-    r, n_glass = lens.radius_mm, lens.refractive_index
-    half_d = 0.5 * lens.pupil_diameter_mm
-    inv = 1.0 / np.sqrt(1.0 + slope_x * slope_x + slope_y * slope_y)
-    dx = -slope_x * inv
-    dy = -slope_y * inv
-    dz = -inv
-    # back sphere (centre zc2 on axis), entered from outside
-    zc2 = lens.back_vertex_z_mm - r
-    qx, qy, qz, ok = _sphere_entry(x_mm, y_mm, z_mm, dx, dy, dz, zc2, r)
-    edge2 = lens.edge_radius_mm ** 2
-    ok &= qx * qx + qy * qy <= edge2
-    # outward normal of the back surface faces the incoming (backward) ray
-    tx, ty, tz, tir = _refract_xyz(dx, dy, dz, qx / r, qy / r, (qz - zc2) / r, 1.0 / n_glass)
-    ok &= ~tir
-    # front sphere (centre zc1), far root from inside
-    zc1 = lens.front_vertex_z_mm + r
-    ex, ey, ez, hit = _sphere_exit(qx, qy, qz, tx, ty, tz, zc1, r)
-    ok &= hit
-    ok &= ex * ex + ey * ey <= (half_d * half_d) * (1.0 + RIM_TOLERANCE)
-    ux, uy, uz, tir = _refract_xyz(tx, ty, tz, -ex / r, -ey / r, -(ez - zc1) / r, n_glass)
-    ok &= ~tir & (uz < 0.0)
-    return FastTrace(ex, ey, ez, ux, uy, uz, ok)
+    sx = np.asarray(slope_x, dtype=np.float64)
+    sy = np.asarray(slope_y, dtype=np.float64)
+    inv = 1.0 / np.sqrt(1.0 + sx * sx + sy * sy)
+    fv = lens.front_vertex_z_mm
+    res = rt.trace_components(
+        lens.as_prescription, x_mm, y_mm, z_mm - fv, -sx * inv, -sy * inv, -inv, None, reverse=True,
+        clip=not ratio, ratio=ratio,
+    )
+    rho = None
+    ok = res.status == 0
+    if ratio:
+        rho = np.sqrt(res.ratio)
+        ok = ok & (res.ratio <= 1.0 + RIM_TOLERANCE)
+    return FastTrace(res.x, res.y, res.z + fv, res.dx, res.dy, res.dz, ok, rho)

@@ -33,17 +33,20 @@ TRUTH_VERSION = 1
 
 
 def profile_to_dict(profile: CameraProfile) -> dict:
-    """Profile as a docs/profiles.md mapping, with ``mla.distance_mm`` made explicit."""
+    """Profile as a docs/profiles.md mapping, with the MLA position made explicit
+    (``mla.distance_mm`` for the singlet form, ``mla.gap_mm`` for a prescription)."""
     ml, mla, s = profile.main_lens, profile.mla, profile.sensor
     sensor = {k: v for k, v in asdict(s).items() if v is not None}
     if "axis_px" in sensor:
         sensor["axis_px"] = list(sensor["axis_px"])
+    where = ({"distance_mm": profile.d_in_mm} if ml.is_singlet
+             else {"gap_mm": profile.gap_mm})
     return {
         "name": profile.name,
-        "main_lens": asdict(ml),
+        "main_lens": ml.to_dict(),
         "mla": {
             "focal_length_mm": mla.focal_length_mm, "pitch_mm": mla.pitch_mm, "grid": mla.grid,
-            "distance_mm": profile.d_in_mm, "rotation_rad": mla.rotation_rad,
+            **where, "rotation_rad": mla.rotation_rad,
             "offset_mm": list(mla.offset_mm), "fill_factor": mla.fill_factor,
         },
         "sensor": sensor,
@@ -55,7 +58,11 @@ def _toml_value(v) -> str:
         return "true" if v else "false"
     if isinstance(v, str):
         return json.dumps(v)
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
     if isinstance(v, (list, tuple)):
+        if v and isinstance(v[0], dict):  # a table array (surfaces): one row a line
+            return "[\n" + "".join(f"  {_toml_value(x)},\n" for x in v) + "]"
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, float):
         return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
@@ -81,8 +88,15 @@ def apply_overrides(profile: CameraProfile, camera: dict) -> CameraProfile:
         if section not in ("main_lens", "mla", "sensor") or not isinstance(values, dict):
             raise SceneError(f"camera.{section}: overrides must be main_lens, mla or sensor tables")
         d[section].update(values)
-        if section == "mla" and "focus_mm" in values and "distance_mm" not in values:
+        if section == "mla" and ({"focus_mm", "gap_mm"} & set(values)) and (
+                "distance_mm" not in values):
             d["mla"].pop("distance_mm", None)
+        if section == "mla" and ({"focus_mm", "distance_mm"} & set(values)) and (
+                "gap_mm" not in values):
+            d["mla"].pop("gap_mm", None)
+        if section == "main_lens" and "surfaces" in values:
+            for key in ("radius_mm", "thickness_mm", "refractive_index", "pupil_diameter_mm"):
+                d["main_lens"].pop(key, None)
     return profile_from_dict(d, source=f"{profile.source} + scene overrides")
 
 

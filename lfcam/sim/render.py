@@ -28,7 +28,7 @@ import numpy as np
 from lfcam.camera import CameraProfile
 from lfcam.errors import SceneError
 from lfcam.optics.mla import MlaGrid
-from lfcam.optics.trace import trace_backward_fast, trace_source_fast
+from lfcam.optics.trace import pupil_map, trace_backward_fast, trace_source_fast
 from lfcam.sim.scene import LineSource, PointSource, Scene, TexturedPlane, WhiteScene
 
 CHUNK_RAYS = 1 << 20
@@ -156,6 +156,8 @@ class Renderer:
 
     def _mla_to_sensor(self, x, y, dx, dy, dz, ok):
         """Ideal lenslets: rays at MLA points (x, y) with directions → sensor px, lens idx."""
+        x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)  # failed rays carry NaN
+        dz = np.where(ok, dz, 1.0)
         i, j, cx, cy = self.grid.nearest(x, y)
         ok = ok & self.grid.in_aperture(x - cx, y - cy)
         sx = cx + self.f_x * dx / dz
@@ -176,8 +178,13 @@ class Renderer:
         k = max(1, math.ceil(math.sqrt(n_rays)))
         n = k * k
         half_d = 0.5 * self.lens.pupil_diameter_mm
-        area = math.pi * half_d * half_d
         sx, sy, sz = source_xyz
+        # the real stop seen from the source, on the aperture plane (identity for the singlet,
+        # whose stop is the front rim); a 3 % margin, the tracer clips at the real stop
+        cx, cy, ex, ey = pupil_map(self.lens, source_xyz)
+        if not self.lens.as_prescription.stop_index == 0:
+            ex, ey = 1.03 * ex, 1.03 * ey
+        area = math.pi * half_d * half_d * abs(ex * ey)
         lz = self.lens.rim_z_mm - sz
         z_plane = self.d_in if z_plane_mm is None else z_plane_mm
         rows_per_chunk = max(1, CHUNK_RAYS // k)
@@ -187,10 +194,10 @@ class Renderer:
             s = (gi.ravel() + rng.random(gi.size)) / k
             t = (gj.ravel() + rng.random(gi.size)) / k
             ux, uy = _concentric_disk(s, t)
-            qx, qy = half_d * ux, half_d * uy
+            qx, qy = cx + ex * half_d * ux, cy + ey * half_d * uy
             dist2 = (qx - sx) ** 2 + (qy - sy) ** 2 + lz * lz
             w = intensity * (area / n) * lz / (dist2 * np.sqrt(dist2))
-            tr = trace_source_fast(self.lens, (sx, sy, sz), qx, qy, z_plane)
+            tr = trace_source_fast(self.lens, (sx, sy, sz), qx, qy, z_plane, map_pupil=False)
             yield tr, w
 
     def _forward_source(self, xyz, intensity, n_rays, rng, acc) -> dict:
@@ -229,12 +236,18 @@ class Renderer:
         return np.stack([px, py], axis=1)
 
     def _rho(self, px_x, px_y, cx, cy, pdx=0.0, pdy=0.0):
-        """Normalised front-exit radius ρ/(D/2) of the backward ray (sensor px, lenslet point)."""
+        """Vignetting measure of the backward ray (sensor px, lenslet point): ρ/(D/2) at the
+        front exit for the singlet (stop = front rim), else the largest ρ/semi-diameter over the
+        surfaces (unclipped trace); < 1 exactly where the ray passes."""
         xm, ym = self.px_to_mm(px_x, px_y)
         bx, by = cx + pdx, cy + pdy
+        singlet = self.lens.is_singlet
         tr = trace_backward_fast(self.lens, bx, by, self.d_in, (xm - cx) / self.f_x,
-                                 (ym - cy) / self.f_x)
-        rho = np.hypot(tr.x, tr.y) / (0.5 * self.lens.pupil_diameter_mm)
+                                 (ym - cy) / self.f_x, ratio=not singlet)
+        if singlet:
+            rho = np.hypot(tr.x, tr.y) / (0.5 * self.lens.pupil_diameter_mm)
+        else:
+            rho = tr.rho
         rho = np.where(np.isfinite(rho), rho, 10.0)
         return np.where(tr.ok, rho, np.maximum(rho, 10.0)), tr
 

@@ -25,6 +25,7 @@ from lfcam.decode import (
     shift_for_distance,
 )
 from lfcam.errors import OpticsError
+from lfcam.models import hahne
 from lfcam.optics.trace import trace_rays
 from tests.decode.synth import encode, lattice
 
@@ -63,11 +64,30 @@ def view_positions(profile, distance_mm, du, dv):
 
 
 @pytest.mark.parametrize("distance_mm", [300.0, 700.0, 1500.0, 3500.0, 8000.0])
-def test_shift_for_distance_is_the_exact_trace_slope_near_the_axis(distance_mm):
+def test_hahne_shift_is_the_exact_trace_slope_near_the_axis(distance_mm):
     u, s = meridian(PROFILE, distance_mm, pupil_fraction=1e-3)
     slope = np.polyfit(u, s, 1)[0]
-    a = float(shift_for_distance(PROFILE, distance_mm))
+    params = hahne.parameters_for(PROFILE)
+    a = float(hahne.shift_for_distance(
+        params, distance_mm + hahne.mla_to_front_vertex_mm(PROFILE)))
     assert a == pytest.approx(-slope, abs=1e-6)
+
+
+@pytest.mark.parametrize("distance_mm", [300.0, 700.0, 1500.0, 3500.0])
+def test_shift_for_distance_is_the_least_rms_shift_of_the_full_aperture(distance_mm):
+    """The metric refocus shift minimises the point's refocused RMS blur (exact trace, full
+    pupil): the area-weighted meridional fan gives the same shift."""
+    u, s = meridian(PROFILE, distance_mm, n=4001)
+    w = np.abs(np.linspace(-1.0, 1.0, u.size))  # ring area ∝ radius
+    a_fan = -np.sum(w * s * u) / np.sum(w * u * u)
+    a = float(shift_for_distance(PROFILE, distance_mm))
+    assert a == pytest.approx(a_fan, abs=2e-3 * max(1.0, abs(a)))
+
+    def rms(shift):
+        return np.sqrt(np.sum(w * (s + shift * u) ** 2) / np.sum(w))
+
+    assert rms(a) < rms(float(shift_for_distance(PROFILE, 0.9 * distance_mm)))
+    assert rms(a) < rms(float(shift_for_distance(PROFILE, 1.1 * distance_mm)))
 
 
 @pytest.mark.parametrize("a", [1.0, 2.0, 0.25, 0.05])
@@ -145,7 +165,8 @@ def test_textured_plane_views_shift_by_the_traced_disparity():
     np.testing.assert_allclose(np.diff(measured), np.diff(truth), atol=0.005)
     # Hahne's paraxial shift is the disparity of the central pair (0.17 lenslet per view);
     # farther views drift from it by the main lens's spherical aberration, as traced above
-    a = float(shift_for_distance(PROFILE, d))
+    a = float(hahne.shift_for_distance(hahne.parameters_for(PROFILE),
+                                       d + hahne.mla_to_front_vertex_mm(PROFILE)))
     assert measured[3] - measured[2] == pytest.approx(-a, abs=0.01)
 
 
@@ -201,7 +222,9 @@ def test_point_source_refocus_blur_is_the_traced_blur(profile):
     if profile is SLOW:
         # F/4: sharp at its own distance (own size 0.64 + ≤ 0.25 for aberration and resampling)
         assert own < sigma0**2 + 0.25
-        assert own < min(others) and others[0] > 2 * own  # 300 mm: 2× the own-plane spread
+        # 300 mm: ~2× the own-plane spread (bilinear resampling of the fractional shift adds
+        # up to 0.25 px² to the own plane)
+        assert own < min(others) and others[0] > 1.8 * own
     else:
         # F/2: the singlet's spherical aberration moves the least-blur plane away from the
         # paraxial (Hahne) one; the trace predicts it and the decoder reproduces it

@@ -55,11 +55,16 @@ def test_rendered_point_source_refocus_blur(pupil_mm):
         px, py = ps[valid] + out.shift * uu[valid], pt[valid] + out.shift * vv[valid]
         m = _second_moment(out.image, (c[0] + px.mean(), c[1] + py.mean()), half=8)
         for value, pred in zip(m, (px.var(), py.var()), strict=True):
-            assert pred - 0.05 <= value <= pred + 0.35, (out.shift, m, pred)
+            # + up to 1/12 (whole lenslets) + 1/4 (bilinear shift of a fractional a) + the
+            # spread inside one view (a pixel's pupil footprint, not in the prediction; grows
+            # with defocus): 0.5
+            assert pred - 0.05 <= value <= pred + 0.5, (out.shift, m, pred)
         measured.append(max(m))
     if pupil_mm == 25.0:
         assert measured[0] == min(measured)  # F/4: sharpest at its own distance
         assert measured[1] > 3 * measured[0]  # 300 mm
     else:
-        # F/2: spherical aberration puts the least blur near 1000 mm, as the trace predicts
-        assert measured[3] < measured[0]
+        # F/2: spherical aberration moves the least blur away from the paraxial (Hahne) shift;
+        # the metric refocus uses the trace's least-RMS shift, so the own distance is still the
+        # sharpest of the set
+        assert measured[0] == min(measured)
