@@ -8,8 +8,8 @@ has its origin at the lens centre instead; :meth:`Prescription.from_singlet` doc
 
 Every paraxial quantity here comes from a y–nu trace (a product of 2×2 refraction and
 transfer matrices acting on (height, index × slope)), never from singlet formulas. The exact
-(real-ray) focus helpers live in :mod:`lfcam.optics.raytrace` and are reached through the
-``exact_*`` methods.
+(real-ray) focus helpers live in :mod:`lfcam.optics.raytrace` (``best_focus_z``,
+``best_focus_object_distance``).
 """
 
 from __future__ import annotations
@@ -408,26 +408,6 @@ class Prescription:
         if denominator == 0.0:
             return math.inf
         return float(-(b * n_img + gap * d) / denominator)
-
-    # ------------------------------------------------------------------ exact focus
-
-    def exact_image_plane_z_for(self, object_distance_mm: float, n_rings: int = 24) -> float:
-        """Plane of least RMS spot radius for an axial object, from a real-ray trace.
-
-        See :func:`lfcam.optics.raytrace.best_focus_z`.
-        """
-        from lfcam.optics.raytrace import best_focus_z
-
-        return best_focus_z(self, object_distance_mm, n_rings=n_rings)
-
-    def exact_object_distance_for(self, image_plane_z_mm: float, n_rings: int = 24) -> float:
-        """Object distance whose least-RMS focus lies at ``image_plane_z_mm`` (real rays).
-
-        See :func:`lfcam.optics.raytrace.best_focus_object_distance`.
-        """
-        from lfcam.optics.raytrace import best_focus_object_distance
-
-        return best_focus_object_distance(self, image_plane_z_mm, n_rings=n_rings)
 
     # ------------------------------------------------------------------ real stop circle
 
