@@ -3,9 +3,8 @@
 A :data:`Progress` callable is told the current stage (a short name such as ``"regions"``),
 how many of its steps are done and how many there are. :class:`TerminalProgress` renders it
 as one self-overwriting line on stderr, only when stderr is a terminal, so pipes, logs and
-tests see nothing. The library functions report progress in their own shapes
-(``(done, total)``, ``(stage, fraction)``); :func:`counts` and :func:`fractions` adapt a
-:data:`Progress` to them at the CLI edge.
+tests see nothing. The library's long calls (calibration, rendering, distance, batch) take a
+:data:`Progress` and call it the same way.
 """
 
 from __future__ import annotations
@@ -16,7 +15,6 @@ from collections.abc import Callable
 from typing import TextIO
 
 Progress = Callable[[str, int, int], None]
-FRACTION_STEPS = 1000  # resolution of (stage, fraction) callbacks mapped onto done/total
 
 
 def silent(stage: str, done: int, total: int) -> None:
@@ -84,13 +82,3 @@ def terminal_progress(quiet: bool = False) -> TerminalProgress:
     """The CLI's renderer: on stderr when it is a terminal, never with ``quiet``."""
     return TerminalProgress(enabled=False) if quiet else TerminalProgress()
 
-
-def counts(progress: Progress, stage: str) -> Callable[[int, int], None]:
-    """Adapt to a library callback called as ``(done, total)``."""
-    return lambda done, total: progress(stage, int(done), int(total))
-
-
-def fractions(progress: Progress) -> Callable[[str, float], None]:
-    """Adapt to a library callback called as ``(stage, fraction in [0, 1])``."""
-    return lambda stage, frac: progress(stage, int(round(FRACTION_STEPS * frac)),
-                                        FRACTION_STEPS)

@@ -423,12 +423,12 @@ class _Tty(io.StringIO):
 
 
 def test_terminal_progress_renderer():
-    from lfcam.progress import TerminalProgress, counts, fractions
+    from lfcam.progress import TerminalProgress
 
     buf = _Tty()
     with TerminalProgress(stream=buf, min_interval_s=0.0) as bar:
-        counts(bar, "regions")(1, 4)
-        fractions(bar)("centroids", 0.5)
+        bar("regions", 1, 4)
+        bar("centroids", 500, 1000)
         bar("writing", 1, 1)
     text = buf.getvalue()
     assert "regions" in text and " 25.0%" in text and "centroids" in text

@@ -106,6 +106,17 @@ def discover_captures(input_dir: str | Path, exclude: Iterable[str | Path] = (),
     rather than being ignored. Hidden files and folders, and the ``exclude`` folders (the
     output folder), are skipped. A folder that cannot be listed and a dangling symbolic link
     are appended to ``problems`` (when given) as ``(path, OSError)``: they become failures.
+
+    Parameters
+    ----------
+    input_dir : str or Path
+    exclude : iterable of paths
+    problems : list, optional
+
+    Returns
+    -------
+    list of Path
+        Sorted by path relative to ``input_dir``.
     """
     from lfcam.io import sniff_kind
 

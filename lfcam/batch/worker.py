@@ -66,6 +66,12 @@ def init_worker(calibration_bytes: bytes, single_thread: bool = True) -> None:
 
     With ``single_thread`` OpenCV runs on one thread: a worker is one core, parallelism comes
     from running several workers.
+
+    Parameters
+    ----------
+    calibration_bytes : bytes
+        The calibration file's content (:func:`lfcam.calibrate.calibration_from_bytes`).
+    single_thread : bool
     """
     if single_thread:
         cv2.setNumThreads(1)
@@ -127,6 +133,14 @@ def process_capture(job: Job) -> dict:
     Returns a dict with ``status`` (``ok`` | ``failed``), the capture's ``rel`` path, the
     worker's ``pid``, its calibration-load and geometry-build counters, and for a failure
     ``error_class`` and ``message``.
+
+    Parameters
+    ----------
+    job : Job
+
+    Returns
+    -------
+    dict
     """
     t0 = time.perf_counter()
     out = {"rel": job.rel, "pid": os.getpid()}
@@ -156,7 +170,17 @@ def process_capture(job: Job) -> dict:
 
 
 def is_finished(job: Job) -> bool:
-    """Whether ``job``'s outputs are complete for this capture, calibration and settings."""
+    """Whether ``job``'s outputs are complete for this capture, calibration and settings.
+
+    Parameters
+    ----------
+    job : Job
+
+    Returns
+    -------
+    bool
+        True when ``done.json`` matches and every output it lists is intact.
+    """
     outdir = Path(job.outdir)
     try:
         rec = json.loads((outdir / DONE_FILE).read_text(encoding="utf-8"))

@@ -29,7 +29,27 @@ __all__ = [
 def calibrate_white(white, dark=None, bayer: str = "none", pitch_hint_px: float | None = None,
                     progress=None, white_sha256: str | None = None,
                     dark_sha256: str | None = None) -> Calibration:
-    """Calibrate from in-memory arrays (see :func:`lfcam.calibrate.grid.find_centres`)."""
+    """Calibrate from in-memory arrays (see :func:`lfcam.calibrate.grid.find_centres`).
+
+    Parameters
+    ----------
+    white : (H, W) array
+        White image, linear, black level removed.
+    dark : (H, W) array, optional
+        Dark frame subtracted first.
+    bayer : str
+        Colour filter pattern (its planes are equalised), ``"none"`` for grey.
+    pitch_hint_px : float, optional
+        Expected micro-image pitch.
+    progress : lfcam.progress.Progress, optional
+    white_sha256, dark_sha256 : str, optional
+        Recorded in the calibration.
+
+    Returns
+    -------
+    Calibration
+        With its quality block (:func:`with_quality`).
+    """
     img, n_hot = prepare_white(white, dark, bayer)
     kwargs = {} if progress is None else {"progress": progress}
     fit = find_centres(img, pitch_hint_px=pitch_hint_px, **kwargs)
@@ -39,7 +59,18 @@ def calibrate_white(white, dark=None, bayer: str = "none", pitch_hint_px: float 
 
 
 def with_quality(cal: Calibration, accepted_poor: bool = False) -> Calibration:
-    """Copy of ``cal`` with its quality block (:func:`lfcam.calibrate.quality.assess`)."""
+    """Copy of ``cal`` with its quality block (:func:`lfcam.calibrate.quality.assess`).
+
+    Parameters
+    ----------
+    cal : Calibration
+    accepted_poor : bool
+        Record that the user accepted a ``poor`` verdict.
+
+    Returns
+    -------
+    Calibration
+    """
     from dataclasses import replace
 
     from lfcam.calibrate.quality import assess
@@ -57,6 +88,21 @@ def calibrate_white_file(white_path, dark=None, profile=None, output=None,
     profile's, is equalised. The result carries its quality block; a ``poor`` calibration
     is not written to ``output`` (:class:`~lfcam.errors.CalibrationQualityError`) unless
     ``accept_poor`` (then it is marked ``accepted_poor``).
+
+    Parameters
+    ----------
+    white_path : str or Path
+    dark : str or Path, optional
+    profile : str, Path or CameraProfile, optional
+        Pitch hint and Bayer pattern when the file does not state one.
+    output : str or Path, optional
+        Where to save the calibration JSON.
+    progress : lfcam.progress.Progress, optional
+    accept_poor : bool
+
+    Returns
+    -------
+    Calibration
     """
     from lfcam.camera import load_profile
     from lfcam.io import load_capture
@@ -93,6 +139,17 @@ def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
     ``profile`` is a :class:`~lfcam.camera.CameraProfile`; its d_in is only the solver's
     start. The white calibration supplies the micro-image centroids, pitch and rotation
     (see :func:`lfcam.calibrate.reference.measure_d_in`).
+
+    Parameters
+    ----------
+    cal : Calibration
+    capture : (H, W) array
+        Raw grey capture of the dot target.
+    profile : CameraProfile
+    distance_mm : float
+        Dot plane → front vertex.
+    **kwargs
+        Passed to :func:`lfcam.calibrate.reference.measure_d_in`.
     """
     from lfcam.calibrate.reference import METHOD, measure_d_in
 
@@ -118,7 +175,19 @@ def calibrate_reference(cal: Calibration, capture, profile, distance_mm: float,
 
 def calibrate_reference_file(cal: Calibration, capture_path, profile, distance_mm: float):
     """Read a grey dot-target capture (:func:`lfcam.io.load_capture`, values as stored) and
-    run :func:`calibrate_reference`."""
+    run :func:`calibrate_reference`.
+
+    Parameters
+    ----------
+    cal : Calibration
+    capture_path : str or Path
+    profile : str, Path or CameraProfile
+    distance_mm : float
+
+    Returns
+    -------
+    (Calibration, DinResult)
+    """
     from lfcam.camera import load_profile
     from lfcam.errors import CalibrationError
     from lfcam.io import load_capture

@@ -367,7 +367,7 @@ def refine_centroids(
         converged[s:e] = ok & inside & (step < 1e-2)
         centres[s:e] = base + dxy.astype(np.float64)
         flux[s:e] = s0
-        progress("centroids", e / n)
+        progress("centroids", e, n)
     return centres, flux, converged
 
 
@@ -543,7 +543,7 @@ def find_centres(
     pitch_hint_px : float, optional
         Expected pitch; only checked against the measured one (a factor-1.5 disagreement
         raises, it usually means the wrong profile).
-    progress : callable(stage, fraction)
+    progress : lfcam.progress.Progress
 
     Returns
     -------
@@ -556,9 +556,9 @@ def find_centres(
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
     h, w = img.shape
-    progress("period", 0.0)
+    progress("period", 0, 1)
     period = estimate_pitch(img)
-    progress("candidates", 0.0)
+    progress("candidates", 0, 1)
     cand, _ = find_candidates(img, period)
     grid, pitch, rot, order = rough_lattice(cand)
     if pitch_hint_px is not None and not (pitch_hint_px / 1.5 < period < pitch_hint_px * 1.5):
@@ -566,7 +566,7 @@ def find_centres(
             f"measured lens pitch {period:.2f} px is far from the profile's {pitch_hint_px:.2f} px"
         )
     hx, hy = window_half_widths(grid, period, rot)
-    progress("micro-image shape", 0.0)
+    progress("micro-image shape", 0, 1)
     try:
         disc = fit_disc_model(img, cand, period)
     except CalibrationError:
@@ -612,7 +612,7 @@ def find_centres(
     # dim lenses: flux far below the local median of lattice neighbours
     _mark_dim(idx_all, flux, reason)
 
-    progress("fit", 0.0)
+    progress("fit", 0, 1)
     diag: dict = {"pitch_acf_px": period, "orientation_order": order,
                   "n_candidates": len(cand),
                   "centroid_method": method}
@@ -687,7 +687,7 @@ def find_centres(
     res = centres[keep] - predict_lattice(hmat, radial, idx_all[keep])
     rms_px = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))
     rej = ~keep
-    progress("fit", 1.0)
+    progress("fit", 1, 1)
     return GridFit(
         grid=grid,
         pitch_px=pitch,

@@ -67,6 +67,13 @@ def prepare_white(
 ) -> tuple[np.ndarray, int]:
     """Dark-subtract, equalise Bayer planes and remove hot pixels.
 
+    Parameters
+    ----------
+    white : (H, W) array
+    dark : (H, W) array, optional
+    bayer : str
+        ``"none"`` or a colour filter pattern.
+
     Returns
     -------
     image : (H, W) float32

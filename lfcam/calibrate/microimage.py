@@ -32,7 +32,6 @@ micro-image only keep their measured value, so the model matters only on the sea
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,13 +39,11 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from lfcam.errors import CalibrationError
+from lfcam.progress import Progress
 
 CACHE_PIXELS = 8_000_000  # patch pixels kept between the two passes of a fit iteration
 CHUNK = 8192  # lenses per vectorised block (memory ≈ CHUNK × patch² × 8 doubles)
-Progress = Callable[[str, float], None]
-
-
-def _noop(stage: str, frac: float) -> None:
+def _noop(stage: str, done: int, total: int) -> None:
     return None
 
 
@@ -337,7 +334,7 @@ def fit_discs(
         new_c[hold] = c[hold]
         step[fixed] = 0.0
         c = new_c
-        progress("micro-image fit", (it + 1) / iterations)
+        progress("micro-image fit", it + 1, iterations)
         # settled: nearly every disc moves < tol; a few edge pixels crossing the ramp's kinks
         # keep some discs bouncing at a few thousandths of a pixel, harmlessly
         if float(np.percentile(step, 99)) < tol_px and float(step.max()) < 5.0 * tol_px:
@@ -465,5 +462,5 @@ def circle_window_centroids(
         centres[s:e] = base + dxy.astype(np.float64)
         flux[s:e] = s0
         converged[s:e] = ok & (step < 10 * tol_px) & (np.abs(dxy) <= slack).all(axis=1)
-        progress("centroids", e / len(centres))
+        progress("centroids", e, len(centres))
     return centres, flux, converged

@@ -403,7 +403,22 @@ def to_json_dict(cal: Calibration) -> dict:
 
 
 def save_calibration(cal: Calibration, path: str | Path) -> Path:
-    """Write ``cal`` as JSON atomically (:func:`lfcam.atomic.atomic_write_text`)."""
+    """Write ``cal`` as JSON atomically (:func:`lfcam.atomic.atomic_write_text`).
+
+    Parameters
+    ----------
+    cal : Calibration
+    path : str or Path
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    CalibrationError
+        The output folder does not exist.
+    """
     out = Path(path)
     folder = out.parent if str(out.parent) else Path(".")
     if not folder.is_dir():

@@ -17,7 +17,7 @@ from lfcam.cli.common import (
     profile_file,
 )
 from lfcam.errors import CalibrationError, CalibrationQualityError
-from lfcam.progress import fractions, terminal_progress
+from lfcam.progress import terminal_progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     with terminal_progress(args.quiet) as bar:
         cal = calibrate_white_file(args.white, dark=args.dark, profile=args.profile,
                                    output=None if ref is not None else out,
-                                   progress=fractions(bar), accept_poor=args.accept_poor)
+                                   progress=bar, accept_poor=args.accept_poor)
     if cal.is_poor and not args.accept_poor:  # the reference route: nothing written yet
         raise CalibrationQualityError(
             f"{args.white}: poor calibration, not written: {'; '.join(cal.quality['reasons'])}"

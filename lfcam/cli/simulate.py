@@ -9,7 +9,7 @@ from pathlib import Path
 from lfcam.atomic import check_output_dir, refuse_overwrite
 from lfcam.cli.common import add_quiet, nonneg_int, positive_int, profile_file
 from lfcam.errors import OutputPathError
-from lfcam.progress import counts, terminal_progress
+from lfcam.progress import terminal_progress
 from lfcam.sim.scene import MAX_TOTAL_RAYS
 
 
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(Path(outputs[0]).parent)
     with terminal_progress(args.quiet) as bar:
         raw, used, truth = simulate(profile, scene, max_rays=args.max_rays,
-                                    progress=counts(bar, "rendering"))
+                                    progress=bar)
     img, prof, tru = write_capture(args.output, raw, used, truth, scene.output_format)
     summary = {"raster": str(img), "profile": str(prof), "truth": str(tru),
                "width_px": int(raw.shape[1]), "height_px": int(raw.shape[0]),

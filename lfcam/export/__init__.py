@@ -27,14 +27,31 @@ REGION_COLUMNS = (
 
 
 def format_cell(value: object) -> str:
-    """CSV cell text: empty for NaN, repr-precision floats, everything else as ``str``."""
+    """CSV cell text: empty for NaN, repr-precision floats, everything else as ``str``.
+
+    Parameters
+    ----------
+    value : object
+
+    Returns
+    -------
+    str
+    """
     if isinstance(value, (float, np.floating)):
         return "" if math.isnan(value) else repr(float(value))
     return str(value)
 
 
 def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
-    """Write a CSV atomically (``csv`` module quoting, ``\\n`` line ends)."""
+    """Write a CSV atomically (``csv`` module quoting, ``\\n`` line ends).
+
+    Parameters
+    ----------
+    path : str or Path
+    header : sequence of str
+    rows : iterable of sequences
+        Cells formatted by :func:`format_cell`.
+    """
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(header)
@@ -64,12 +81,24 @@ class RegionResult:
 
 
 def write_regions_csv(path: str | Path, regions: Sequence[RegionResult]) -> None:
-    """Write ``regions.csv`` (one row a region; empty cells for NaN)."""
+    """Write ``regions.csv`` (one row a region; empty cells for NaN).
+
+    Parameters
+    ----------
+    path : str or Path
+    regions : sequence of RegionResult
+    """
     write_csv(path, REGION_COLUMNS, (r.row() for r in regions))
 
 
 def write_distance_tiff(path: str | Path, distance_mm: np.ndarray) -> None:
-    """Write the distance map as a float32 TIFF in millimetres (NaN where no estimate)."""
+    """Write the distance map as a float32 TIFF in millimetres (NaN where no estimate).
+
+    Parameters
+    ----------
+    path : str or Path
+    distance_mm : (H, W) array
+    """
     arr = np.asarray(distance_mm, dtype=np.float32)
     atomic_write(path, lambda tmp: tifffile.imwrite(
         tmp, arr, photometric="minisblack",
@@ -77,7 +106,18 @@ def write_distance_tiff(path: str | Path, distance_mm: np.ndarray) -> None:
 
 
 def nice_ticks(lo: float, hi: float, target: int = 5) -> list[float]:
-    """Round tick values (1, 2, 2.5 or 5 × 10ⁿ steps) inside [lo, hi]."""
+    """Round tick values (1, 2, 2.5 or 5 × 10ⁿ steps) inside [lo, hi].
+
+    Parameters
+    ----------
+    lo, hi : float
+    target : int
+        About how many ticks.
+
+    Returns
+    -------
+    list of float
+    """
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
         return [lo]
     raw = (hi - lo) / max(1, target)
@@ -106,6 +146,20 @@ def render_preview(
     far = red). Each ``ok`` region is outlined in white with a line width that grows with its
     relative uncertainty (1 px below 0.5 %, 2 px below 2 %, 3 px above) and labelled
     ``#id d ± σ mm``; other regions are outlined in red and labelled with their status.
+
+    Parameters
+    ----------
+    distance_mm : (H, W) array
+    regions : sequence of RegionResult
+    max_side_px : int
+        The map is shrunk to fit.
+    colormap : int
+        OpenCV colour map.
+    title : str
+
+    Returns
+    -------
+    (h, w, 3) uint8 array
     """
     d = np.asarray(distance_mm, dtype=np.float64)
     h, w = d.shape
@@ -171,7 +225,15 @@ def render_preview(
 
 def write_distance_png(path: str | Path, distance_mm: np.ndarray,
                        regions: Sequence[RegionResult] = (), title: str = "") -> None:
-    """Write the colour preview (see :func:`render_preview`) as PNG."""
+    """Write the colour preview (see :func:`render_preview`) as PNG.
+
+    Parameters
+    ----------
+    path : str or Path
+    distance_mm : (H, W) array
+    regions : sequence of RegionResult
+    title : str
+    """
     ok, buf = cv2.imencode(".png", render_preview(distance_mm, regions, title=title))
     if not ok:  # pragma: no cover - cv2 failure
         raise OSError("PNG encoding failed")

@@ -25,6 +25,7 @@ from lfcam.camera import CameraProfile, profile_from_dict
 from lfcam.errors import LfcamError, SceneError
 from lfcam.optics.mla import MlaGrid
 from lfcam.optics.trace import forward
+from lfcam.progress import Progress
 from lfcam.sim.render import Renderer, RenderResult
 from lfcam.sim.scene import MAX_TOTAL_RAYS, LineSource, PointSource, Scene, check_ray_budget
 from lfcam.sim.sensor import apply_sensor
@@ -212,12 +213,13 @@ def build_truth(profile: CameraProfile, scene: Scene, renderer: Renderer, res: R
 
 
 def simulate(profile: CameraProfile, scene: Scene, max_rays: int = MAX_TOTAL_RAYS,
-             progress: Callable[[int, int], None] | None = None,
+             progress: Progress | None = None,
              ) -> tuple[np.ndarray, CameraProfile, dict]:
     """Render a scene: returns (raw uint16 raster, profile used, truth mapping).
 
     ``max_rays`` bounds the total work (:func:`lfcam.sim.scene.check_ray_budget`, checked
-    before rendering); ``progress(done, total)`` is called after each rendering step.
+    before rendering); ``progress("rendering", done, total)`` is called after each rendering
+    step.
     """
     profile = apply_overrides(profile, scene.camera)
     profile = profile.with_d_in(profile.d_in_mm)

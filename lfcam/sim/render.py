@@ -428,7 +428,8 @@ class Renderer:
     def render(self, scene: Scene, progress=None) -> RenderResult:
         """Render a scene's noiseless signal and its ray-derived truth.
 
-        ``progress(done, total)``, if given, is called after the backward pass and after
+        ``progress("rendering", done, total)`` (:data:`lfcam.progress.Progress`), if given,
+        is called after the backward pass and after
         each source.
         """
         acc = Accumulator(self.height, self.width, self.li.size)
@@ -443,13 +444,13 @@ class Renderer:
             stats = self._backward(scene, streams[-1], acc, complete)
             done += 1
             if progress is not None:
-                progress(done, steps)
+                progress("rendering", done, steps)
         sources = []
         z_front = self.lens.front_vertex_z_mm
         for k, obj in enumerate(scene.objects):
             rng = streams[k]
             if progress is not None and isinstance(obj, (PointSource, LineSource)):
-                progress(done, steps)
+                progress("rendering", done, steps)
                 done += 1
             if isinstance(obj, PointSource):
                 n = obj.rays or scene.rays_per_source
@@ -478,7 +479,7 @@ class Renderer:
                 total.update(index=k, kind="line", points=n_pts)
                 sources.append(total)
         if progress is not None and n_forward:
-            progress(steps, steps)
+            progress("rendering", steps, steps)
         with np.errstate(invalid="ignore", divide="ignore"):
             cen = np.stack([acc.lens_wx / acc.lens_w, acc.lens_wy / acc.lens_w], axis=1)
         cen[acc.lens_w <= 0] = np.nan
