@@ -77,9 +77,11 @@ def parse_focus(text: str) -> float:
     return math.inf if text.strip().lower() in ("inf", "infinity") else float(text)
 
 
-def overrides(focus_mm: float, size: int | None) -> dict:
-    """Scene ``camera`` overrides: focus and optionally a centred square sensor crop."""
+def overrides(focus_mm: float, size: int | None, rotation_rad: float = 0.0) -> dict:
+    """Scene ``camera`` overrides: focus, MLA rotation, optionally a centred square crop."""
     cam: dict = {"mla": {"focus_mm": "inf" if math.isinf(focus_mm) else focus_mm}}
+    if rotation_rad:
+        cam["mla"]["rotation_rad"] = rotation_rad
     if size:
         cam["sensor"] = {"width_px": size, "height_px": size}
     return cam
@@ -117,17 +119,18 @@ class Camera:
     """One system at one focus and sensor size: profile, geometry, placement helpers."""
 
     def __init__(self, system: str, focus_mm: float, size: int | None, cache: Path,
-                 truth_centres: bool):
+                 truth_centres: bool, rotation_rad: float = 0.0):
         self.system, self.focus_mm, self.size = system, focus_mm, size
         self.base = load_profile(ROOT / "calibration" / f"{system}.toml")
-        self.cam = overrides(focus_mm, size)
+        self.cam = overrides(focus_mm, size, rotation_rad)
         used = apply_overrides(self.base, self.cam)
         self.used = used.with_d_in(used.d_in_mm)
         self.shape = (self.used.sensor.height_px, self.used.sensor.width_px)
         self.half_field_mm = 0.5 * self.shape[1] * self.used.sensor.pixel_pitch_mm
         self.half_t = 0.5 * self.used.main_lens.thickness_mm
         self.centres = "truth" if truth_centres else "calibrated"
-        key = f"{system}_{focus_mm:g}_{self.shape[1]}"
+        key = f"{system}_{focus_mm:g}_{self.shape[1]}" + (f"_r{rotation_rad:g}" if rotation_rad
+                                                            else "")
         t0 = time.perf_counter()
         self.geom = (truth_geometry(self.used, self.shape) if truth_centres else
                      calibrated_geometry(self.base, self.cam, self.used, self.shape, cache, key))
@@ -337,6 +340,7 @@ def main() -> None:
     ap.add_argument("--fields", default="0,0.4,0.8", help="fractions of the half-field")
     ap.add_argument("--size", type=int, default=0,
                     help="square sensor crop, px (0: the profile's sensor)")
+    ap.add_argument("--rotation", type=float, default=0.0, help="MLA rotation, rad")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per source")
     ap.add_argument("--quick", action="store_true", help="2 distances a side, fields 0 and 0.8")
     ap.add_argument("--scene12", action="store_true", help="12 point sources in one capture")
@@ -375,7 +379,8 @@ def main() -> None:
         print("# " + " ".join(COLUMNS[1:]))
         for system in args.systems.split(","):
             for focus in [parse_focus(v) for v in args.foci.split(",")]:
-                cam = Camera(system, focus, args.size or None, args.cache, args.truth_centres)
+                cam = Camera(system, focus, args.size or None, args.cache, args.truth_centres,
+                             args.rotation)
                 if args.lines:
                     dists = args.distances or LINE_DISTANCES
                     run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit)
