@@ -183,7 +183,8 @@ class Camera:
         if result is not None:
             kind, status = result.kind, result.status
             n = counts.get(result.region_id, 0)
-            path = "tri" if n >= LF.TRIANGULATION_ENOUGH else "pix"
+            path = ("line" if kind == "line" else
+                    "tri" if n >= LF.TRIANGULATION_ENOUGH else "pix")
             if status == "ok":
                 ed = result.distance_mm
                 signed, err = self.error_pct(ad, ed)
