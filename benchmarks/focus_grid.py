@@ -220,7 +220,8 @@ def run_points(cam: Camera, distances, fields, rays: int, emit) -> None:
 
 def run_scene12(cam: Camera, rays: int, emit) -> None:
     """12 point sources in one capture."""
-    grid = [(fx, fy) for fy in (-0.55, 0.0, 0.55) for fx in (-0.75, -0.25, 0.25, 0.75)]
+    # a 4 × 3 grid, corners at 75 % of the half-field, near and far sources alternating
+    grid = [(fx, fy) for fy in (-0.45, 0.0, 0.45) for fx in (-0.6, -0.2, 0.2, 0.6)]
     near, far = scene12_distances(cam)
     dists = [near[k // 2] if k % 2 == 0 else far[k // 2] for k in range(12)]
     objects, placed = [], []
