@@ -293,34 +293,37 @@ def print_table(rows: list[dict]) -> None:
     """Markdown tables: per camera and overall, side of focus × field bin."""
     if not rows:
         return
-    modes = sorted({r["mode"] for r in rows})
-    for mode in modes:
+    for mode in sorted({r["mode"] for r in rows}):
         sel = [r for r in rows if r["mode"] == mode]
         print(f"\n### {mode}: ERROR % mean / max (answered/cases)\n")
-        print("| system | focus mm | centres | side | field 0 | ≤ 40 % | ≤ 80 % | fit s/region |")
+        print("| system | focus mm | centres | side | field 0 | ≤ 40 % | ≤ 80 % | s/region wall "
+              "(CPU) |")
         print("|---|---|---|---|---|---|---|---|")
-        keys = sorted({(r["system"], float(r["focus_mm"]), r["centres"], r["side"]) for r in sel},
-                      key=lambda k: (k[0], k[1], k[2], k[3] != "front"))
-        for key in keys:
-            grp = [r for r in sel
-                   if (r["system"], float(r["focus_mm"]), r["centres"], r["side"]) == key]
+
+        def line(label, grp, key):
             cells = []
             for name, _, _ in BINS:
                 b = [r for r in grp if field_bin(float(r["field"])) == name]
                 cells.append(cell(b) if b else "")
-            t = np.array([float(r["fit_s"]) for r in grp])
-            print(f"| {key[0]} | {key[1]:g} | {key[2]} | {key[3]} | {' | '.join(cells)} | "
-                  f"{t.mean():.1f} (max {t.max():.1f}) |")
-        for side in ("front", "behind"):
-            grp = [r for r in sel if r["side"] == side]
-            if grp:
-                cells = [cell([r for r in grp if field_bin(float(r["field"])) == name]) or ""
-                         for name, _, _ in BINS]
-                t = np.array([float(r["fit_s"]) for r in grp])
-                print(f"| **all** | | | {side} | {' | '.join(cells)} | {t.mean():.1f} "
-                      f"(max {t.max():.1f}) |")
-        print(f"\n{mode}: all {cell(sel)}; kinds {sorted({r['kind'] for r in sel})}; "
-              f"statuses not ok: {sum(r['status'] != 'ok' for r in sel)}")
+            wall = np.array([float(r["fit_s"]) for r in grp])
+            cpu = np.array([float(r["fit_cpu_s"]) for r in grp])
+            print(f"| {label} | {key[1]} | {key[2]} | {key[3]} | {' | '.join(cells)} | "
+                  f"{wall.mean():.1f} ({cpu.mean():.1f}) |")
+
+        keys = sorted({(r["system"], float(r["focus_mm"]), r["centres"], r["side"]) for r in sel},
+                      key=lambda k: (k[2], k[0], k[1], k[3] != "front"))
+        for key in keys:
+            line(key[0], [r for r in sel if (r["system"], float(r["focus_mm"]), r["centres"],
+                                             r["side"]) == key], (key[0], f"{key[1]:g}", *key[2:]))
+        for centres in sorted({r["centres"] for r in sel}):
+            for side in ("front", "behind"):
+                grp = [r for r in sel if r["side"] == side and r["centres"] == centres]
+                if grp:
+                    line("**all**", grp, ("", "", centres, side))
+        kinds = {k: sum(r["kind"] == k for r in sel) for k in sorted({r["kind"] for r in sel})}
+        bad = [f"{r['system']} F{float(r['focus_mm']):g} Ad {float(r['ad_mm']):g} "
+               f"field {r['field']}: {r['status']}" for r in sel if r["status"] != "ok"]
+        print(f"\n{mode}: all {cell(sel)}; kinds {kinds}; not ok: {bad or 'none'}")
 
 
 def read_rows(paths) -> list[dict]:
