@@ -26,7 +26,9 @@ Run::
     python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
 
-A point case takes 3–10 s of fitting on an idle core, a line case 30–80 s.
+Measured CPU per region: 1–4 s a point (up to ~11 s near the field edge), 6–9 s a line;
+wall time grows with the machine's load. ``--quick``: first and last distance on each side,
+fields 0 and 0.8.
 """
 
 from __future__ import annotations
