@@ -494,9 +494,10 @@ def own_light_fit(
     half = int(np.ceil(reach))
     side = 2 * half + 1
     pad = 2 * half + 2  # a fixed lens's base lies at most support + 1 px off the sensor
-    padded = np.pad(img, pad)
     wp = w + 2 * pad
-    flat_img = padded.ravel()
+    padded = np.zeros((h + 2 * pad, wp), np.float32)
+    padded[pad:pad + h, pad:pad + w] = img
+    patches = np.lib.stride_tricks.sliding_window_view(padded, (side, side))
     off = np.arange(-half, half + 1)
     ox, oy = (a.ravel() for a in np.meshgrid(off, off))
     g = np.hypot(ox, oy)
@@ -510,17 +511,20 @@ def own_light_fit(
     ring = (g < reach) & ~inner
     seam &= ring
     outer = ring & ~seam
-    lin = (oy * wp + ox).astype(np.int64)
-    lin_in, lin_s, lin_o, lin_c = lin[inner], lin[seam], lin[outer], lin[core := (
-        g <= max(1.5, core_radius_px(model, pitch_px) - 0.5))]
+    core = g <= max(1.5, core_radius_px(model, pitch_px) - 0.5)
+    lin_s = (oy * wp + ox).astype(np.int64)[seam]
     oxs, oys = ox[seam].astype(np.float32), oy[seam].astype(np.float32)
     oxo, oyo = ox[outer].astype(np.float32), oy[outer].astype(np.float32)
 
     def moments(mask: np.ndarray) -> np.ndarray:
         return np.stack([np.ones(mask.sum()), ox[mask], oy[mask]], axis=1).astype(np.float32)
 
-    w_in, w_s, w_o = moments(inner), moments(seam), moments(outer)
-    pinv = np.linalg.pinv(np.stack([np.ones(core.sum()), ox[core], oy[core]], axis=1))
+    w_s, w_o = moments(seam), moments(outer)
+    w_in = moments(g >= 0) * inner[:, None]  # over the whole patch, zero off the inner disc
+    # least-squares plane over the core, as weights over the whole patch
+    fit_core = np.zeros((g.size, 3), np.float32)
+    fit_core[core] = np.linalg.pinv(moments(core).astype(np.float64)).T
+    cols_s, cols_o = np.flatnonzero(seam), np.flatnonzero(outer)
 
     base = np.round(c).astype(np.int64)
     bflat = (base[:, 1] + pad) * wp + (base[:, 0] + pad)
@@ -536,11 +540,12 @@ def own_light_fit(
     p_o = np.zeros((n, int(outer.sum())), np.float32)
     for sl in _chunks(free.size):
         k = free[sl]
-        coef[k] = flat_img[bflat[k, None] + lin_c].astype(np.float64) @ pinv.T
-        s_in[k] = flat_img[bflat[k, None] + lin_in] @ w_in
-        p_s[k] = flat_img[idx_s[k]]
-        p_o[k] = flat_img[bflat[k, None] + lin_o]
-    del padded, flat_img
+        pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
+        coef[k] = pt @ fit_core
+        s_in[k] = pt @ w_in
+        p_s[k] = pt.take(cols_s, axis=1)
+        p_o[k] = pt.take(cols_o, axis=1)
+    del padded, patches
     coef[fix] = coef[anchor[fix]]
     coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
     plane = np.empty((n, ns), np.float32)
