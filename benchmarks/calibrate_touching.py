@@ -19,7 +19,8 @@ nearest neighbour within pitch/4), found / fully visible, missed, invented (retu
 farther than pitch/4 from every lens that lights the sensor).
 
 "old" is the code at ``--baseline`` (default: the commit before the fast own-light fit),
-extracted with ``git archive`` into a temporary directory; "new" is this working tree.
+extracted with ``git archive`` into a temporary directory; "new" is a copy of this working
+tree's ``lfcam`` taken at the start.
 Both run in the same invocation, one after the other, on the same image.
 
 Run:  python benchmarks/calibrate_touching.py [--cases illum-touching f01-touching ...]
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -148,8 +150,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="runs of the new code per case")
     args = ap.parse_args()
 
-    with tempfile.TemporaryDirectory(prefix="lfcam_old_") as old_root:
-        impls = [("new", ROOT)]
+    with (tempfile.TemporaryDirectory(prefix="lfcam_old_") as old_root,
+          tempfile.TemporaryDirectory(prefix="lfcam_new_") as new_root):
+        # snapshot of the working tree, so that editing it during the run changes nothing
+        shutil.copytree(ROOT / "lfcam", Path(new_root) / "lfcam")
+        impls = [("new", Path(new_root))]
         if not args.skip_old:
             archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline, "lfcam"],
                                      check=True, capture_output=True).stdout
