@@ -782,7 +782,8 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     centres = np.vstack([np.where(good[:, None], own, disc_all)[measured], cand[~full]])
     flux = np.r_[flux_own[measured], np.zeros(int((~full).sum()))]
     conv = np.r_[(conv_all & good)[measured], np.ones(int((~full).sum()), bool)]
-    at_edge = np.r_[np.zeros(int(measured.sum()), bool), np.ones(int((~full).sum()), bool)]
+    # the fully-visible test again on the fitted disc centres (the start may be ~0.1 px off)
+    at_edge = np.r_[~inside(disc_all[measured]), np.ones(int((~full).sum()), bool)]
     return centres, flux, conv, at_edge
 
 
