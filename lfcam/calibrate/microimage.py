@@ -419,6 +419,20 @@ def _neighbour_offsets(pts: np.ndarray, pitch_px: float, sample: int = 4000) -> 
     return np.unique(np.round(vec[ok] * 4.0) / 4.0, axis=0)
 
 
+def _core_planes(values: np.ndarray, frac: np.ndarray, oxc: np.ndarray, oyc: np.ndarray,
+                 quad: np.ndarray, core_px: float) -> np.ndarray:
+    """Least-squares brightness plane (a, gx, gy) in base-pixel offsets, per lens, over the
+    pixels within ``core_px`` of its start position ``base + frac`` (batched 3×3 solves)."""
+    fr = frac.astype(np.float32)
+    ux, uy = oxc - fr[:, :1], oyc - fr[:, 1:]
+    m = (ux * ux + uy * uy < np.float32(core_px * core_px)).astype(np.float32)
+    q = (m @ quad).astype(np.float64)  # Σ 1, x, y, x², xy, y² over each lens's core
+    v = m * values
+    b = np.stack([v.sum(axis=1), v @ oxc, v @ oyc], axis=1).astype(np.float64)
+    ata = q[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + 1e-9 * np.eye(3)
+    return np.linalg.solve(ata, b[..., None])[..., 0]
+
+
 def own_light_fit(
     image: np.ndarray,
     centres: np.ndarray,
@@ -452,9 +466,8 @@ def own_light_fit(
       within ``R + w + SLACK_PX``, *outer* ones are out of every neighbour's reach (their
       weight is 1 inside the lens's support, 0 beyond), and only *seam* ones need the model
       of the neighbours.
-    * **Brightness planes** (a, gx, gy) are fitted once, by least squares on a core disc of
-      offsets from the base pixel (one matrix product with a pseudo-inverse). The result
-      therefore depends on the base pixel at the 0.002 px RMS level.
+    * **Brightness planes** (a, gx, gy) are fitted once, by least squares over the seam-free
+      core about each start position (:func:`core_radius_px`; batched 3×3 solves).
     * **Model image** M is kept on a padded float32 image and updated only on seam pixels, by
       the change of each lens's model, scattered in groups of lenses with disjoint patches
       (:func:`_scatter_groups`).
@@ -536,7 +549,11 @@ def own_light_fit(
     ring = (g < reach) & ~inner
     seam &= ring
     outer = ring & ~seam
-    core = g <= max(1.5, core_radius_px(model, pitch_px) - 0.5)
+    core_px = core_radius_px(model, pitch_px)
+    cols_c = np.flatnonzero(g < core_px + SLACK_PX)  # where a core about the start can be
+    oxc, oyc = ox[cols_c].astype(np.float32), oy[cols_c].astype(np.float32)
+    quad = np.stack([np.ones(cols_c.size), oxc, oyc, oxc * oxc, oxc * oyc, oyc * oyc],
+                    axis=1).astype(np.float32)
     lin_s = (oy * wp + ox).astype(np.int64)[seam]
     oxs, oys = ox[seam].astype(np.float32), oy[seam].astype(np.float32)
     oxo, oyo = ox[outer].astype(np.float32), oy[outer].astype(np.float32)
@@ -546,9 +563,6 @@ def own_light_fit(
 
     w_s, w_o = moments(seam), moments(outer)
     w_in = moments(g >= 0) * inner[:, None]  # over the whole patch, zero off the inner disc
-    # least-squares plane over the core, as weights over the whole patch
-    fit_core = np.zeros((g.size, 3), np.float32)
-    fit_core[core] = np.linalg.pinv(moments(core).astype(np.float64)).T
     cols_s, cols_o = np.flatnonzero(seam), np.flatnonzero(outer)
 
     base = np.round(c).astype(np.int64)
@@ -566,7 +580,7 @@ def own_light_fit(
     for sl in _chunks(free.size):
         k = free[sl]
         pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
-        coef[k] = pt @ fit_core
+        coef[k] = _core_planes(pt[:, cols_c], c[k] - base[k], oxc, oyc, quad, core_px)
         s_in[k] = pt @ w_in
         p_s[k] = pt.take(cols_s, axis=1)
         p_o[k] = pt.take(cols_o, axis=1)
