@@ -364,7 +364,7 @@ def own_light_centroids(image: np.ndarray, disc_centres: np.ndarray, coef: np.nd
 
 # --- fast own-light fit -------------------------------------------------------------------
 
-SLACK_PX = 1.0  # |disc centre − its integer base pixel| the pixel classes allow for
+SLACK_PX = 1.5  # |disc centre − its integer base pixel| the pixel classes allow for
 CONVERGED_PX = 0.01  # a lens whose last fixed-point step exceeds this is "unconverged"
 
 
@@ -652,7 +652,10 @@ def own_light_fit(
             new = np.where(ok[:, None], cen - shift, c[k])
             step[k] = np.max(np.abs(new - c[k]), axis=1)
             c[k] = new
-        c[fix] = c[anchor[fix]] + anchor_off[fix]
+        if it < 2:
+            # cut discs follow their anchors through the first steps, then stay: a disc in a
+            # sensor corner whose cut neighbours kept following it would chase its own seams
+            c[fix] = c[anchor[fix]] + anchor_off[fix]
         progress("micro-image fit", (it + 1) / iterations)
         # settled: nearly every disc moves < tol, none by more than the convergence limit
         # (a few, whose edge pixels cross the ramp's kinks, keep bouncing at a few thousandths
@@ -666,7 +669,7 @@ def own_light_fit(
             if nbrs is None:
                 nbrs = cKDTree(c).query(c, k=9, distance_upper_bound=2.0 * reach)[1]
             moving = step >= tol_px
-            moving[fix] = moving[anchor[fix]]
+            moving[fix] = moving[anchor[fix]] if it < 2 else False
             mark = moving.copy()
             nb_idx = nbrs[moving].ravel()
             mark[nb_idx[nb_idx < n]] = True
