@@ -252,6 +252,7 @@ def fit_discs(
     damping: float = 0.6,
     fixed: np.ndarray | None = None,
     fit_fixed_centres: np.ndarray | None = None,
+    hold: np.ndarray | None = None,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit every disc's centre against the data minus its neighbours' current model.
@@ -272,14 +273,18 @@ def fit_discs(
     border): their brightness plane is the nearest measured disc's, extrapolated to their
     centre, so their light on the seams of visible neighbours is accounted for. Their centres
     are fitted only when ``fit_fixed_centres`` says so (enough of their edge is visible).
+    ``hold`` marks measured discs whose centres are kept (their light is modelled with their
+    own brightness planes): the context of a fit of a subset of the lenses.
     """
     img = np.asarray(image, dtype=np.float64)
     flat_img = img.ravel()
     c = np.array(centres, dtype=np.float64)
     fixed = np.zeros(len(c), bool) if fixed is None else np.asarray(fixed, bool)
+    held = np.zeros(len(c), bool) if hold is None else np.asarray(hold, bool)
     hold = fixed.copy()
     if fit_fixed_centres is not None:
         hold &= ~np.asarray(fit_fixed_centres, bool)
+    hold |= held
     free = np.flatnonzero(~fixed)
     if free.size == 0:
         raise CalibrationError("no micro-image lies fully on the sensor")
@@ -335,7 +340,7 @@ def fit_discs(
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
         new_c[hold] = c[hold]
-        step[fixed] = 0.0
+        step[fixed | held] = 0.0
         c = new_c
         progress("micro-image fit", (it + 1) / iterations)
         # settled: nearly every disc moves < tol; a few edge pixels crossing the ramp's kinks
@@ -454,6 +459,12 @@ def own_light_fit(
     anchor: np.ndarray | None = None,
     iterations: int = 8,
     tol_px: float = 5e-3,
+    polish: int = 3,
+    polish_damping: float = 0.6,
+    polish_tol_px: float = 1e-3,
+    replane: bool = True,
+    slide: bool = True,
+    misfit: np.ndarray | None = None,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Own-light centroids of touching micro-images by a fixed point on the disc centres.
@@ -575,6 +586,7 @@ def own_light_fit(
 
     w_s, w_o = moments(seam), moments(outer)
     w_in = moments(g >= 0) * inner[:, None]  # over the whole patch, zero off the inner disc
+    mom_in = w_in.sum(axis=0).astype(np.float64)  # Σ 1, x, y over the inner disc
     cols_s, cols_o = np.flatnonzero(seam), np.flatnonzero(outer)
 
     base = np.round(c).astype(np.int64)
@@ -589,20 +601,45 @@ def own_light_fit(
     s_in = np.zeros((n, 3))
     p_s = np.zeros((n, ns), np.float32)
     p_o = np.zeros((n, int(outer.sum())), np.float32)
-    for sl in _chunks(free.size):
-        k = free[sl]
+    p_c = np.zeros((n, cols_c.size), np.float32) if polish else None
+    # cut discs whose centre is on the sensor: their visible edges are fitted by the polish
+    cut_fit = fix[(c[fix, 0] >= 0) & (c[fix, 0] <= w - 1) & (c[fix, 1] >= 0)
+                  & (c[fix, 1] <= h - 1)] if polish else fix[:0]
+    gathered = np.r_[free, cut_fit]
+    for sl in _chunks(gathered.size):
+        k = gathered[sl]
         pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
-        coef[k] = _core_planes(pt[:, cols_c], c[k] - base[k], oxc, oyc, quad, core_px)
+        pc = pt[:, cols_c]
+        coef[k] = _core_planes(pc, c[k] - base[k], oxc, oyc, quad, core_px)
+        if p_c is not None:
+            p_c[k] = pc
         s_in[k] = pt @ w_in
         p_s[k] = pt.take(cols_s, axis=1)
         p_o[k] = pt.take(cols_o, axis=1)
     del padded, patches
-    coef[fix] = coef[anchor[fix]]
-    coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
+    # on-sensor masks of the cut discs that are fitted: seam, outer, and inner moments
+    cut_row = np.full(n, -1)
+    cut_row[cut_fit] = np.arange(cut_fit.size)
+
+    def on_sensor(k: np.ndarray, ox_: np.ndarray, oy_: np.ndarray) -> np.ndarray:
+        x = base[k, :1] + ox_
+        y = base[k, 1:] + oy_
+        return (x >= 0) & (x < w) & (y >= 0) & (y < h)
+
+    ins_s = on_sensor(cut_fit, ox[seam], oy[seam])
+    ins_o = on_sensor(cut_fit, ox[outer], oy[outer])
+    mom_cut = on_sensor(cut_fit, ox, oy).astype(np.float64) @ w_in.astype(np.float64)
     plane = np.empty((n, ns), np.float32)
-    for sl in _chunks(n):
-        cf = coef[sl].astype(np.float32)
-        np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0, out=plane[sl])
+
+    def planes_on_seams() -> None:
+        """Cut lenses: the anchor's plane, extrapolated; every plane on the seam pixels."""
+        coef[fix] = coef[anchor[fix]]
+        coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
+        for sl in _chunks(n):
+            cf = coef[sl].astype(np.float32)
+            np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0, out=plane[sl])
+
+    planes_on_seams()
     kmom = _coverage_moments(model)
     inv2w = np.float32(0.5 / model.edge_px)
     sup = np.float32(support)
@@ -613,14 +650,11 @@ def own_light_fit(
     step[fix] = 0.0
     own = np.full((n, 2), np.nan)
     flux = np.zeros(n)
-    moving = np.ones(n, bool)  # lenses whose model is re-evaluated
-    attrib = free.copy()  # lenses whose own light is re-attributed
-    nbrs = None
-    for it in range(iterations):
-        frac = (c - base).astype(np.float32)
-        # 1. model m_k of every moving lens on its seam pixels; scatter the change into M,
-        #    one group at a time (indices never repeat within a group, so ``+=`` is exact)
-        mov = np.flatnonzero(moving)
+    c_mod = np.full((n, 2), np.nan)  # the disc centres M currently holds
+
+    def remodel(mov: np.ndarray, frac: np.ndarray) -> None:
+        """Model m_k of the lenses ``mov`` on their seam pixels; scatter the change into M,
+        one group at a time (indices never repeat within a group, so ``+=`` is exact)."""
         for sl in _chunks(mov.size):
             k = mov[sl]
             mk = oxs - frac[k, :1]
@@ -633,16 +667,21 @@ def own_light_fit(
             mk *= inv2w
             np.clip(mk, 0.0, 1.0, out=mk)
             mk *= plane[k]
+            c_mod[k] = c[k]
             delta = mk - m_cur[k]
             m_cur[k] = mk
             gs = groups[k]
             for gk in np.unique(gs):
                 sel = np.flatnonzero(gs == gk)
                 total[idx_s[k[sel]]] += delta[sel]
-        # 2. seam pixels split in proportion m_k / M; outer pixels (no neighbour reaches
-        #    them) are the lens's own where its model is non-zero; own-light centroid
-        for sl in _chunks(attrib.size):
-            k = attrib[sl]
+
+    def attribute(att: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """Own-light centroid and flux of the lenses ``att`` (seam pixels split in proportion
+        m_k / M; outer pixels, which no neighbour reaches, are the lens's own where its model
+        is non-zero); returns the disc centres whose model centroids are those centroids."""
+        new = c[att].copy()
+        for sl in _chunks(att.size):
+            k = att[sl]
             mk = m_cur[k]
             big = total[idx_s[k]]
             np.maximum(big, mk, out=big)
@@ -657,18 +696,77 @@ def own_light_fit(
             cen = base[k] + sm[:, 1:] / np.where(ok, sm[:, 0], 1.0)[:, None]
             own[k] = np.where(ok[:, None], cen, np.nan)
             flux[k] = sm[:, 0]
-            # 3. the disc whose model centroid is that own-light centroid
             fr = c[k] - base[k]
             a_d = coef[k, 0] + np.sum(coef[k, 1:] * fr, axis=1)
             shift = coef[k, 1:] * (kmom / np.where(a_d > 0, a_d, np.inf))[:, None]
-            new = np.where(ok[:, None], cen - shift, c[k])
-            step[k] = np.max(np.abs(new - c[k]), axis=1)
-            c[k] = new
+            new[sl] = np.where(ok[:, None], cen - shift, c[k])
+        return new
+
+    def edge_step(act: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """Gauss–Newton step of the disc centres ``act`` on their ring pixels, against the data
+        minus the neighbours' model (the disc edges; brightness planes held)."""
+        dc = np.zeros((act.size, 2))
+        for sl in _chunks(act.size):
+            k = act[sl]
+            cf = coef[k].astype(np.float32)
+            sums = np.zeros((k.size, 5), np.float64)  # Σ jx², jy², jx·jy, jx·r, jy·r
+            cr = cut_row[k]
+            cm = cr >= 0
+            for ox_, oy_, pix, pl, ins in ((oxs, oys, p_s, plane, ins_s),
+                                           (oxo, oyo, p_o, None, ins_o)):
+                ux = ox_ - frac[k, :1]
+                uy = oy_ - frac[k, 1:]
+                d = np.sqrt(ux * ux + uy * uy)
+                t = (sup - d) * inv2w
+                if pl is None:
+                    b = np.maximum(cf[:, :1] + cf[:, 1:2] * ox_ + cf[:, 2:] * oy_, 0.0)
+                    r = pix[k] - b * np.clip(t, 0.0, 1.0)
+                else:
+                    b = pl[k]
+                    r = pix[k] - total[idx_s[k]]
+                gsc = np.where((t > 0.0) & (t < 1.0), b * inv2w / np.maximum(d, 1e-6), 0.0)
+                cov = np.clip(t, 0.0, 1.0)
+                if cm.any():  # cut discs: only on-sensor pixels
+                    gsc[cm] *= ins[cr[cm]]
+                    cov[cm] *= ins[cr[cm]]
+                jx = gsc * ux - cf[:, 1:2] * cov
+                jy = gsc * uy - cf[:, 2:] * cov
+                sums += np.stack([np.einsum("ij,ij->i", jx, jx), np.einsum("ij,ij->i", jy, jy),
+                                  np.einsum("ij,ij->i", jx, jy), np.einsum("ij,ij->i", jx, r),
+                                  np.einsum("ij,ij->i", jy, r)], axis=1)
+            # inner pixels: covered, no neighbour; the plane slides with the disc (as in
+            # :func:`fit_discs`), so J = −g there and r = I − plane
+            gx, gy = coef[k, 1], coef[k, 2]
+            mom = np.broadcast_to(mom_in, (k.size, 3)).copy()
+            mom[cm] = mom_cut[cr[cm]]
+            r_in = s_in[k, 0] - np.sum(coef[k] * mom, axis=1)
+            sums += np.stack([gx * gx * mom[:, 0], gy * gy * mom[:, 0], gx * gy * mom[:, 0],
+                              -gx * r_in, -gy * r_in], axis=1)
+            axx, ayy, axy, bx, by = sums.T
+            axx, ayy = axx + 1e-12, ayy + 1e-12
+            det = axx * ayy - axy * axy
+            ok = det > 0
+            sx = np.where(ok, (ayy * bx - axy * by) / np.where(ok, det, 1.0), 0.0)
+            sy = np.where(ok, (axx * by - axy * bx) / np.where(ok, det, 1.0), 0.0)
+            dc[sl] = polish_damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
+        return dc
+
+    moving = np.ones(n, bool)  # lenses whose model is re-evaluated
+    attrib = free.copy()  # lenses whose own light is re-attributed
+    nbrs = None
+    for it in range(iterations):
+        frac = (c - base).astype(np.float32)
+        # 1. model of every moving lens; 2. own-light centroids; 3. the disc whose model
+        #    centroid is that own-light centroid
+        remodel(np.flatnonzero(moving), frac)
+        new = attribute(attrib, frac)
+        step[attrib] = np.max(np.abs(new - c[attrib]), axis=1)
+        c[attrib] = new
         if it < 2:
             # cut discs follow their anchors through the first steps, then stay: a disc in a
             # sensor corner whose cut neighbours kept following it would chase its own seams
             c[fix] = c[anchor[fix]] + anchor_off[fix]
-        progress("micro-image fit", (it + 1) / iterations)
+        progress("micro-image fit", (it + 1) / (iterations + polish))
         # settled: nearly every disc moves < tol, none by more than the convergence limit
         # (a few, whose edge pixels cross the ramp's kinks, keep bouncing at a few thousandths
         # of a pixel, harmlessly)
@@ -686,6 +784,62 @@ def own_light_fit(
             nb_idx = nbrs[moving].ravel()
             mark[nb_idx[nb_idx < n]] = True
             attrib = np.flatnonzero(mark & ~fixed)
+    if polish:
+        # Gauss–Newton polish of the disc edges (the fixed point's discs match centroids, not
+        # edges; where micro-images are not discs the edges split the seams better)
+        frac = (c - base).astype(np.float32)
+        def refit_planes() -> None:
+            for sl in _chunks(free.size):
+                k = free[sl]
+                coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
+            planes_on_seams()
+            remodel(np.arange(n), frac)
+
+        if replane:
+            # brightness planes about the fixed point's disc centres, not the start
+            refit_planes()
+        else:
+            remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
+        act = np.r_[free, cut_fit]
+        for it in range(polish):
+            dc = edge_step(act, frac)
+            c[act] += dc
+            if slide:
+                # the plane moves with the disc (the Jacobian's −g·cov term)
+                coef[act, 0] -= np.sum(coef[act, 1:] * dc, axis=1)
+            st = np.abs(dc).max(axis=1)
+            step[act] = st
+            step[fix] = 0.0
+            frac = (c - base).astype(np.float32)
+            if replane and it % 4 == 3:
+                refit_planes()
+            elif slide:
+                upd = np.union1d(act, fix)
+                coef[fix] = coef[anchor[fix]]
+                coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
+                cf = coef[upd].astype(np.float32)
+                plane[upd] = np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0)
+                remodel(upd, frac)
+            else:
+                remodel(act, frac)
+            progress("micro-image fit", (iterations + it + 1) / (iterations + polish))
+            act = act[st >= polish_tol_px]
+            if act.size == 0:
+                break
+        if replane:
+            refit_planes()
+        attribute(free, frac)
+    if misfit is not None:
+        # RMS of data − model on each lens's seam pixels, relative to its brightness
+        frac = (c - base).astype(np.float32)
+        remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
+        misfit[:] = np.nan
+        for sl in _chunks(free.size):
+            k = free[sl]
+            r = p_s[k] - total[idx_s[k]]
+            r *= r
+            a_d = coef[k, 0] + np.sum(coef[k, 1:] * (c[k] - base[k]), axis=1)
+            misfit[k] = np.sqrt(r.mean(axis=1)) / np.maximum(a_d, 1e-30)
     drift = np.hypot(*(c - base).T) <= SLACK_PX
     return own, flux, c, (step < CONVERGED_PX) & drift
 
