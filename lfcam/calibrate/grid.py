@@ -769,51 +769,13 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
         # a cut micro-image follows the measured lens it was predicted from
         anchor = np.r_[np.arange(len(pts)), near[touches & ~occupied]]
         anchor[len(pts):][extra_free] = np.arange(len(pts), len(allc))[extra_free]
-        mis = np.zeros(len(allc))
-        import os
-        if os.environ.get("START_GN"):
-            centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
-                         & (allc[:, 1] <= h - 1))
-            allc, _, _ = fit_discs(img, allc, disc, pitch, fixed=fixed, fit_fixed_centres=centre_on)
         own, flux_own, disc_all, conv_all = own_light_fit(img, allc, disc, pitch, fixed=fixed,
-                                                          anchor=anchor, progress=progress,
-                                                          misfit=mis)
-        import os
-        if os.environ.get("MISDUMP"):
-            np.savez(os.environ["MISDUMP"], mis=mis, disc=disc_all, fixed=fixed, own=own)
-        thr = float(os.environ.get("MIS_THR", "1.3"))
-        k_gn = int(os.environ.get("GN_POLISH", "4"))
-        r_img = np.hypot(*(disc_all - mid).T)
-        central = ~fixed & (r_img < 0.3 * np.hypot(w, h) / 2) & np.isfinite(mis)
-        if central.sum() < 20:
-            central = ~fixed & np.isfinite(mis)
-        med = float(np.median(mis[central]))
-        flag = ~fixed & ~(mis <= thr * med)
-        if os.environ.get("MODE") == "all":
-            flag = ~fixed
-        if os.environ.get("MODE") == "unconv":
-            flag = ~fixed & ~conv_all
-        if k_gn and flag.any():
-            tree_all = cKDTree(disc_all)
-            near_f = tree_all.query_ball_point(disc_all[flag], 2.0 * pitch + 1.0)
-            sub = np.zeros(len(allc), bool)
-            sub[np.concatenate([np.asarray(x, np.int64) for x in near_f])] = True
-            sub |= flag
-            si = np.flatnonzero(sub)
-            centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
-                         & (allc[:, 1] <= h - 1))
-            d_s, coef_s, conv_s = fit_discs(img, disc_all[si], disc, pitch, fixed=fixed[si],
-                                            fit_fixed_centres=centre_on[si],
-                                            hold=~flag[si] & ~fixed[si], iterations=k_gn,
-                                            tol_px=5e-3)
-            own_s, flux_s = own_light_centroids(img, d_s, coef_s, disc)
-            fl = flag[si]
-            own[si[fl]] = own_s[fl]
-            flux_own[si[fl]] = flux_s[fl]
-            disc_all[si[fl]] = d_s[fl]
-            conv_all[si[fl]] = conv_s[fl]
-        if os.environ.get("VERB"):
-            print("flagged", int(flag.sum()), "of", int((~fixed).sum()), flush=True)
+                                                          anchor=anchor, progress=progress)
+        # the few lenses the fast fit left unconverged (a disc drifting beyond its pixel
+        # classes, e.g. in cat's-eye corners): Gauss–Newton, their neighbours held
+        retry = ~fixed & ~conv_all
+        if retry.any():
+            _refit_discs(img, disc, pitch, retry, fixed, disc_all, own, flux_own, conv_all)
     else:
         centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
                      & (allc[:, 1] <= h - 1))
@@ -828,6 +790,30 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     # the fully-visible test again on the fitted disc centres (the start may be ~0.1 px off)
     at_edge = np.r_[~inside(disc_all[measured]), np.ones(int((~full).sum()), bool)]
     return centres, flux, conv, at_edge
+
+
+def _refit_discs(img: np.ndarray, disc: DiscModel, pitch: float, sel: np.ndarray,
+                 fixed: np.ndarray, disc_c: np.ndarray, own: np.ndarray, flux: np.ndarray,
+                 conv: np.ndarray) -> None:
+    """Re-fit the discs ``sel`` by Gauss–Newton (:func:`fit_discs`), in place.
+
+    Their neighbours within two pitches are modelled at their current centres (held; cut ones
+    with their donors' brightness, fitted when their centre is on the sensor, as in the
+    Gauss–Newton path); own-light centroid, flux, disc centre and convergence of ``sel``
+    are replaced.
+    """
+    h, w = img.shape
+    near = cKDTree(disc_c).query_ball_point(disc_c[sel], 2.0 * pitch + 1.0)
+    sub = np.zeros(len(disc_c), bool)
+    sub[np.concatenate([np.asarray(x, np.int64) for x in near])] = True
+    si = np.flatnonzero(sub | sel)
+    c = disc_c[si]
+    centre_on = (c[:, 0] >= 0) & (c[:, 0] <= w - 1) & (c[:, 1] >= 0) & (c[:, 1] <= h - 1)
+    d_s, coef_s, conv_s = fit_discs(img, c, disc, pitch, iterations=15, fixed=fixed[si],
+                                    fit_fixed_centres=centre_on, hold=~sel[si] & ~fixed[si])
+    own_s, flux_s = own_light_centroids(img, d_s, coef_s, disc)
+    k = sel[si]
+    own[si[k]], flux[si[k]], disc_c[si[k]], conv[si[k]] = own_s[k], flux_s[k], d_s[k], conv_s[k]
 
 
 def _reindex(idx: np.ndarray, src: str, dst: str) -> np.ndarray:

@@ -459,12 +459,9 @@ def own_light_fit(
     anchor: np.ndarray | None = None,
     iterations: int = 8,
     tol_px: float = 5e-3,
-    polish: int = 3,
+    polish: int = 4,
     polish_damping: float = 0.6,
     polish_tol_px: float = 1e-3,
-    replane: bool = True,
-    slide: bool = True,
-    misfit: np.ndarray | None = None,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Own-light centroids of touching micro-images by a fixed point on the disc centres.
@@ -785,61 +782,38 @@ def own_light_fit(
             mark[nb_idx[nb_idx < n]] = True
             attrib = np.flatnonzero(mark & ~fixed)
     if polish:
-        # Gauss–Newton polish of the disc edges (the fixed point's discs match centroids, not
-        # edges; where micro-images are not discs the edges split the seams better)
+        # Gauss–Newton polish of the disc edges: the fixed point's discs match centroids, the
+        # polished ones the edges, which split the seams better where the brightness is not a
+        # plane or the micro-images are not discs (cat's-eye corners)
         frac = (c - base).astype(np.float32)
+
         def refit_planes() -> None:
+            """Brightness planes about the current disc centres (first: the fixed point's,
+            not the start), and the model again."""
             for sl in _chunks(free.size):
                 k = free[sl]
                 coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
             planes_on_seams()
             remodel(np.arange(n), frac)
 
-        if replane:
-            # brightness planes about the fixed point's disc centres, not the start
-            refit_planes()
-        else:
-            remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
+        refit_planes()
         act = np.r_[free, cut_fit]
         for it in range(polish):
             dc = edge_step(act, frac)
             c[act] += dc
-            if slide:
-                # the plane moves with the disc (the Jacobian's −g·cov term)
-                coef[act, 0] -= np.sum(coef[act, 1:] * dc, axis=1)
             st = np.abs(dc).max(axis=1)
             step[act] = st
             step[fix] = 0.0
             frac = (c - base).astype(np.float32)
-            if replane and it % 4 == 3:
+            if it % 4 == 3 and it < polish - 1:
                 refit_planes()
-            elif slide:
-                upd = np.union1d(act, fix)
-                coef[fix] = coef[anchor[fix]]
-                coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
-                cf = coef[upd].astype(np.float32)
-                plane[upd] = np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0)
-                remodel(upd, frac)
             else:
                 remodel(act, frac)
             progress("micro-image fit", (iterations + it + 1) / (iterations + polish))
             act = act[st >= polish_tol_px]
             if act.size == 0:
                 break
-        if replane:
-            refit_planes()
         attribute(free, frac)
-    if misfit is not None:
-        # RMS of data − model on each lens's seam pixels, relative to its brightness
-        frac = (c - base).astype(np.float32)
-        remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
-        misfit[:] = np.nan
-        for sl in _chunks(free.size):
-            k = free[sl]
-            r = p_s[k] - total[idx_s[k]]
-            r *= r
-            a_d = coef[k, 0] + np.sum(coef[k, 1:] * (c[k] - base[k]), axis=1)
-            misfit[k] = np.sqrt(r.mean(axis=1)) / np.maximum(a_d, 1e-30)
     drift = np.hypot(*(c - base).T) <= SLACK_PX
     return own, flux, c, (step < CONVERGED_PX) & drift
 
