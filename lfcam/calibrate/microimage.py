@@ -459,9 +459,10 @@ def own_light_fit(
     anchor: np.ndarray | None = None,
     iterations: int = 8,
     tol_px: float = 5e-3,
-    polish: int = 4,
-    polish_damping: float = 0.6,
+    polish: int = 3,
+    polish_damping: float = 1.0,
     polish_tol_px: float = 1e-3,
+    refit: bool = True,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Own-light centroids of touching micro-images by a fixed point on the disc centres.
@@ -598,7 +599,7 @@ def own_light_fit(
     s_in = np.zeros((n, 3))
     p_s = np.zeros((n, ns), np.float32)
     p_o = np.zeros((n, int(outer.sum())), np.float32)
-    p_c = np.zeros((n, cols_c.size), np.float32) if polish else None
+    p_c = np.zeros((n, cols_c.size), np.float32)  # core pixels, for the plane refit
     # cut discs whose centre is on the sensor: their visible edges are fitted by the polish
     cut_fit = fix[(c[fix, 0] >= 0) & (c[fix, 0] <= w - 1) & (c[fix, 1] >= 0)
                   & (c[fix, 1] <= h - 1)] if polish else fix[:0]
@@ -608,8 +609,7 @@ def own_light_fit(
         pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
         pc = pt[:, cols_c]
         coef[k] = _core_planes(pc, c[k] - base[k], oxc, oyc, quad, core_px)
-        if p_c is not None:
-            p_c[k] = pc
+        p_c[k] = pc
         s_in[k] = pt @ w_in
         p_s[k] = pt.take(cols_s, axis=1)
         p_o[k] = pt.take(cols_o, axis=1)
@@ -748,6 +748,14 @@ def own_light_fit(
             dc[sl] = polish_damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
         return dc
 
+    def refit_planes(frac: np.ndarray) -> None:
+        """Brightness planes about the current disc centres (not the start positions); the
+        model must then be recomputed."""
+        for sl in _chunks(free.size):
+            k = free[sl]
+            coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
+        planes_on_seams()
+
     moving = np.ones(n, bool)  # lenses whose model is re-evaluated
     attrib = free.copy()  # lenses whose own light is re-attributed
     nbrs = None
@@ -759,6 +767,11 @@ def own_light_fit(
         new = attribute(attrib, frac)
         step[attrib] = np.max(np.abs(new - c[attrib]), axis=1)
         c[attrib] = new
+        if it == 0 and refit:
+            # after the first step the discs are within a few hundredths of a pixel: fit the
+            # brightness planes about them (every lens is re-modelled in the second step)
+            refit_planes((c - base).astype(np.float32))
+            c_mod[:] = np.nan  # every model is stale
         if it < 2:
             # cut discs follow their anchors through the first steps, then stay: a disc in a
             # sensor corner whose cut neighbours kept following it would chase its own seams
@@ -786,17 +799,7 @@ def own_light_fit(
         # polished ones the edges, which split the seams better where the brightness is not a
         # plane or the micro-images are not discs (cat's-eye corners)
         frac = (c - base).astype(np.float32)
-
-        def refit_planes() -> None:
-            """Brightness planes about the current disc centres (first: the fixed point's,
-            not the start), and the model again."""
-            for sl in _chunks(free.size):
-                k = free[sl]
-                coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
-            planes_on_seams()
-            remodel(np.arange(n), frac)
-
-        refit_planes()
+        remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
         act = np.r_[free, cut_fit]
         for it in range(polish):
             dc = edge_step(act, frac)
@@ -805,10 +808,7 @@ def own_light_fit(
             step[act] = st
             step[fix] = 0.0
             frac = (c - base).astype(np.float32)
-            if it % 4 == 3 and it < polish - 1:
-                refit_planes()
-            else:
-                remodel(act, frac)
+            remodel(act, frac)
             progress("micro-image fit", (iterations + it + 1) / (iterations + polish))
             act = act[st >= polish_tol_px]
             if act.size == 0:
