@@ -457,7 +457,7 @@ def own_light_fit(
     pitch_px: float,
     fixed: np.ndarray | None = None,
     anchor: np.ndarray | None = None,
-    iterations: int = 8,
+    iterations: int = 3,
     tol_px: float = 5e-3,
     polish: int = 3,
     polish_damping: float = 1.0,
@@ -713,21 +713,36 @@ def own_light_fit(
                                            (oxo, oyo, p_o, None, ins_o)):
                 ux = ox_ - frac[k, :1]
                 uy = oy_ - frac[k, 1:]
-                d = np.sqrt(ux * ux + uy * uy)
-                t = (sup - d) * inv2w
+                d = ux * ux
+                d += uy * uy
+                np.sqrt(d, out=d)
+                t = sup - d
+                t *= inv2w  # coverage before clipping
+                band = (t > 0.0) & (t < 1.0)
                 if pl is None:
-                    b = np.maximum(cf[:, :1] + cf[:, 1:2] * ox_ + cf[:, 2:] * oy_, 0.0)
-                    r = pix[k] - b * np.clip(t, 0.0, 1.0)
+                    b = cf[:, 1:2] * ox_
+                    b += cf[:, 2:] * oy_
+                    b += cf[:, :1]
+                    np.maximum(b, 0.0, out=b)
                 else:
                     b = pl[k]
+                np.maximum(d, np.float32(1e-6), out=d)
+                gsc = b / d  # |∂m/∂d| on the edge ramp, over d
+                gsc *= inv2w
+                gsc *= band
+                np.clip(t, 0.0, 1.0, out=t)
+                if pl is None:
+                    r = b * t
+                    np.subtract(pix[k], r, out=r)
+                else:
                     r = pix[k] - total[idx_s[k]]
-                gsc = np.where((t > 0.0) & (t < 1.0), b * inv2w / np.maximum(d, 1e-6), 0.0)
-                cov = np.clip(t, 0.0, 1.0)
                 if cm.any():  # cut discs: only on-sensor pixels
                     gsc[cm] *= ins[cr[cm]]
-                    cov[cm] *= ins[cr[cm]]
-                jx = gsc * ux - cf[:, 1:2] * cov
-                jy = gsc * uy - cf[:, 2:] * cov
+                    t[cm] *= ins[cr[cm]]
+                jx = gsc * ux
+                jx -= cf[:, 1:2] * t
+                jy = gsc * uy
+                jy -= cf[:, 2:] * t
                 sums += np.stack([np.einsum("ij,ij->i", jx, jx), np.einsum("ij,ij->i", jy, jy),
                                   np.einsum("ij,ij->i", jx, jy), np.einsum("ij,ij->i", jx, r),
                                   np.einsum("ij,ij->i", jy, r)], axis=1)
