@@ -794,26 +794,40 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
 
 def _refit_discs(img: np.ndarray, disc: DiscModel, pitch: float, sel: np.ndarray,
                  fixed: np.ndarray, disc_c: np.ndarray, own: np.ndarray, flux: np.ndarray,
-                 conv: np.ndarray) -> None:
+                 conv: np.ndarray, tile: int = 512) -> None:
     """Re-fit the discs ``sel`` by Gauss–Newton (:func:`fit_discs`), in place.
 
     Their neighbours within two pitches are modelled at their current centres (held; cut ones
     with their donors' brightness, fitted when their centre is on the sensor, as in the
     Gauss–Newton path); own-light centroid, flux, disc centre and convergence of ``sel``
-    are replaced.
+    are replaced. Done per ``tile``-pixel tile on an image crop (the few lenses are spread
+    over the corners; a full-image model per fit step would cost more than the fit).
     """
     h, w = img.shape
-    near = cKDTree(disc_c).query_ball_point(disc_c[sel], 2.0 * pitch + 1.0)
-    sub = np.zeros(len(disc_c), bool)
-    sub[np.concatenate([np.asarray(x, np.int64) for x in near])] = True
-    si = np.flatnonzero(sub | sel)
-    c = disc_c[si]
-    centre_on = (c[:, 0] >= 0) & (c[:, 0] <= w - 1) & (c[:, 1] >= 0) & (c[:, 1] <= h - 1)
-    d_s, coef_s, conv_s = fit_discs(img, c, disc, pitch, iterations=15, fixed=fixed[si],
-                                    fit_fixed_centres=centre_on, hold=~sel[si] & ~fixed[si])
-    own_s, flux_s = own_light_centroids(img, d_s, coef_s, disc)
-    k = sel[si]
-    own[si[k]], flux[si[k]], disc_c[si[k]], conv[si[k]] = own_s[k], flux_s[k], d_s[k], conv_s[k]
+    margin = 2.0 * pitch + 2.0 * disc.patch_half_px() + 2.0
+    tree = cKDTree(disc_c)
+    ks = np.flatnonzero(sel)
+    key = (disc_c[ks, 1] // tile) * (w // tile + 1) + disc_c[ks, 0] // tile
+    for kk in np.unique(key):
+        grp = ks[key == kk]
+        near = tree.query_ball_point(disc_c[grp], 2.0 * pitch + 1.0)
+        sub = np.zeros(len(disc_c), bool)
+        sub[np.concatenate([np.asarray(x, np.int64) for x in near])] = True
+        sub[grp] = True
+        si = np.flatnonzero(sub)
+        lo = np.maximum(np.floor(disc_c[grp].min(axis=0) - margin), 0).astype(int)
+        hi = np.minimum(np.ceil(disc_c[grp].max(axis=0) + margin) + 1, [w, h]).astype(int)
+        crop = img[lo[1]:hi[1], lo[0]:hi[0]]
+        c = disc_c[si] - lo
+        centre_on = ((disc_c[si, 0] >= 0) & (disc_c[si, 0] <= w - 1) & (disc_c[si, 1] >= 0)
+                     & (disc_c[si, 1] <= h - 1))
+        fit = np.isin(si, grp)
+        d_s, coef_s, conv_s = fit_discs(crop, c, disc, pitch, iterations=15, fixed=fixed[si],
+                                        fit_fixed_centres=centre_on, hold=~fit & ~fixed[si])
+        own_s, flux_s = own_light_centroids(crop, d_s, coef_s, disc)
+        t = si[fit]
+        own[t], flux[t], disc_c[t] = own_s[fit] + lo, flux_s[fit], d_s[fit] + lo
+        conv[t] = conv_s[fit]
 
 
 def _reindex(idx: np.ndarray, src: str, dst: str) -> np.ndarray:
