@@ -44,7 +44,9 @@ from lfcam.calibrate.microimage import (
     circle_window_centroids,
     fit_disc_model,
     fit_discs,
+    fixed_point_applies,
     own_light_centroids,
+    own_light_fit,
 )
 from lfcam.errors import CalibrationError
 from lfcam.optics.mla import lattice_basis, rotation_matrix
@@ -619,6 +621,9 @@ def find_centres(
     if disc is not None:
         diag.update({"disc_radius_px": disc.radius_px, "disc_edge_px": disc.edge_px,
                      "disc_rel_residual": disc.rel_residual})
+    if method == "micro-image model":
+        fp = fixed_point_applies(disc, period)
+        diag["model_solver"] = "fixed point" if fp else "gauss-newton"
     for _ in range(2):  # refit after outlier rejection
         keep = reason == ""
         idx_k, pts_k = idx_all[keep], centres[keep]
@@ -723,7 +728,15 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     def inside(pts: np.ndarray) -> np.ndarray:
         return within_sensor(pts, reach, reach, img.shape)
 
-    disc_c, _, _ = fit_discs(img, cand, disc, pitch, iterations=12, tol_px=5e-3)
+    fast = fixed_point_applies(disc, pitch)
+    if fast:
+        # start: circle-window centroids (biased by the neighbours' seam light, but within a
+        # few hundredths of a pixel of the disc centres; the own-light fit removes that)
+        disc_c, _, _ = circle_window_centroids(img, cand, 0.5 * pitch, iterations=3)
+        near_cand = np.hypot(*(disc_c - cand).T) < 0.25 * pitch  # False for NaN too
+        disc_c = np.where(near_cand[:, None], disc_c, cand)
+    else:
+        disc_c, _, _ = fit_discs(img, cand, disc, pitch, iterations=12, tol_px=5e-3)
     full = inside(disc_c)
     if full.sum() < 5:
         raise CalibrationError(f"only {int(full.sum())} fully visible micro-images found")
@@ -752,18 +765,69 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     extra_free = inside(extra)
     allc = np.vstack([pts, extra])
     fixed = np.r_[np.zeros(len(pts), bool), ~extra_free]
-    centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
-                 & (allc[:, 1] <= h - 1))
-    disc_all, coef, conv_all = fit_discs(img, allc, disc, pitch, fixed=fixed,
-                                         fit_fixed_centres=centre_on, progress=progress)
-    own, flux_own = own_light_centroids(img, disc_all, coef, disc)
+    if fast:
+        # a cut micro-image follows the measured lens it was predicted from
+        anchor = np.r_[np.arange(len(pts)), near[touches & ~occupied]]
+        anchor[len(pts):][extra_free] = np.arange(len(pts), len(allc))[extra_free]
+        own, flux_own, disc_all, conv_all = own_light_fit(img, allc, disc, pitch, fixed=fixed,
+                                                          anchor=anchor, progress=progress)
+        # the few lenses the fast fit left unconverged (a disc drifting beyond its pixel
+        # classes, e.g. in cat's-eye corners): Gauss–Newton, their neighbours held
+        retry = ~fixed & ~conv_all
+        if retry.any():
+            _refit_discs(img, disc, pitch, retry, fixed, disc_all, own, flux_own, conv_all)
+    else:
+        centre_on = ((allc[:, 0] >= 0) & (allc[:, 0] <= w - 1) & (allc[:, 1] >= 0)
+                     & (allc[:, 1] <= h - 1))
+        disc_all, coef, conv_all = fit_discs(img, allc, disc, pitch, fixed=fixed,
+                                             fit_fixed_centres=centre_on, progress=progress)
+        own, flux_own = own_light_centroids(img, disc_all, coef, disc)
     measured = ~fixed
     good = np.isfinite(own).all(axis=1)
     centres = np.vstack([np.where(good[:, None], own, disc_all)[measured], cand[~full]])
     flux = np.r_[flux_own[measured], np.zeros(int((~full).sum()))]
     conv = np.r_[(conv_all & good)[measured], np.ones(int((~full).sum()), bool)]
-    at_edge = np.r_[np.zeros(int(measured.sum()), bool), np.ones(int((~full).sum()), bool)]
+    # the fully-visible test again on the fitted disc centres (the start may be ~0.1 px off)
+    at_edge = np.r_[~inside(disc_all[measured]), np.ones(int((~full).sum()), bool)]
     return centres, flux, conv, at_edge
+
+
+def _refit_discs(img: np.ndarray, disc: DiscModel, pitch: float, sel: np.ndarray,
+                 fixed: np.ndarray, disc_c: np.ndarray, own: np.ndarray, flux: np.ndarray,
+                 conv: np.ndarray, tile: int = 512) -> None:
+    """Re-fit the discs ``sel`` by Gauss–Newton (:func:`fit_discs`), in place.
+
+    Their neighbours within two pitches are modelled at their current centres (held; cut ones
+    with their donors' brightness, fitted when their centre is on the sensor, as in the
+    Gauss–Newton path); own-light centroid, flux, disc centre and convergence of ``sel``
+    are replaced. Done per ``tile``-pixel tile on an image crop (the few lenses are spread
+    over the corners; a full-image model per fit step would cost more than the fit).
+    """
+    h, w = img.shape
+    margin = 2.0 * pitch + 2.0 * disc.patch_half_px() + 2.0
+    tree = cKDTree(disc_c)
+    ks = np.flatnonzero(sel)
+    key = (disc_c[ks, 1] // tile) * (w // tile + 1) + disc_c[ks, 0] // tile
+    for kk in np.unique(key):
+        grp = ks[key == kk]
+        near = tree.query_ball_point(disc_c[grp], 2.0 * pitch + 1.0)
+        sub = np.zeros(len(disc_c), bool)
+        sub[np.concatenate([np.asarray(x, np.int64) for x in near])] = True
+        sub[grp] = True
+        si = np.flatnonzero(sub)
+        lo = np.maximum(np.floor(disc_c[grp].min(axis=0) - margin), 0).astype(int)
+        hi = np.minimum(np.ceil(disc_c[grp].max(axis=0) + margin) + 1, [w, h]).astype(int)
+        crop = img[lo[1]:hi[1], lo[0]:hi[0]]
+        c = disc_c[si] - lo
+        centre_on = ((disc_c[si, 0] >= 0) & (disc_c[si, 0] <= w - 1) & (disc_c[si, 1] >= 0)
+                     & (disc_c[si, 1] <= h - 1))
+        fit = np.isin(si, grp)
+        d_s, coef_s, conv_s = fit_discs(crop, c, disc, pitch, iterations=15, fixed=fixed[si],
+                                        fit_fixed_centres=centre_on, hold=~fit & ~fixed[si])
+        own_s, flux_s = own_light_centroids(crop, d_s, coef_s, disc)
+        t = si[fit]
+        own[t], flux[t], disc_c[t] = own_s[fit] + lo, flux_s[fit], d_s[fit] + lo
+        conv[t] = conv_s[fit]
 
 
 def _reindex(idx: np.ndarray, src: str, dst: str) -> np.ndarray:

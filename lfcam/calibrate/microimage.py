@@ -249,6 +249,7 @@ def fit_discs(
     damping: float = 0.6,
     fixed: np.ndarray | None = None,
     fit_fixed_centres: np.ndarray | None = None,
+    hold: np.ndarray | None = None,
     progress: Progress = _noop,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit every disc's centre against the data minus its neighbours' current model.
@@ -269,14 +270,18 @@ def fit_discs(
     border): their brightness plane is the nearest measured disc's, extrapolated to their
     centre, so their light on the seams of visible neighbours is accounted for. Their centres
     are fitted only when ``fit_fixed_centres`` says so (enough of their edge is visible).
+    ``hold`` marks measured discs whose centres are kept (their light is modelled with their
+    own brightness planes): the context of a fit of a subset of the lenses.
     """
     img = np.asarray(image, dtype=np.float64)
     flat_img = img.ravel()
     c = np.array(centres, dtype=np.float64)
     fixed = np.zeros(len(c), bool) if fixed is None else np.asarray(fixed, bool)
+    held = np.zeros(len(c), bool) if hold is None else np.asarray(hold, bool)
     hold = fixed.copy()
     if fit_fixed_centres is not None:
         hold &= ~np.asarray(fit_fixed_centres, bool)
+    hold |= held
     free = np.flatnonzero(~fixed)
     if free.size == 0:
         raise CalibrationError("no micro-image lies fully on the sensor")
@@ -332,7 +337,7 @@ def fit_discs(
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
         new_c[hold] = c[hold]
-        step[fixed] = 0.0
+        step[fixed | held] = 0.0
         c = new_c
         progress("micro-image fit", it + 1, iterations)
         # settled: nearly every disc moves < tol; a few edge pixels crossing the ramp's kinks
@@ -369,6 +374,488 @@ def own_light_centroids(image: np.ndarray, disc_centres: np.ndarray, coef: np.nd
             cen[sl, 1] = np.where(good, (q * p.y).sum(axis=(1, 2)) / s0, np.nan)
         flux[sl] = s0
     return cen, flux
+
+
+# --- fast own-light fit -------------------------------------------------------------------
+
+SLACK_PX = 1.5  # |disc centre − its integer base pixel| the pixel classes allow for
+CONVERGED_PX = 0.01  # a lens whose last fixed-point step exceeds this is "unconverged"
+# after the polish: a disc step of 0.03 px moves the own-light centroid by ≲ 0.005 px (the
+# seam split follows the disc by ~0.15); the failures it catches step by 0.1–0.3 px
+POLISH_CONVERGED_PX = 0.03
+
+
+def _coverage_moments(model: DiscModel) -> float:
+    """K = ∫ u_x² cov / ∫ cov over the plane, for the linear edge ramp ``cov(r)``.
+
+    A disc ``(a + g·u)·cov(|u|)`` has its centroid at ``g·K/a`` from its centre (the radial
+    coverage has no odd moments), so ``K`` converts a centroid into a disc centre.
+    """
+    r = np.linspace(0.0, model.support_px, 20_001)
+    cov = np.clip((model.support_px - r) / (2.0 * model.edge_px), 0.0, 1.0) * r
+    return float(0.5 * np.trapezoid(cov * r * r, r) / np.trapezoid(cov, r))
+
+
+def _scatter_groups(base: np.ndarray, cell: int) -> np.ndarray:
+    """Group label per lens such that no two lenses of one group have overlapping patches.
+
+    Lenses are binned into square cells of ``cell`` = patch width pixels; cells of equal
+    parity (x and y) are at least one cell apart, so their patches are disjoint, and lenses
+    sharing a cell get different ranks. Within one group, ``M[idx] += v`` is then exact (no
+    index repeats), and much faster than ``np.add.at`` or a full-image ``np.bincount``.
+    """
+    cx, cy = base[:, 0] // cell, base[:, 1] // cell
+    key = cy * (int(cx.max()) + 2) + cx
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    first = np.r_[True, ks[1:] != ks[:-1]]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(ks)), 0))
+    rank = np.empty(len(ks), np.int64)
+    rank[order] = np.arange(len(ks)) - start
+    return rank * 4 + (cx & 1) + 2 * (cy & 1)
+
+
+def fixed_point_applies(model: DiscModel, pitch_px: float) -> bool:
+    """Whether :func:`own_light_fit` is used: the discs touch but do not overlap at half height
+    (R ≤ pitch/2), so only edge ramps share pixels.
+
+    There the own-light centroid moves by only ~0.15 of a disc-centre error and the fixed
+    point converges in 3–4 steps. Overlapping discs (system 2, R ≈ 0.55 pitch) share whole
+    plateaus; the centroid then barely constrains the disc centre (the map contracts by only
+    ~0.9 per step) and :func:`fit_discs` (Gauss–Newton on the disc edges) is used instead.
+    """
+    return model.radius_px <= 0.5 * pitch_px
+
+
+def _neighbour_offsets(pts: np.ndarray, pitch_px: float, sample: int = 4000) -> np.ndarray:
+    """Distinct offsets (rounded to 0.25 px) to the lattice neighbours of a sample of points."""
+    sel = pts[:: max(1, len(pts) // sample)]
+    d, j = cKDTree(pts).query(sel, k=9, distance_upper_bound=1.5 * pitch_px)
+    ok = np.isfinite(d) & (d > 0.5 * pitch_px)
+    vec = pts[np.minimum(j, len(pts) - 1)] - sel[:, None, :]
+    return np.unique(np.round(vec[ok] * 4.0) / 4.0, axis=0)
+
+
+def _core_planes(values: np.ndarray, frac: np.ndarray, oxc: np.ndarray, oyc: np.ndarray,
+                 quad: np.ndarray, core_px: float) -> np.ndarray:
+    """Least-squares brightness plane (a, gx, gy) in base-pixel offsets, per lens, over the
+    pixels within ``core_px`` of its start position ``base + frac`` (batched 3×3 solves)."""
+    fr = frac.astype(np.float32)
+    ux, uy = oxc - fr[:, :1], oyc - fr[:, 1:]
+    m = (ux * ux + uy * uy < np.float32(core_px * core_px)).astype(np.float32)
+    q = (m @ quad).astype(np.float64)  # Σ 1, x, y, x², xy, y² over each lens's core
+    v = m * values
+    b = np.stack([v.sum(axis=1), v @ oxc, v @ oyc], axis=1).astype(np.float64)
+    ata = q[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + 1e-9 * np.eye(3)
+    return np.linalg.solve(ata, b[..., None])[..., 0]
+
+
+def own_light_fit(
+    image: np.ndarray,
+    centres: np.ndarray,
+    model: DiscModel,
+    pitch_px: float,
+    fixed: np.ndarray | None = None,
+    anchor: np.ndarray | None = None,
+    iterations: int = 3,
+    tol_px: float = 5e-3,
+    polish: int = 2,
+    polish_damping: float = 1.0,
+    polish_tol_px: float = 1e-3,
+    refit: bool = True,
+    progress: Progress = _noop,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Own-light centroids of touching micro-images: a fixed point on the disc centres, then
+    a Gauss–Newton polish of the disc edges.
+
+    The same model and the same reported quantity as :func:`fit_discs` followed by
+    :func:`own_light_centroids` (module docstring), reached more cheaply; used when the discs
+    touch but do not overlap (:func:`fixed_point_applies`).
+
+    * **Fixed point first.** The own-light centroid ``c_k`` depends on the disc centres only
+      through the seam split ``m_k/M`` and the support edge. Each step sets every disc
+      centre to ``d_k = c_k − g_k·K/a_k`` (the model disc whose centroid is the measured
+      own-light centroid; :func:`_coverage_moments`) and recomputes ``c_k``. An error δ in
+      the disc centres moves ``c_k`` by only ~0.15 δ on touching whites, so a few steps from
+      a circle-window start bring the discs within a few hundredths of a pixel of their
+      final place, with no Jacobians or normal equations.
+    * **Gauss–Newton polish.** The fixed point's discs match centroids; :func:`fit_discs`'s
+      match the edges, and those split the seams better (0.0131 vs 0.0216 px on the rendered
+      system 1 full-sensor white, whose corner micro-images are cat's eyes, not discs; 0.0176
+      vs 0.0199 px on the F01-size generator white, whose erfc edges the linear ramp only
+      approximates). ``polish`` undamped block-Jacobi Gauss–Newton steps of the disc
+      centres follow, with :func:`fit_discs`'s residual and Jacobian (data minus all
+      models; edge ramp plus the plane sliding with the disc) evaluated on the seam and
+      outer pixels only (the inner pixels enter through their fixed sums). The map
+      contracts by ~0.3 per step; lenses whose step falls below ``polish_tol_px`` drop out.
+      Cut discs whose centre is on the sensor are fitted too, on their on-sensor pixels
+      (as :func:`fit_discs` with ``fit_fixed_centres``).
+    * **Pixel classes fixed once.** Every lens keeps the integer base pixel of its start
+      (its disc centre may drift ``SLACK_PX`` from it). Offsets from the base within
+      ``min(R − w, pitch − R − w) − SLACK_PX`` are *inner*: fully covered by the lens and
+      out of every neighbour's reach for any allowed drift, so their attributed light is
+      their value, and Σ I·(1, x, y) over them is taken once. Of the remaining offsets
+      within ``R + w + SLACK_PX``, *outer* ones are out of every neighbour's reach (their
+      weight is 1 inside the lens's support, 0 beyond), and only *seam* ones need the model
+      of the neighbours.
+    * **Brightness planes** (a, gx, gy) are fitted by least squares over the seam-free core
+      about each start position (:func:`core_radius_px`; batched 3×3 solves), and once more
+      about the disc centres after the first fixed-point step (``refit``; the core pixels
+      are kept), when every model is recomputed anyway.
+    * **Model image** M is kept on a padded float32 image and updated only on seam pixels, by
+      the change of each lens's model, scattered in groups of lenses with disjoint patches
+      (:func:`_scatter_groups`).
+    * **Active set.** From the third step on, only discs that still moved by ≥ ``tol_px``
+      (and the cut discs anchored to them) are re-modelled, and only they and their
+      neighbours re-attributed.
+
+    Cost: docs/calibration.md ("Touching micro-images at full size") has the breakdown.
+
+    Parameters
+    ----------
+    image : (H, W)
+        Prepared white image.
+    centres : (N, 2)
+        Start positions (x, y), within about half a pixel of the disc centres (e.g. circle-
+        window centroids, or lattice predictions for ``fixed`` lenses).
+    model : DiscModel
+    pitch_px : float
+    fixed : (N,) bool, optional
+        Micro-images cut by the sensor border: modelled (their light reaches the seams of
+        their neighbours) but not measured. Their brightness plane is their ``anchor``'s,
+        extrapolated, and their centre follows the anchor's: ``d = d_anchor + (start −
+        start_anchor)``.
+    anchor : (N,) int, optional
+        For each fixed lens, a measured (not fixed) lens, normally its nearest; default the
+        nearest by start position.
+    iterations : int
+        Maximum fixed-point steps.
+    tol_px : float
+        Stop when 99 % of the measured disc centres moved less than this in the last step
+        (and none more than ``CONVERGED_PX``); lenses moving less are left out of further
+        steps.
+    polish : int
+        Gauss–Newton steps after the fixed point (0: fixed point only).
+    polish_damping : float
+        Fraction of each Gauss–Newton step taken.
+    polish_tol_px : float
+        A lens whose polish step is below this is left out of further steps.
+    refit : bool
+        Refit the brightness planes after the first fixed-point step.
+    progress : callable(stage, fraction)
+
+    Returns
+    -------
+    centroids : (N, 2)
+        Own-light centroids (NaN for fixed lenses or lenses without attributed light).
+    flux : (N,)
+        Attributed light per lens (0 for fixed lenses).
+    disc_centres : (N, 2)
+    converged : (N,) bool
+        The last step was below ``CONVERGED_PX`` (after a polish: ``POLISH_CONVERGED_PX``;
+        the polish contracts by ~0.3 per step, so two steps leave up to ~0.015 px p99) and
+        the disc centre stayed within the slack of its base pixel (always True for fixed
+        lenses). A few cat's-eye corner lenses fail the latter (their disc centre lies ~0.6 px
+        from their centroid): :func:`lfcam.calibrate.grid._model_centroids` re-fits them with
+        :func:`fit_discs`.
+    """
+    img = np.ascontiguousarray(image, dtype=np.float32)
+    h, w = img.shape
+    c = np.array(centres, dtype=np.float64)
+    n = len(c)
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    if free.size == 0:
+        raise CalibrationError("no micro-image lies fully on the sensor")
+    fix = np.flatnonzero(fixed)
+    if anchor is None:
+        anchor = free[cKDTree(c[free]).query(c)[1]]
+    anchor = np.asarray(anchor, np.int64)
+    anchor_off = c - c[anchor]
+
+    support = model.support_px
+    reach = support + SLACK_PX  # from the base pixel, for any allowed drift
+    half = int(np.ceil(reach))
+    side = 2 * half + 1
+    pad = 2 * half + 2  # a fixed lens's base lies at most support + 1 px off the sensor
+    wp = w + 2 * pad
+    padded = np.zeros((h + 2 * pad, wp), np.float32)
+    padded[pad:pad + h, pad:pad + w] = img
+    patches = np.lib.stride_tricks.sliding_window_view(padded, (side, side))
+    off = np.arange(-half, half + 1)
+    ox, oy = (a.ravel() for a in np.meshgrid(off, off))
+    g = np.hypot(ox, oy)
+    inner = g < min(model.radius_px - model.edge_px, pitch_px - support) - SLACK_PX
+    # seam offsets: within reach of a neighbour too (its offset from this lens's base, taken
+    # from the start positions of a sample of lenses, plus 0.5 px for rounding and drift)
+    nb = _neighbour_offsets(c[free], pitch_px)
+    seam = np.zeros(g.shape, bool)
+    for vx, vy in nb:
+        seam |= np.hypot(ox - vx, oy - vy) < reach + 0.5
+    ring = (g < reach) & ~inner
+    seam &= ring
+    outer = ring & ~seam
+    core_px = core_radius_px(model, pitch_px)
+    cols_c = np.flatnonzero(g < core_px + SLACK_PX)  # where a core about the start can be
+    oxc, oyc = ox[cols_c].astype(np.float32), oy[cols_c].astype(np.float32)
+    quad = np.stack([np.ones(cols_c.size), oxc, oyc, oxc * oxc, oxc * oyc, oyc * oyc],
+                    axis=1).astype(np.float32)
+    lin_s = (oy * wp + ox).astype(np.int64)[seam]
+    oxs, oys = ox[seam].astype(np.float32), oy[seam].astype(np.float32)
+    oxo, oyo = ox[outer].astype(np.float32), oy[outer].astype(np.float32)
+
+    def moments(mask: np.ndarray) -> np.ndarray:
+        return np.stack([np.ones(mask.sum()), ox[mask], oy[mask]], axis=1).astype(np.float32)
+
+    w_s, w_o = moments(seam), moments(outer)
+    w_in = moments(g >= 0) * inner[:, None]  # over the whole patch, zero off the inner disc
+    mom_in = w_in.sum(axis=0).astype(np.float64)  # Σ 1, x, y over the inner disc
+    cols_s, cols_o = np.flatnonzero(seam), np.flatnonzero(outer)
+
+    base = np.round(c).astype(np.int64)
+    bflat = (base[:, 1] + pad) * wp + (base[:, 0] + pad)
+    groups = _scatter_groups(base + pad, side)
+    ns = int(seam.sum())
+    idx_s = bflat[:, None] + lin_s  # (n, ns) seam pixel indices in the padded image
+
+    # once: brightness planes about the base pixel (fixed lenses: the anchor's, extrapolated),
+    # inner sums, seam and outer pixel values, each plane on the seam pixels
+    coef = np.zeros((n, 3))
+    s_in = np.zeros((n, 3))
+    p_s = np.zeros((n, ns), np.float32)
+    p_o = np.zeros((n, int(outer.sum())), np.float32)
+    p_c = np.zeros((n, cols_c.size), np.float32)  # core pixels, for the plane refit
+    # cut discs whose centre is on the sensor: their visible edges are fitted by the polish
+    cut_fit = fix[(c[fix, 0] >= 0) & (c[fix, 0] <= w - 1) & (c[fix, 1] >= 0)
+                  & (c[fix, 1] <= h - 1)] if polish else fix[:0]
+    gathered = np.r_[free, cut_fit]
+    for sl in _chunks(gathered.size):
+        k = gathered[sl]
+        pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
+        pc = pt[:, cols_c]
+        coef[k] = _core_planes(pc, c[k] - base[k], oxc, oyc, quad, core_px)
+        p_c[k] = pc
+        s_in[k] = pt @ w_in
+        p_s[k] = pt.take(cols_s, axis=1)
+        p_o[k] = pt.take(cols_o, axis=1)
+    del padded, patches
+    # on-sensor masks of the cut discs that are fitted: seam, outer, and inner moments
+    cut_row = np.full(n, -1)
+    cut_row[cut_fit] = np.arange(cut_fit.size)
+
+    def on_sensor(k: np.ndarray, ox_: np.ndarray, oy_: np.ndarray) -> np.ndarray:
+        x = base[k, :1] + ox_
+        y = base[k, 1:] + oy_
+        return (x >= 0) & (x < w) & (y >= 0) & (y < h)
+
+    ins_s = on_sensor(cut_fit, ox[seam], oy[seam])
+    ins_o = on_sensor(cut_fit, ox[outer], oy[outer])
+    mom_cut = on_sensor(cut_fit, ox, oy).astype(np.float64) @ w_in.astype(np.float64)
+    plane = np.empty((n, ns), np.float32)
+
+    def planes_on_seams() -> None:
+        """Cut lenses: the anchor's plane, extrapolated; every plane on the seam pixels."""
+        coef[fix] = coef[anchor[fix]]
+        coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
+        for sl in _chunks(n):
+            cf = coef[sl].astype(np.float32)
+            np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0, out=plane[sl])
+
+    planes_on_seams()
+    kmom = _coverage_moments(model)
+    inv2w = np.float32(0.5 / model.edge_px)
+    sup = np.float32(support)
+
+    m_cur = np.zeros((n, ns), np.float32)  # each lens's current model on its seam pixels
+    total = np.zeros((h + 2 * pad) * wp, np.float32)  # model image M on the padded grid
+    step = np.full(n, np.inf)
+    step[fix] = 0.0
+    own = np.full((n, 2), np.nan)
+    flux = np.zeros(n)
+    c_mod = np.full((n, 2), np.nan)  # the disc centres M currently holds
+
+    def remodel(mov: np.ndarray, frac: np.ndarray) -> None:
+        """Model m_k of the lenses ``mov`` on their seam pixels; scatter the change into M,
+        one group at a time (indices never repeat within a group, so ``+=`` is exact)."""
+        for sl in _chunks(mov.size):
+            k = mov[sl]
+            mk = oxs - frac[k, :1]
+            mk *= mk
+            uy = oys - frac[k, 1:]
+            uy *= uy
+            mk += uy
+            np.sqrt(mk, out=mk)
+            np.subtract(sup, mk, out=mk)
+            mk *= inv2w
+            np.clip(mk, 0.0, 1.0, out=mk)
+            mk *= plane[k]
+            c_mod[k] = c[k]
+            delta = mk - m_cur[k]
+            m_cur[k] = mk
+            gs = groups[k]
+            for gk in np.unique(gs):
+                sel = np.flatnonzero(gs == gk)
+                total[idx_s[k[sel]]] += delta[sel]
+
+    def attribute(att: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """Own-light centroid and flux of the lenses ``att`` (seam pixels split in proportion
+        m_k / M; outer pixels, which no neighbour reaches, are the lens's own where its model
+        is non-zero); returns the disc centres whose model centroids are those centroids."""
+        new = c[att].copy()
+        for sl in _chunks(att.size):
+            k = att[sl]
+            mk = m_cur[k]
+            big = total[idx_s[k]]
+            np.maximum(big, mk, out=big)
+            np.maximum(big, np.float32(1e-30), out=big)
+            q = p_s[k] * mk
+            q /= big
+            ux = oxo - frac[k, :1]
+            uy = oyo - frac[k, 1:]
+            inside = ux * ux + uy * uy < sup * sup
+            sm = s_in[k] + q @ w_s + (p_o[k] * inside) @ w_o
+            ok = sm[:, 0] > 0
+            cen = base[k] + sm[:, 1:] / np.where(ok, sm[:, 0], 1.0)[:, None]
+            own[k] = np.where(ok[:, None], cen, np.nan)
+            flux[k] = sm[:, 0]
+            fr = c[k] - base[k]
+            a_d = coef[k, 0] + np.sum(coef[k, 1:] * fr, axis=1)
+            shift = coef[k, 1:] * (kmom / np.where(a_d > 0, a_d, np.inf))[:, None]
+            new[sl] = np.where(ok[:, None], cen - shift, c[k])
+        return new
+
+    def edge_step(act: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """Gauss–Newton step of the disc centres ``act`` on their ring pixels, against the data
+        minus the neighbours' model (the disc edges; brightness planes held)."""
+        dc = np.zeros((act.size, 2))
+        for sl in _chunks(act.size):
+            k = act[sl]
+            cf = coef[k].astype(np.float32)
+            sums = np.zeros((k.size, 5), np.float64)  # Σ jx², jy², jx·jy, jx·r, jy·r
+            cr = cut_row[k]
+            cm = cr >= 0
+            for ox_, oy_, pix, pl, ins in ((oxs, oys, p_s, plane, ins_s),
+                                           (oxo, oyo, p_o, None, ins_o)):
+                ux = ox_ - frac[k, :1]
+                uy = oy_ - frac[k, 1:]
+                d = ux * ux
+                d += uy * uy
+                np.sqrt(d, out=d)
+                t = sup - d
+                t *= inv2w  # coverage before clipping
+                band = (t > 0.0) & (t < 1.0)
+                if pl is None:
+                    b = cf[:, 1:2] * ox_
+                    b += cf[:, 2:] * oy_
+                    b += cf[:, :1]
+                    np.maximum(b, 0.0, out=b)
+                else:
+                    b = pl[k]
+                np.maximum(d, np.float32(1e-6), out=d)
+                gsc = b / d  # |∂m/∂d| on the edge ramp, over d
+                gsc *= inv2w
+                gsc *= band
+                np.clip(t, 0.0, 1.0, out=t)
+                if pl is None:
+                    r = b * t
+                    np.subtract(pix[k], r, out=r)
+                else:
+                    r = pix[k] - total[idx_s[k]]
+                if cm.any():  # cut discs: only on-sensor pixels
+                    gsc[cm] *= ins[cr[cm]]
+                    t[cm] *= ins[cr[cm]]
+                jx = gsc * ux
+                jx -= cf[:, 1:2] * t
+                jy = gsc * uy
+                jy -= cf[:, 2:] * t
+                sums += np.stack([np.einsum("ij,ij->i", jx, jx), np.einsum("ij,ij->i", jy, jy),
+                                  np.einsum("ij,ij->i", jx, jy), np.einsum("ij,ij->i", jx, r),
+                                  np.einsum("ij,ij->i", jy, r)], axis=1)
+            # inner pixels: covered, no neighbour; the plane slides with the disc (as in
+            # :func:`fit_discs`), so J = −g there and r = I − plane
+            gx, gy = coef[k, 1], coef[k, 2]
+            mom = np.broadcast_to(mom_in, (k.size, 3)).copy()
+            mom[cm] = mom_cut[cr[cm]]
+            r_in = s_in[k, 0] - np.sum(coef[k] * mom, axis=1)
+            sums += np.stack([gx * gx * mom[:, 0], gy * gy * mom[:, 0], gx * gy * mom[:, 0],
+                              -gx * r_in, -gy * r_in], axis=1)
+            axx, ayy, axy, bx, by = sums.T
+            axx, ayy = axx + 1e-12, ayy + 1e-12
+            det = axx * ayy - axy * axy
+            ok = det > 0
+            sx = np.where(ok, (ayy * bx - axy * by) / np.where(ok, det, 1.0), 0.0)
+            sy = np.where(ok, (axx * by - axy * bx) / np.where(ok, det, 1.0), 0.0)
+            dc[sl] = polish_damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
+        return dc
+
+    def refit_planes(frac: np.ndarray) -> None:
+        """Brightness planes about the current disc centres (not the start positions); the
+        model must then be recomputed."""
+        for sl in _chunks(free.size):
+            k = free[sl]
+            coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
+        planes_on_seams()
+
+    moving = np.ones(n, bool)  # lenses whose model is re-evaluated
+    attrib = free.copy()  # lenses whose own light is re-attributed
+    nbrs = None
+    for it in range(iterations):
+        frac = (c - base).astype(np.float32)
+        # 1. model of every moving lens; 2. own-light centroids; 3. the disc whose model
+        #    centroid is that own-light centroid
+        remodel(np.flatnonzero(moving), frac)
+        new = attribute(attrib, frac)
+        step[attrib] = np.max(np.abs(new - c[attrib]), axis=1)
+        c[attrib] = new
+        if it == 0 and refit:
+            # after the first step the discs are within a few hundredths of a pixel: fit the
+            # brightness planes about them (every lens is re-modelled in the second step)
+            refit_planes((c - base).astype(np.float32))
+            c_mod[:] = np.nan  # every model is stale
+        if it < 2:
+            # cut discs follow their anchors through the first steps, then stay: a disc in a
+            # sensor corner whose cut neighbours kept following it would chase its own seams
+            c[fix] = c[anchor[fix]] + anchor_off[fix]
+        progress("micro-image fit", (it + 1) / (iterations + polish))
+        # settled: nearly every disc moves < tol, none by more than the convergence limit
+        # (a few, whose edge pixels cross the ramp's kinks, keep bouncing at a few thousandths
+        # of a pixel, harmlessly)
+        sf = step[free]
+        if float(np.percentile(sf, 99)) < tol_px and float(sf.max()) < CONVERGED_PX:
+            break
+        if it >= 1:
+            # from the third step on, only discs still moving by ≥ tol (and cut discs that
+            # follow them) are re-modelled, and only they and their neighbours re-attributed
+            if nbrs is None:
+                nbrs = cKDTree(c).query(c, k=9, distance_upper_bound=2.0 * reach)[1]
+            moving = step >= tol_px
+            moving[fix] = moving[anchor[fix]] if it < 2 else False
+            mark = moving.copy()
+            nb_idx = nbrs[moving].ravel()
+            mark[nb_idx[nb_idx < n]] = True
+            attrib = np.flatnonzero(mark & ~fixed)
+    if polish:
+        # Gauss–Newton polish of the disc edges: the fixed point's discs match centroids, the
+        # polished ones the edges, which split the seams better where the brightness is not a
+        # plane or the micro-images are not discs (cat's-eye corners)
+        frac = (c - base).astype(np.float32)
+        remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
+        act = np.r_[free, cut_fit]
+        for it in range(polish):
+            dc = edge_step(act, frac)
+            c[act] += dc
+            st = np.abs(dc).max(axis=1)
+            step[act] = st
+            step[fix] = 0.0
+            frac = (c - base).astype(np.float32)
+            remodel(act, frac)
+            progress("micro-image fit", (iterations + it + 1) / (iterations + polish))
+            act = act[st >= polish_tol_px]
+            if act.size == 0:
+                break
+        attribute(free, frac)
+    drift = np.hypot(*(c - base).T) <= SLACK_PX
+    return own, flux, c, (step < (POLISH_CONVERGED_PX if polish else CONVERGED_PX)) & drift
 
 
 def circle_window_centroids(
