@@ -816,7 +816,7 @@ def own_light_fit(
             # cut discs follow their anchors through the first steps, then stay: a disc in a
             # sensor corner whose cut neighbours kept following it would chase its own seams
             c[fix] = c[anchor[fix]] + anchor_off[fix]
-        progress("micro-image fit", (it + 1) / (iterations + polish))
+        progress("micro-image fit", it + 1, iterations + polish)
         # settled: nearly every disc moves < tol, none by more than the convergence limit
         # (a few, whose edge pixels cross the ramp's kinks, keep bouncing at a few thousandths
         # of a pixel, harmlessly)
@@ -849,7 +849,7 @@ def own_light_fit(
             step[fix] = 0.0
             frac = (c - base).astype(np.float32)
             remodel(act, frac)
-            progress("micro-image fit", (iterations + it + 1) / (iterations + polish))
+            progress("micro-image fit", iterations + it + 1, iterations + polish)
             act = act[st >= polish_tol_px]
             if act.size == 0:
                 break
