@@ -109,14 +109,19 @@ def test_parallel_equals_serial():
     parallel = run_distance(img, used, None, model="auto", method="lenslet", geometry=geom,
                             jobs=2)
     assert len(serial.regions) == 3 and parallel.timings_s["jobs"] == 2
+    # the same regions, statuses and models; numbers equal to 1e-4 relative: worker processes
+    # run their linear algebra single-threaded, the parent may not, and a different summation
+    # order can move a fit's end point by a few 1e-5 (seen once on a loaded machine)
     for a, b in zip(serial.regions, parallel.regions, strict=True):
         for key, va in a.__dict__.items():
             vb = b.__dict__[key]
             if isinstance(va, float) and math.isnan(va):
                 assert math.isnan(vb)
+            elif isinstance(va, float):
+                assert vb == pytest.approx(va, rel=1e-4), key
             else:
                 assert va == vb, key
-    np.testing.assert_array_equal(serial.distance_map, parallel.distance_map)
+    np.testing.assert_allclose(serial.distance_map, parallel.distance_map, rtol=1e-4)
     assert len(parallel.timings_s["region_s"]) == 3
 
 
