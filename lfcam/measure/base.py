@@ -11,6 +11,8 @@ from scipy.stats import median_abs_deviation
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletMap
 from lfcam.measure.regions import Region
+from lfcam.optics.trace import forward
+from lfcam.status import RegionStatus
 
 
 @dataclass(frozen=True)
@@ -67,3 +69,39 @@ def neighbours(geom: Geometry, region: Region) -> np.ndarray:
     tree = cKDTree(geom.lmap.centres_px)
     lists = tree.query_ball_point(geom.lmap.centres_px[region.lenslets], 3.0 * geom.pitch_px)
     return np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in lists]))
+
+
+def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_distance_mm: float,
+                      **extra) -> Measurement:
+    """The measurement of a fitted point source: distance from the front vertex, offset, and
+    the exact rim-ray heights at the sensor with the height uncertainty equivalent to
+    ``sigma_distance_mm`` (for the models' error propagation).
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    d_in_mm : float
+    source_mm : (3,) array
+        Fitted source position (lens frame).
+    sigma_distance_mm : float
+    **extra
+        Further :class:`Measurement` fields (``misfit``, ``noise_misfit``, …).
+
+    Returns
+    -------
+    Measurement
+        ``out-of-domain`` when the rim rays of that source do not reach the sensor.
+    """
+    nan = float("nan")
+    distance = profile.main_lens.front_vertex_z_mm - float(source_mm[2])
+    offset = float(np.hypot(source_mm[0], source_mm[1]))
+    fw = forward(profile, d_in_mm, distance, offset)
+    if fw.status != 0:
+        return Measurement(nan, nan, nan, distance, offset, sigma_distance_mm,
+                           RegionStatus.OUT_OF_DOMAIN, d_in_mm)
+    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
+    fw2 = forward(profile, d_in_mm, distance * 1.001, offset)
+    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
+    sigma_y = sigma_distance_mm * dy if np.isfinite(sigma_distance_mm) else nan
+    return Measurement(y1, y2, sigma_y, distance, offset, sigma_distance_mm, RegionStatus.OK,
+                       d_in_mm, **extra)

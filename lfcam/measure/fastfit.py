@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lfcam.camera import CameraProfile
-from lfcam.measure.base import Measurement
+from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
@@ -681,20 +681,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             return _line_measurement(profile, geom, line)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
-    source, misfit, sigma_d = fit.source_mm, fit.misfit, fit.sigma_distance_mm
-    nan = float("nan")
-    distance = profile.main_lens.front_vertex_z_mm - float(source[2])
-    offset = float(np.hypot(source[0], source[1]))
-    fw = forward(profile, geom.d_in_mm, distance, offset)
-    if fw.status != 0:
-        return Measurement(nan, nan, nan, distance, offset, sigma_d, RegionStatus.OUT_OF_DOMAIN,
-                           geom.d_in_mm)
-    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
-    fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
-    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
-    sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
-    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, RegionStatus.OK, geom.d_in_mm,
-                       misfit=misfit)
+    return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
+                             misfit=fit.misfit)
 
 
 def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:

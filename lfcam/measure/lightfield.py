@@ -15,7 +15,12 @@ import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
-from lfcam.measure.base import Measurement, neighbours, region_pixels_mask
+from lfcam.measure.base import (
+    Measurement,
+    neighbours,
+    point_measurement,
+    region_pixels_mask,
+)
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
@@ -71,7 +76,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     # the fit simulates its statistic through the same box, mask and threshold
     extraction = SpotExtraction(region.box_px, mask, thr, float(sub[mask].sum()))
     fit = fit_point(profile, geom.d_in_mm, spots, energy, geom.lens_centres_mm, extraction)
-    nan = float("nan")
     # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
     # the per-pixel fit would only re-render a huge patch a hundred times.
     triangulated = not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH
@@ -109,21 +113,10 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
                 return line
         if not misfit <= POOR_FIT_MISFIT:
             return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
-    distance = profile.main_lens.front_vertex_z_mm - float(source[2])
-    offset = float(np.hypot(source[0], source[1]))
-    fw = forward(profile, geom.d_in_mm, distance, offset)
-    if fw.status != 0:
-        return Measurement(nan, nan, nan, distance, offset, sigma_d, RegionStatus.OUT_OF_DOMAIN,
-                           geom.d_in_mm)
-    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
-    # height uncertainty equivalent to the distance uncertainty (for model selection)
-    fw2 = forward(profile, geom.d_in_mm, distance * 1.001, offset)
-    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
-    sigma_y = sigma_d * dy if np.isfinite(sigma_d) else nan
     noise_mf = float("nan") if fast else _noise_misfit(image, box, noise)
-    return Measurement(y1, y2, sigma_y, distance, offset, sigma_d, RegionStatus.OK, geom.d_in_mm,
-                       misfit=misfit, noise_misfit=noise_mf,
-                       source_xy_mm=(float(source[0]), float(source[1])))
+    return point_measurement(profile, geom.d_in_mm, source, sigma_d, misfit=misfit,
+                             noise_misfit=noise_mf,
+                             source_xy_mm=(float(source[0]), float(source[1])))
 
 
 def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], noise: float) -> float:
