@@ -52,10 +52,9 @@ from lfcam.calibrate import calibrate_white, load_calibration, save_calibration 
 from lfcam.camera import CameraProfile, load_profile  # noqa: E402
 from lfcam.distance import run_distance  # noqa: E402
 from lfcam.measure import Geometry, find_regions, lenslet_stats, prepare_geometry  # noqa: E402
-from lfcam.measure.lenslets import build_lenslet_map  # noqa: E402
 from lfcam.measure.pointfit import chief_ray_offset  # noqa: E402
 from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
-from lfcam.sim.render import Renderer  # noqa: E402
+from lfcam.sim.geometry import truth_geometry  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
@@ -93,14 +92,6 @@ def magnification(profile: CameraProfile) -> float:
     """Sensor-over-MLA scale of the chief rays (exit pupil centre through the lenslets)."""
     z_ep = profile.main_lens.exit_pupil_z_mm
     return 1.0 + profile.mla.focal_length_mm / (profile.d_in_mm - z_ep)
-
-
-def truth_geometry(profile: CameraProfile, shape: tuple[int, int]) -> Geometry:
-    """Geometry from the renderer's exact lenslet centres."""
-    rend = Renderer(profile)
-    pitch_px = profile.mla.pitch_mm / profile.sensor.pixel_pitch_mm * magnification(profile)
-    lmap = build_lenslet_map(rend.predicted_centres_px(), shape, 0.54 * pitch_px)
-    return Geometry(lmap, np.stack([rend.lcx, rend.lcy], 1), pitch_px, profile.d_in_mm)
 
 
 def calibrated_geometry(base: CameraProfile, cam: dict, used: CameraProfile,

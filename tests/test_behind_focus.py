@@ -12,25 +12,14 @@ import pytest
 
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
-from lfcam.measure import Geometry
-from lfcam.measure.lenslets import build_lenslet_map
 from lfcam.measure.pointfit import chief_ray_offset
 from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.render import Renderer
+from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
 SIZE = 1024  # px: 16 mm of sensor, 64 × 64 lenslets (a 6.5 mm blur is not "extended")
 CAMERA = {"mla": {"focus_mm": 1000.0, "rotation_rad": 0.012},
           "sensor": {"width_px": SIZE, "height_px": SIZE}}
-
-
-def _truth_geometry(profile):
-    rend = Renderer(profile)
-    lens_mm = np.stack([rend.lcx, rend.lcy], 1)
-    mag = 1 + profile.mla.focal_length_mm / (profile.d_in_mm - profile.main_lens.exit_pupil_z_mm)
-    pitch_px = profile.mla.pitch_mm / profile.sensor.pixel_pitch_mm * mag
-    lmap = build_lenslet_map(rend.predicted_centres_px(), (SIZE, SIZE), 0.54 * pitch_px)
-    return Geometry(lmap, lens_mm, pitch_px, profile.d_in_mm)
 
 
 @pytest.mark.parametrize(("distance", "sensor_mm"), [
@@ -49,7 +38,7 @@ def test_behind_focus_matches_truth(distance, sensor_mm):
                           "position_mm": [float(xy[0]), float(xy[1])]}]}
     raw, used, truth = simulate(base, scene_from_dict(scene))
     run = run_distance(raw.astype(np.float64), used, None, model="exact",
-                       geometry=_truth_geometry(used))
+                       geometry=truth_geometry(used, (SIZE, SIZE)))
     ok = [r for r in run.regions if r.status == "ok"]
     assert ok
     best = max(ok, key=lambda r: r.diameter_mm)

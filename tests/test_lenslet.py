@@ -16,13 +16,12 @@ from lfcam.calibrate import load_calibration
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
 from lfcam.io import load_capture
-from lfcam.measure import METHODS, Geometry, prepare_geometry
+from lfcam.measure import METHODS, prepare_geometry
 from lfcam.measure.fastfit import _pixel_boxes, _two_cells, lattice_of, vogel_disc
-from lfcam.measure.lenslets import build_lenslet_map
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_method
 from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.render import Renderer
+from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
@@ -61,15 +60,6 @@ def test_lenslet_line_is_a_line():
     assert abs(r.distance_mm / truth["distance_mm"] - 1.0) < 0.005
 
 
-def _truth_geometry(profile, size):
-    rend = Renderer(profile)
-    lens_mm = np.stack([rend.lcx, rend.lcy], 1)
-    mag = 1 + profile.mla.focal_length_mm / (profile.d_in_mm - profile.main_lens.exit_pupil_z_mm)
-    pitch_px = profile.mla.pitch_mm / profile.sensor.pixel_pitch_mm * mag
-    lmap = build_lenslet_map(rend.predicted_centres_px(), (size, size), 0.54 * pitch_px)
-    return Geometry(lmap, lens_mm, pitch_px, profile.d_in_mm)
-
-
 def _render(camera, objects, rays=300_000, seed=4):
     base = load_profile("system2")
     scene = {"seed": seed, "rays_per_source": rays, "camera": camera,
@@ -92,7 +82,7 @@ def test_lenslet_both_sides_of_focus(focus, distance):
     img, used, _ = _render(camera, [{"type": "point", "distance_mm": distance,
                                      "position_mm": [float(xy[0]), float(xy[1])]}])
     run = run_distance(img, used, None, model="exact", method="lenslet",
-                       geometry=_truth_geometry(used, size))
+                       geometry=truth_geometry(used, (size, size)))
     best = max((r for r in run.regions if r.status == "ok"), key=lambda r: r.diameter_mm)
     assert abs(best.distance_mm / distance - 1.0) < 0.005
 
@@ -104,7 +94,7 @@ def test_parallel_equals_serial():
                for d, x, y in ((900.0, -60.0, -60.0), (1300.0, 80.0, -70.0),
                                (2500.0, -150.0, 160.0))]
     img, used, _ = _render(camera, objects, rays=150_000)
-    geom = _truth_geometry(used, size)
+    geom = truth_geometry(used, (size, size))
     serial = run_distance(img, used, None, model="auto", method="lenslet", geometry=geom, jobs=1)
     parallel = run_distance(img, used, None, model="auto", method="lenslet", geometry=geom,
                             jobs=2)

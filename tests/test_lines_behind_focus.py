@@ -15,26 +15,16 @@ import lfcam.measure.lightfield as LF
 from lfcam.calibrate.reference import measure_d_in
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
-from lfcam.measure import Geometry, Measurement
-from lfcam.measure.lenslets import build_lenslet_map
+from lfcam.measure import Measurement
 from lfcam.measure.pointfit import chief_ray_offset
 from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.render import Renderer
+from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
 SIZE = 1024
 CAMERA = {"mla": {"focus_mm": 1000.0, "rotation_rad": 0.012},
           "sensor": {"width_px": SIZE, "height_px": SIZE}}
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
-
-
-def _truth_geometry(profile, size):
-    rend = Renderer(profile)
-    lens_mm = np.stack([rend.lcx, rend.lcy], 1)
-    mag = 1 + profile.mla.focal_length_mm / (profile.d_in_mm - profile.main_lens.exit_pupil_z_mm)
-    pitch_px = profile.mla.pitch_mm / profile.sensor.pixel_pitch_mm * mag
-    lmap = build_lenslet_map(rend.predicted_centres_px(), (size, size), 0.54 * pitch_px)
-    return Geometry(lmap, lens_mm, pitch_px, profile.d_in_mm)
 
 
 def _line_capture(distance, angle_deg=60.0, image_len_mm=3.0):
@@ -54,7 +44,7 @@ def test_triangulated_line_is_not_an_ok_point(monkeypatch):
     """A line at 2200 mm (behind a 1 m focus) is sent to the line fit; without a line model
     that explains it, the region has no distance instead of a 49 % short one."""
     img, used = _line_capture(2200.0)
-    geom = _truth_geometry(used, SIZE)
+    geom = truth_geometry(used, (SIZE, SIZE))
     calls = []
 
     def no_line(profile, geom_, image, box, near):
@@ -71,7 +61,7 @@ def test_triangulated_line_is_not_an_ok_point(monkeypatch):
 def test_line_fit_chosen_over_triangulated_point(monkeypatch):
     """When the line model fits, the region becomes a ``line`` with the line's distance."""
     img, used = _line_capture(2200.0, angle_deg=135.0)
-    geom = _truth_geometry(used, SIZE)
+    geom = truth_geometry(used, (SIZE, SIZE))
 
     def good_line(profile, geom_, image, box, near):
         nan = float("nan")
@@ -91,7 +81,7 @@ def test_point_behind_focus_stays_a_point():
              "objects": [{"type": "point", "distance_mm": 2200.0, "position_mm": [20.0, -10.0]}]}
     raw, used, _ = simulate(base, scene_from_dict(scene))
     run = run_distance(raw.astype(np.float64), used, None, model="exact",
-                       geometry=_truth_geometry(used, SIZE))
+                       geometry=truth_geometry(used, (SIZE, SIZE)))
     ok = [r for r in run.regions if r.status == "ok"]
     assert ok and all(r.kind == "spot" for r in ok)
     best = max(ok, key=lambda r: r.diameter_mm)
