@@ -42,7 +42,7 @@ from lfcam.camera import load_profile  # noqa: E402
 from lfcam.distance import run_distance  # noqa: E402
 from lfcam.measure import Geometry, prepare_geometry  # noqa: E402
 from lfcam.measure.base import neighbours  # noqa: E402
-from lfcam.measure.lenslets import build_lenslet_map, lenslet_stats  # noqa: E402
+from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.pointfit import (  # noqa: E402
     _Patch,
     _pupil_pattern,
@@ -52,6 +52,7 @@ from lfcam.measure.pointfit import (  # noqa: E402
 )
 from lfcam.measure.regions import find_regions  # noqa: E402
 from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
+from lfcam.sim.geometry import truth_geometry  # noqa: E402
 from lfcam.sim.render import Renderer  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
@@ -63,18 +64,6 @@ HALF_FIELD_MM = 12.0
 def camera(focus_mm: float) -> dict:
     """Scene camera overrides: focus and a slightly rotated MLA."""
     return {"mla": {"focus_mm": focus_mm, "rotation_rad": ROTATION}}
-
-
-def truth_geometry(used, shape) -> Geometry:
-    """Geometry from the renderer's exact lenslet centres (micro-image map from chief rays)."""
-    rend = Renderer(used)
-    lens_mm = np.stack([rend.lcx, rend.lcy], 1)
-    cpx = rend.predicted_centres_px()
-    z_ep = used.main_lens.exit_pupil_z_mm
-    mag = 1 + used.mla.focal_length_mm / (used.d_in_mm - z_ep)
-    pitch_px = used.mla.pitch_mm / used.sensor.pixel_pitch_mm * mag
-    lmap = build_lenslet_map(cpx, shape, 0.5 * pitch_px * 1.08)
-    return Geometry(lmap, lens_mm, pitch_px, used.d_in_mm), rend
 
 
 def calibrated_geometry(base, focus_mm: float, used, shape) -> Geometry:
@@ -166,7 +155,7 @@ def main() -> None:
     for focus in [float(v) for v in args.focus.split(",")]:
         used = apply_overrides(base, camera(focus))
         used = used.with_d_in(used.d_in_mm)
-        geom_t, rend = truth_geometry(used, shape)
+        geom_t, rend = truth_geometry(used, shape), Renderer(used)
         geom_c = calibrated_geometry(base, focus, used, shape)
         z_ep = used.main_lens.exit_pupil_z_mm
         mag = 1 + used.mla.focal_length_mm / (used.d_in_mm - z_ep)
