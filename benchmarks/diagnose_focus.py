@@ -45,9 +45,9 @@ from lfcam.measure.base import neighbours  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.pointfit import (  # noqa: E402
     _Patch,
-    _pupil_pattern,
     _statistic,
     chief_ray_offset,
+    pupil_pattern,
     simulate_lenslets,
 )
 from lfcam.measure.regions import find_regions  # noqa: E402
@@ -109,7 +109,7 @@ def ray_centroid_ii(used, rend, truth, lens_mm):
     # simulate only the lenslets whose light reached the sensor, as the renderer's truth does
     c = lens_mm[idx]
     tree = cKDTree(lens_mm)
-    pattern = _pupil_pattern(320)
+    pattern = pupil_pattern(320)
     s = meas[0].copy()
     for _ in range(10):
         e, lsim = simulate_lenslets(used, used.d_in_mm, s, tree, lens_mm, pattern)

@@ -238,7 +238,7 @@ def test_ray_aiming_is_uniform_over_the_real_stop_off_axis(lenses):
     assert (rt.trace(tri, pts.origins, pts.directions, 60.0).status == RayStatus.OK).all()
 
 
-def test_pupil_patterns():
+def testpupil_patterns():
     fib = rt.pupil_pattern(100)
     assert fib.shape == (100, 2) and np.hypot(*fib.T).max() < 1
     assert np.abs(fib.mean(axis=0)).max() < 0.02
