@@ -2,15 +2,26 @@
 
 - The stencil lenslet map against a k-d tree nearest-centre search (hex lattice, overlapping
   discs, centres beyond the sensor edge, several row bands).
+- ``lfcam distance --timings --json``: every stage's time, inside the command's own wall time.
 """
 
 from __future__ import annotations
 
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from lfcam.measure import lenslets
 from lfcam.measure.lenslets import build_lenslet_map
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
 
 
 def _hex_centres(h: int, w: int, pitch: float, rng) -> np.ndarray:
@@ -37,3 +48,27 @@ def test_stencil_lenslet_map_equals_kdtree_nearest_centre(monkeypatch):
     want = np.where(dist <= radius, idx, -1).reshape(h, w)
     assert (want >= 0).mean() > 0.9  # the test covers the discs, not just the gaps
     np.testing.assert_array_equal(lmap.labels, want)
+
+
+def test_cli_reports_every_stage_time(tmp_path):
+    """``--json`` carries load/geometry/regions/measure/export; ``--timings`` prints the same
+    stages on stderr; together they fit inside the command's own wall time."""
+    name = "point_system2_1100mm_dh5"
+    t0 = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-m", "lfcam", "distance", str(DATA / f"{name}.png"), "--calibration",
+         str(DATA / "calib_system2.json"), "--method", "lenslet", "--model", "exact",
+         "--jobs", "1", "--json", "--timings", "-q", "-o", str(tmp_path / "o")],
+        capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    stages = ("load", "geometry", "regions", "measure", "export")
+    t = doc["timings_s"]
+    assert all(t[k] > 0 for k in stages)
+    assert sum(t[k] for k in stages) < wall
+    line = out.stderr.strip().splitlines()[-1]
+    printed = dict(re.findall(r"(load|geometry|regions|fits|export) ([0-9.]+)", line))
+    assert float(printed["fits"]) == pytest.approx(t["measure"], abs=0.006)
+    assert float(printed["load"]) == pytest.approx(t["load"], abs=0.006)
+    assert doc["regions"][0]["distance_mm"] == pytest.approx(1100.0, rel=0.003)

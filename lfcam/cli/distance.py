@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import time
 from pathlib import Path
 
 from lfcam.atomic import check_output_dir, refuse_overwrite
@@ -51,6 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="worker processes for the regions (default: all cores)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--timings", action="store_true",
+                   help="print the wall time of each stage (load, geometry, regions, fits, "
+                   "export) and the slowest region's CPU time on stderr")
     add_no_verify(p)
     add_quiet(p)
     p.set_defaults(func=run)
@@ -72,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(out)
     profile = profile_for_capture(capture_path, args.profile)
     with terminal_progress(args.quiet) as bar:
+        t0 = time.perf_counter()
         bar("loading", 0, 1)
         calibration = load_calibration(args.calibration)
         calibration.check_quality()
@@ -79,15 +85,20 @@ def run(args: argparse.Namespace) -> int:
         check_saturation(cap)
         image = cap.grey()
         bar("loading", 1, 1)
+        t_load = time.perf_counter() - t0
         method = args.method or ("auto" if args.model == "auto" and args.tolerance is not None
                                  else "lightfield")
         result = run_distance(image, profile, calibration, model=args.model,
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
                               progress=bar, jobs=args.jobs)
         bar("writing", 0, 1)
+        t1 = time.perf_counter()
         write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "
                       f"{args.method}{' (fast)' if args.fast else ''}")
         bar("writing", 1, 1)
+        timings = {"load": t_load, **result.timings_s, "export": time.perf_counter() - t1}
+    if args.timings:
+        print(_timing_line(timings), file=sys.stderr)
     ok = sum(r.status == "ok" for r in result.regions)
     if args.json:
         print(json.dumps({
@@ -96,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
                         for r, t in zip(result.regions, result.timings_s["region_s"],
                                         strict=True)],
             "output": str(args.output),
-            "timings_s": result.timings_s,
+            "timings_s": timings,
         }))
     else:
         print(f"{len(result.regions)} regions ({ok} with a distance) → {args.output}/"
@@ -107,3 +118,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  #{r.region_id:<3} {r.kind:5} ({r.x_px:7.1f}, {r.y_px:7.1f}) px  {d}  "
                   f"[{r.model}] {r.status}")
     return 0
+
+
+def _timing_line(timings: dict) -> str:
+    """One line of stage wall times (s) and the slowest region's CPU time (ms)."""
+    stages = " ".join(f"{name} {timings[key]:.2f}" for name, key in (
+        ("load", "load"), ("geometry", "geometry"), ("regions", "regions"),
+        ("fits", "measure"), ("export", "export")))
+    worst = 1e3 * max(timings["region_s"], default=0.0)
+    return (f"timings (s wall): {stages}; {len(timings['region_s'])} regions over "
+            f"{timings['jobs']} jobs, slowest region {worst:.0f} ms CPU")
