@@ -2,6 +2,8 @@
 
 - The stencil lenslet map against a k-d tree nearest-centre search (hex lattice, overlapping
   discs, centres beyond the sensor edge, several row bands).
+- Regions: halo fragments join their blur (one region per painted source), separate blurs
+  stay apart.
 - ``lfcam distance --timings --json``: every stage's time, inside the command's own wall time.
 """
 
@@ -18,7 +20,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lfcam.measure import lenslets
+from lfcam.measure import find_regions, lenslet_stats, lenslets
 from lfcam.measure.lenslets import build_lenslet_map
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
@@ -72,3 +74,36 @@ def test_cli_reports_every_stage_time(tmp_path):
     assert float(printed["fits"]) == pytest.approx(t["measure"], abs=0.006)
     assert float(printed["load"]) == pytest.approx(t["load"], abs=0.006)
     assert doc["regions"][0]["distance_mm"] == pytest.approx(1100.0, rel=0.003)
+
+
+def _lenslet_image(lit: dict, n: int = 48, pitch: int = 10) -> tuple:
+    """A rect lattice of ``n``² lenslets (``pitch`` px) with each (i, j) in ``lit`` painted at
+    its energy over a faint noise floor."""
+    g = 5.0 + pitch * np.arange(n)
+    xx, yy = np.meshgrid(g, g)
+    centres = np.column_stack([xx.ravel(), yy.ravel()])
+    lmap = build_lenslet_map(centres, (n * pitch, n * pitch), 0.54 * pitch)
+    img = np.random.default_rng(5).normal(0.0, 1e-4, (n * pitch, n * pitch))
+    for (i, j), v in lit.items():
+        img[j * pitch + 3 : j * pitch + 7, i * pitch + 3 : i * pitch + 7] += v / 16.0
+    return lenslet_stats(img, lmap), lmap
+
+
+def _disc(ci: int, cj: int, r: float, v: float) -> dict:
+    return {(i, j): v for i in range(ci - 8, ci + 9) for j in range(cj - 8, cj + 9)
+            if (i - ci) ** 2 + (j - cj) ** 2 <= r * r}
+
+
+def test_halo_fragments_join_their_blur_and_separate_blurs_stay_apart():
+    blur = _disc(14, 14, 5.0, 1.0)  # 81 lenslets
+    # three fragments 6–8 lenslets from its centre, ≥ 2 pitches from its edge
+    halo = {(21, 14): 0.2, (21, 15): 0.2, (21, 13): 0.2, (14, 7): 0.2, (15, 7): 0.2,
+            (9, 9): 0.2, (8, 9): 0.2}
+    other = _disc(36, 36, 3.0, 1.0)  # a second source, well apart: its own region
+    twin_a, twin_b = _disc(36, 12, 2.0, 1.0), _disc(36, 19, 2.0, 0.15)  # 2-lenslet gap
+    stats, lmap = _lenslet_image({**blur, **halo, **other, **twin_a, **twin_b})
+    regions = find_regions(stats, lmap, 10.0)
+    sizes = sorted((len(r.lenslets), r.parts) for r in regions)
+    # the blur with its 7 halo lenslets in 3 fragments; the other source; the two small
+    # neighbours (13 lenslets each, one 7× dimmer) are not fragments of each other
+    assert sizes == [(13, 1), (13, 1), (29, 1), (len(blur) + len(halo), 4)]

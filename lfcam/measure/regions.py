@@ -9,6 +9,14 @@ each cluster by the energy-weighted second moments of its lenslet centres:
 * ``line`` — elongated footprint;
 * ``extended`` — too large a share of the array to be a point or line (textured regions):
   reported, never forced into a point or line model.
+
+Far from focus a blur has a faint halo (the singlet's spherical aberration throws light outside
+the rim rays) in which a few lenslets pass the threshold apart from the main disc. Such a
+*fragment* — a cluster with at most ``FRAGMENT_SHARE`` of the lenslets and of the energy of a
+bigger cluster, lying within ``HALO_REACH`` times that cluster's radius of its centroid — is
+merged into it: one region per source. Two clusters of comparable size are never merged, so
+two sources whose blurs do not touch stay two regions (blurs that touch form one cluster and
+are reported as one region, ``parts`` counts the clusters merged into a region).
 """
 
 from __future__ import annotations
@@ -27,6 +35,8 @@ LINE_ELONGATION = 1.6
 EXTENDED_SHARE = 0.25
 NOISE_SIGMAS = 8.0
 MIN_LENSLETS = 3
+FRAGMENT_SHARE = 0.2
+HALO_REACH = 1.6
 
 
 @dataclass(frozen=True)
@@ -41,6 +51,7 @@ class Region:
     box_px: tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive) covering its micro-images
     elongation: float
     axis_dir: tuple[float, float]  # unit vector of the footprint's long axis (sensor x, y)
+    parts: int = 1  # connected clusters merged into this region (halo fragments included)
 
 
 def lit_threshold(energy: np.ndarray) -> float:
@@ -77,11 +88,11 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                        shape=(lit.size, lit.size))
     n, comp = connected_components(graph, directed=False)
+    groups, parts = _merge_fragments(lit, comp, n, energy, centres)
     h, w = lmap.labels.shape
     r = lmap.radius_px
     regions = []
-    for c in range(n):
-        members = lit[comp == c]
+    for members, n_parts in zip(groups, parts, strict=True):
         if members.size < MIN_LENSLETS:
             continue
         e = energy[members]
@@ -109,5 +120,41 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
             region_id=len(regions), kind=kind, lenslets=members, energy=float(e.sum()),
             centroid_px=(float(centroid[0]), float(centroid[1])), box_px=(x0, y0, x1, y1),
             elongation=elong, axis_dir=(float(evecs[0, 1]), float(evecs[1, 1])),
+            parts=n_parts,
         ))
     return regions
+
+
+def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarray,
+                     centres: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
+    """Clusters of lit lenslets with halo fragments merged into their blur (module docstring).
+
+    Returns the member lenslets of each merged cluster and how many connected
+    clusters each holds.
+    """
+    members = [lit[comp == c] for c in range(n)]
+    size = np.array([m.size for m in members])
+    e = np.array([energy[m].sum() for m in members])
+    cen = np.array([(centres[m] * energy[m, None]).sum(0) / max(energy[m].sum(), 1e-300)
+                    for m in members]).reshape(-1, 2)
+    rad = np.array([np.hypot(*(centres[m] - c).T).max() for m, c in zip(members, cen,
+                                                                        strict=True)])
+    order = np.argsort(-size, kind="stable")
+    owner = np.arange(n)
+    for a in order[::-1]:  # smallest first: each fragment joins the biggest blur that takes it
+        big = np.flatnonzero((size >= size[a] / FRAGMENT_SHARE) & (e >= e[a] / FRAGMENT_SHARE))
+        if big.size == 0:
+            continue
+        d = np.hypot(*(cen[big] - cen[a]).T)
+        reach = HALO_REACH * rad[big]
+        take = big[d <= reach]
+        if take.size:
+            owner[a] = take[np.argmax(size[take])]
+    groups, parts = [], []
+    for c in range(n):  # in the order of the clusters (raster order of their first lenslet)
+        if owner[c] != c:
+            continue
+        joined = np.flatnonzero(owner == c)
+        groups.append(np.sort(np.concatenate([members[k] for k in joined])))
+        parts.append(int(joined.size))
+    return groups, parts
