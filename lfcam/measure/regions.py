@@ -13,10 +13,12 @@ each cluster by the energy-weighted second moments of its lenslet centres:
 Far from focus a blur has a faint halo (the singlet's spherical aberration throws light outside
 the rim rays) in which a few lenslets pass the threshold apart from the main disc. Such a
 *fragment* — a cluster with at most ``FRAGMENT_SHARE`` of the lenslets and of the energy of a
-bigger cluster, lying within ``HALO_REACH`` times that cluster's radius of its centroid — is
-merged into it: one region per source. Two clusters of comparable size are never merged, so
-two sources whose blurs do not touch stay two regions (blurs that touch form one cluster and
-are reported as one region, ``parts`` counts the clusters merged into a region).
+bigger cluster, no lenslet brighter than that cluster's 90th percentile (a small source near
+focus concentrates its light: it stays apart), lying within ``HALO_REACH`` times that
+cluster's radius of its centroid — is merged into it: one region per source. Two clusters of
+comparable size are never merged, so two sources whose blurs do not touch stay two regions.
+Blurs that touch form one connected cluster and are reported as one region (a known limit);
+``parts`` counts the clusters merged into a region.
 """
 
 from __future__ import annotations
@@ -139,10 +141,14 @@ def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarr
                     for m in members]).reshape(-1, 2)
     rad = np.array([np.hypot(*(centres[m] - c).T).max() for m, c in zip(members, cen,
                                                                         strict=True)])
+    peak = np.array([energy[m].max() for m in members])
+    typical = np.array([np.percentile(energy[m], 90.0) for m in members])
     order = np.argsort(-size, kind="stable")
     owner = np.arange(n)
     for a in order[::-1]:  # smallest first: each fragment joins the biggest blur that takes it
-        big = np.flatnonzero((size >= size[a] / FRAGMENT_SHARE) & (e >= e[a] / FRAGMENT_SHARE))
+        # a fragment is as faint a lenslet as the blur's; a focused source is brighter
+        big = np.flatnonzero((size >= size[a] / FRAGMENT_SHARE) & (e >= e[a] / FRAGMENT_SHARE)
+                            & (typical >= peak[a]))
         if big.size == 0:
             continue
         d = np.hypot(*(cen[big] - cen[a]).T)
