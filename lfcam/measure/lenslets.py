@@ -125,17 +125,17 @@ def lenslet_stats(image: np.ndarray, lmap: LensletMap) -> LensletStats:
             f"capture is {img.shape[1]}×{img.shape[0]} px but the calibration is for "
             f"{lmap.labels.shape[1]}×{lmap.labels.shape[0]} px"
         )
-    lab = lmap.labels.ravel()
-    keep = lab >= 0
-    lab = lab[keep]
-    val = img.ravel()[keep]
+    # bin 0 collects the unassigned pixels (label −1); no masks or index arrays of the frame
+    lab = lmap.labels.ravel().astype(np.intp) + 1
+    n = lmap.count + 1
     h, w = img.shape
-    yy, xx = np.divmod(np.flatnonzero(keep), w)
-    n = lmap.count
-    energy = np.bincount(lab, weights=val, minlength=n)
-    mx = np.bincount(lab, weights=val * xx, minlength=n)
-    my = np.bincount(lab, weights=val * yy, minlength=n)
-    pixels = np.bincount(lab, minlength=n)
+    val = img.ravel()
+    energy = np.bincount(lab, weights=val, minlength=n)[1:]
+    mx = np.bincount(lab, weights=(img * np.arange(w, dtype=np.float64)).ravel(),
+                     minlength=n)[1:]
+    my = np.bincount(lab, weights=(img * np.arange(h, dtype=np.float64)[:, None]).ravel(),
+                     minlength=n)[1:]
+    pixels = np.bincount(lab, minlength=n)[1:]
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.column_stack([mx / energy, my / energy])
     centroid[~(energy > 0)] = np.nan
