@@ -41,7 +41,7 @@ from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
-from lfcam.optics.trace import forward, trace_source_fast
+from lfcam.optics.trace import forward, trace_sources_fast
 from lfcam.status import RegionStatus
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -200,34 +200,32 @@ class LensletModel:
         # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
         mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
         s_px = min(0.9, self.spacing * mag)
-        xs, ys, sxs, sys_, wts, gaps, tags = [], [], [], [], [], [], []
-        for g, pt in enumerate(points):
-            tr = trace_source_fast(lens, tuple(pt), self.rx, self.ry, self.geom.d_in_mm)
-            ok = tr.ok
-            if not ok.any():
-                continue
-            along = lens.rim_z_mm - pt[2]
-            rho2 = (self.rx[ok] - pt[0]) ** 2 + (self.ry[ok] - pt[1]) ** 2 + along * along
-            wts.append((along * along / rho2) ** 1.5)
-            x, y = tr.x[ok], tr.y[ok]
-            xs.append(x)
-            ys.append(y)
-            sxs.append(fx * tr.dx[ok] / tr.dz[ok])
-            sys_.append(fx * tr.dy[ok] / tr.dz[ok])
-            # MLA-plane ray spacing: the footprint's extent over the pupil's, times the
-            # pupil spacing
-            foot = max(float(np.ptp(x)), float(np.ptp(y)))
-            gaps.append(np.full(x.size, max(self.spacing * foot / lens.pupil_diameter_mm,
-                                            1e-12)))
-            tags.append(np.full(x.size, g if separate else 0, dtype=np.int64))
-        if not xs:
+        # every point's rays in one trace (lines: LINE_POINTS points)
+        tr = trace_sources_fast(lens, points, self.rx, self.ry, self.geom.d_in_mm)
+        ok = tr.ok
+        if not ok.any():
             return out
-        x, y = np.concatenate(xs), np.concatenate(ys)
-        sx, sy, wt = np.concatenate(sxs), np.concatenate(sys_), np.concatenate(wts)
+        along = lens.rim_z_mm - points[:, 2:3]
+        rho2 = (self.rx[None, :] - points[:, :1]) ** 2 + (self.ry[None, :] - points[:, 1:2]) ** 2
+        wt = ((along * along / (rho2 + along * along)) ** 1.5)[ok]
+        # MLA-plane ray spacing: each footprint's extent over the pupil's, times the pupil
+        # spacing
+        xm = np.where(ok, tr.x, np.nan)
+        ym = np.where(ok, tr.y, np.nan)
+        lit = ok.any(axis=1)
+        foot = np.zeros(len(points))
+        foot[lit] = np.maximum(np.nanmax(xm[lit], 1) - np.nanmin(xm[lit], 1),
+                               np.nanmax(ym[lit], 1) - np.nanmin(ym[lit], 1))
+        spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
+        rows_ok = np.nonzero(ok)[0]
+        x, y = tr.x[ok], tr.y[ok]
+        sx = fx * tr.dx[ok] / tr.dz[ok]
+        sy = fx * tr.dy[ok] / tr.dz[ok]
+        gaps = spacing[rows_ok]
+        tag = rows_ok if separate else np.zeros(rows_ok.size, dtype=np.int64)
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
-        share = np.clip(0.5 - gap / np.concatenate(gaps), 0.0, 0.5)
+        share = np.clip(0.5 - gap / gaps, 0.0, 0.5)
         split = share > 0
-        tag = np.concatenate(tags)
         cx = np.concatenate([c1x, c2x[split]])
         cy = np.concatenate([c1y, c2y[split]])
         wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
@@ -259,7 +257,9 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
     their bisector (the cell border it is nearest to): (n1x, n1y, n2x, n2y, gap)."""
     b = lattice.basis
     o = lattice.origin
-    u = lattice.inverse @ np.vstack([x - o[0], y - o[1]])
+    inv = lattice.inverse
+    ex, ey = x - o[0], y - o[1]
+    u = (inv[0, 0] * ex + inv[0, 1] * ey, inv[1, 0] * ex + inv[1, 1] * ey)
     la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
     if abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb:
         # rectangular cells (a shear below 1e-4 moves their corners by < 1e-4 pitch): the
@@ -321,6 +321,24 @@ def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float,
     return cols, rows, wts, src
 
 
+# Long vectors are reduced with einsum rather than BLAS: a threaded BLAS wakes its threads for
+# a dot product of ~10⁴ residuals, and their spinning cost more CPU than the fit itself
+# (2.4× a region's CPU time on a loaded 2-core machine).
+def _sq(r: np.ndarray) -> float:
+    """Σ r² of a vector."""
+    return float(np.einsum("i,i->", r, r))
+
+
+def _gram(jac: np.ndarray) -> np.ndarray:
+    """JᵀJ of a tall Jacobian."""
+    return np.einsum("ki,kj->ij", jac, jac)
+
+
+def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Jᵀr."""
+    return np.einsum("ki,k->i", jac, r)
+
+
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
@@ -328,14 +346,14 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q)
-    f = float(r @ r)
+    f = _sq(r)
     lam = 1e-4
     jac = None
     for _ in range(max_iter):
         jac = np.column_stack([(fun(q + h * e) - r) / h
                                for h, e in zip(steps, np.eye(len(q)), strict=True)])
-        jtj = jac.T @ jac
-        g = jac.T @ r
+        jtj = _gram(jac)
+        g = _jt(jac, r)
         improved = False
         dq = np.zeros_like(q)
         for _ in range(5):
@@ -346,7 +364,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
                 lam *= 10
                 continue
             r2 = fun(q + dq)
-            f2 = float(r2 @ r2)
+            f2 = _sq(r2)
             if f2 < f:
                 q, r, f = q + dq, r2, f2
                 lam = max(lam / 10, 1e-8)
@@ -441,7 +459,7 @@ def _starts(profile, geom, mom, frame, model):
     scan = []
     for q, m in zip(qs, ms, strict=True):
         r = model.residual_of(m)
-        scan.append((float(r @ r), q, summary(profile, geom, mom, m)))
+        scan.append((_sq(r), q, summary(profile, geom, mom, m)))
     out = []
     bd, rd = t_data[0], t_data[3]
     for (f0, q0, t0), (f1, q1, t1) in zip(scan[:-1], scan[1:], strict=True):
@@ -514,17 +532,17 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
 
 def _gauss_newton_fixed(fun, q, r, jac, iterations):
     """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step."""
-    f = float(r @ r)
-    jtj = jac.T @ jac
+    f = _sq(r)
+    jtj = _gram(jac)
     try:
-        solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj))) @ jac.T
+        solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj)))
     except np.linalg.LinAlgError:
         return q, r, f
     for _ in range(iterations):
-        dq = -(solve @ r)
+        dq = -(solve @ _jt(jac, r))
         for _ in range(3):
             r2 = fun(q + dq)
-            f2 = float(r2 @ r2)
+            f2 = _sq(r2)
             if f2 < f:
                 break
             dq = 0.5 * dq
@@ -565,7 +583,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     for q0 in starts:
         q = _match_summary(profile, geom, mom, frame, coarse, q0, t_data)
         r = coarse.residual(frame.source(q))
-        f = float(r @ r)
+        f = _sq(r)
         if best is None or f < best[1]:
             best = (q, f)
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
@@ -580,9 +598,9 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     key = np.asarray(source, dtype=np.float64).tobytes()
     m_a = fine.last[1] if fine.last[0] == key else fine.simulate(source)
     m_b = other.simulate(source)
-    floor = float(np.linalg.norm(m_a - m_b) / np.linalg.norm(m_a)) / math.sqrt(2.0)
+    floor = math.sqrt(_sq((m_a - m_b).ravel()) / _sq(m_a.ravel()) / 2.0)
     try:
-        cov = f / max(len(r) - 3, 1) * np.linalg.inv(jac.T @ jac)
+        cov = f / max(len(r) - 3, 1) * np.linalg.inv(_gram(jac))
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
     except np.linalg.LinAlgError:
         sigma_d = np.inf
@@ -648,7 +666,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
     dist = math.exp(q[0])
     try:
-        cov_q = f / max(len(r) - 5, 1) * np.linalg.inv(jac.T @ jac)
+        cov_q = f / max(len(r) - 5, 1) * np.linalg.inv(_gram(jac))
         sigma_d = dist * math.sqrt(max(cov_q[0, 0], 0.0))
     except np.linalg.LinAlgError:
         sigma_d = np.inf

@@ -249,13 +249,45 @@ def trace_source_fast(
     FastTrace
         Positions at the target plane and unit directions after the lens.
     """
-    sx, sy, sz = (float(v) for v in source_xyz_mm)
-    rim_x = np.asarray(rim_x_mm, dtype=np.float64)
-    rim_y = np.asarray(rim_y_mm, dtype=np.float64)
+    rim_x, rim_y = np.broadcast_arrays(np.asarray(rim_x_mm, dtype=np.float64),
+                                       np.asarray(rim_y_mm, dtype=np.float64))
+    tr = trace_sources_fast(lens, np.asarray(source_xyz_mm, dtype=np.float64).reshape(1, 3),
+                            rim_x, rim_y, z_plane_mm, map_pupil=map_pupil)
+    return FastTrace(*(a.reshape(rim_x.shape) for a in tr[:7]))
+
+
+def trace_sources_fast(
+    lens: MainLens,
+    sources_mm: np.ndarray,
+    rim_x_mm: np.ndarray,
+    rim_y_mm: np.ndarray,
+    z_plane_mm: float,
+    *,
+    map_pupil: bool = True,
+) -> FastTrace:
+    """:func:`trace_source_fast` for ``M`` point sources in one trace: each source's rays aim
+    at the same aperture points (the pupil map applied per source).
+
+    Parameters
+    ----------
+    sources_mm : (M, 3) array
+    rim_x_mm, rim_y_mm : (n,) arrays
+        Aim points on the paraxial aperture disk.
+
+    Returns
+    -------
+    FastTrace
+        Arrays of shape ``(M, n)``.
+    """
+    src = np.asarray(sources_mm, dtype=np.float64).reshape(-1, 3)
+    rim_x = np.asarray(rim_x_mm, dtype=np.float64).ravel()[None, :]
+    rim_y = np.asarray(rim_y_mm, dtype=np.float64).ravel()[None, :]
     if map_pupil and lens.as_prescription.stop_index != 0:
-        cx, cy, ax, ay = pupil_map(lens, (sx, sy, sz))
-        rim_x, rim_y = cx + ax * rim_x, cy + ay * rim_y
+        maps = np.array([pupil_map(lens, tuple(pt)) for pt in src])
+        rim_x = maps[:, :1] + maps[:, 2:3] * rim_x
+        rim_y = maps[:, 1:2] + maps[:, 3:4] * rim_y
     fv = lens.front_vertex_z_mm
+    sx, sy, sz = src[:, :1], src[:, 1:2], src[:, 2:3]
     dx = rim_x - sx
     dy = rim_y - sy
     dz = np.broadcast_to(lens.rim_z_mm - sz, dx.shape)
