@@ -272,6 +272,7 @@ def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
 
 # ----------------------------------------------------------------------------- parallel regions
 _WORKER: dict = {}
+_BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _worker_init(profile, lmap_parts, lens_centres_mm, pitch_px, d_in_mm, shm_names, shapes,
@@ -330,9 +331,21 @@ def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, pr
         # the largest regions first, so that no worker is left with a long tail
         order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
         out: list = [None] * len(regions)
-        with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
-                                 initializer=_worker_init, initargs=init) as pool:
+        # one BLAS thread a worker: spawned interpreters read this before importing numpy
+        # (setting it in the initializer is too late); restored when the pool is up
+        saved = {v: os.environ.get(v) for v in _BLAS_THREAD_VARS}
+        os.environ.update({v: "1" for v in _BLAS_THREAD_VARS})
+        try:
+            pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
+                                       initializer=_worker_init, initargs=init)
             futures = {pool.submit(_worker_region, regions[i]): i for i in order}
+        finally:
+            for v, old in saved.items():
+                if old is None:
+                    os.environ.pop(v, None)
+                else:
+                    os.environ[v] = old
+        with pool:
             from concurrent.futures import as_completed
 
             for done, fut in enumerate(as_completed(futures), start=1):
