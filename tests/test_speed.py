@@ -4,11 +4,13 @@
   discs, centres beyond the sensor edge, several row bands).
 - Regions: halo fragments join their blur (one region per painted source), separate blurs
   stay apart.
+- ``--method auto``: its error table holds the worst error of every committed benchmark CSV.
 - ``lfcam distance --timings --json``: every stage's time, inside the command's own wall time.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import subprocess
@@ -22,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from lfcam.measure import find_regions, lenslet_stats, lenslets
 from lfcam.measure.lenslets import build_lenslet_map
+from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_method
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
 
@@ -107,3 +110,40 @@ def test_halo_fragments_join_their_blur_and_separate_blurs_stay_apart():
     # the blur with its 7 halo lenslets in 3 fragments; the other source; the two small
     # neighbours (13 lenslets each, one 7× dimmer) are not fragments of each other
     assert sizes == [(13, 1), (13, 1), (29, 1), (len(blur) + len(halo), 4)]
+
+
+def _measured_worst_pct() -> dict:
+    """Worst ERROR % per (kind, method) in the committed benchmark CSVs (calibrated path,
+    model ``exact``)."""
+    res = Path(__file__).resolve().parents[1] / "docs" / "results"
+    worst: dict = {}
+
+    def note(kind, method, value):
+        worst[(kind, method)] = max(worst.get((kind, method), 0.0), value)
+
+    with open(res / "tradeoff.csv", newline="", encoding="utf-8") as fh:
+        for row in csv.DictReader(fh):
+            if row["model"] == "exact" and row["method"] in METHOD_COST_ORDER:
+                note("spot" if row["source"] == "point" else "line", row["method"],
+                     float(row["max_error_pct"]))
+    for name, method in (("focus_grid.csv", "lightfield"), ("focus_grid_lenslet.csv", "lenslet")):
+        with open(res / name, newline="", encoding="utf-8") as fh:
+            for row in csv.DictReader(fh):
+                if row["centres"] == "calibrated" and row["status"] == "ok":
+                    note("line" if row["mode"] == "line" else "spot", method,
+                         float(row["error_pct"]))
+    return worst
+
+
+def test_auto_method_table_never_understates_a_measured_worst_error():
+    """``--method auto --tolerance`` trusts METHOD_MAX_ERROR_PCT: it must hold the worst
+    error any benchmark measured, or auto would pick a method that misses the tolerance."""
+    worst = _measured_worst_pct()
+    assert len(worst) == 6  # every kind × method has a measurement
+    for (kind, method), value in worst.items():
+        assert METHOD_MAX_ERROR_PCT[kind][method] >= value - 1e-3, (kind, method, value)
+    # and the choice is the cheapest whose table entry meets the tolerance
+    for tol in (0.5, 1.0, 2.0, 3.0, 9.0, 50.0):
+        want = next((m for m in METHOD_COST_ORDER if worst[("spot", m)] <= tol), None)
+        if want is not None and METHOD_MAX_ERROR_PCT["spot"][want] <= tol:
+            assert choose_method(tol, "spot") == want
