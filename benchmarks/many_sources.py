@@ -21,7 +21,9 @@ and ``docs/distance.md``).
 Per method: the stage times of one in-process run (load, geometry, regions, fits, export),
 the wall time of the ``lfcam distance`` command on the written files (``--no-cli`` skips it),
 the worst single region's CPU time, and the errors against the truth (each truth source is
-matched to the region nearest its light centroid).
+matched to the region nearest its light centroid; ``regions_shared`` counts regions that
+several sources claim — touching blurs — and ``regions_unclaimed`` those no source claims —
+fragments).
 """
 
 from __future__ import annotations
@@ -144,6 +146,19 @@ def prepare(name: str, workdir: Path) -> tuple[Path, Path, dict]:
     return png, cal_path, json.loads(truth_path.read_text(encoding="utf-8"))
 
 
+def region_census(regions, truth: dict) -> dict:
+    """One region per source? Each truth source claims the region nearest its light centroid:
+    regions claimed by several sources (touching blurs reported as one) and regions claimed by
+    none (fragments or spurious detections)."""
+    claims = [int(np.argmin([math.hypot(r.x_px - s["centroid_px"][0],
+                                        r.y_px - s["centroid_px"][1]) for r in regions]))
+              for s in truth["sources"]]
+    counts = np.bincount(claims, minlength=len(regions))
+    return {"regions_shared": int((counts > 1).sum()),
+            "sources_sharing": int(counts[counts > 1].sum()),
+            "regions_unclaimed": int((counts == 0).sum())}
+
+
 def match(regions, truth: dict, t_half: float) -> list[float]:
     """Eq. 21 error (%) of the region nearest each truth source's light centroid."""
     errs = []
@@ -176,16 +191,19 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> d
     rec = {
         "scene": name, "method": method, "jobs": res.timings_s["jobs"],
         "regions": len(res.regions), "sources": len(truth["sources"]),
+        **region_census(res.regions, truth),
         "load_s": t1 - t0, "geometry_s": t2 - t1, "regions_s": res.timings_s["regions"],
         "fits_s": res.timings_s["measure"], "export_s": t4 - t3, "total_s": t4 - t0,
         "region_cpu_sum_s": float(sum(res.timings_s["region_s"])),
         "worst_region_ms": 1e3 * max(res.timings_s["region_s"], default=0.0),
         "missing": int(np.isnan(errs).sum()),
+        "within_0.3pct": int((errs <= 0.3).sum()), "within_1pct": int((errs <= 1.0).sum()),
         "mean_error_pct": float(np.nanmean(errs)), "max_error_pct": float(np.nanmax(errs)),
     }
     if cli:
         cmd = [sys.executable, "-m", "lfcam", "distance", str(png), "--calibration",
-               str(cal_path), "--method", method, "--model", "exact", "--json", "-q",
+               str(cal_path), "--method", method, "--model", "exact", "--json", "--timings",
+               "-q",
                "-o", str(workdir / f"cli_{name}_{method}")]
         if jobs:
             cmd += ["--jobs", str(jobs)]
@@ -199,6 +217,7 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> d
             raise SystemExit(done.stderr)
         rec["cli_timings_s"] = {k: v for k, v in json.loads(done.stdout)["timings_s"].items()
                                 if k != "region_s"}
+        rec["cli_timings_line"] = done.stderr.strip().splitlines()[-1]
     return rec
 
 
