@@ -147,3 +147,14 @@ def test_auto_method_table_never_understates_a_measured_worst_error():
         want = next((m for m in METHOD_COST_ORDER if worst[("spot", m)] <= tol), None)
         if want is not None and METHOD_MAX_ERROR_PCT["spot"][want] <= tol:
             assert choose_method(tol, "spot") == want
+
+
+def test_touching_blurs_are_flagged_multiple_and_a_line_blur_is_not():
+    """Two overlapping discs (two sources whose blurs touch) have a waist; the stadium a line
+    source makes does not."""
+    twins = {**_disc(10, 12, 6.0, 1.0), **_disc(22, 12, 6.0, 1.0)}  # touching
+    stadium = {(i, j): 1.0 for i in range(8, 40) for j in range(28, 45)
+               if (j - 36) ** 2 + max(0, 14 - i, i - 33) ** 2 <= 16}
+    stats, lmap = _lenslet_image({**twins, **stadium})
+    kinds = sorted((r.kind, len(r.lenslets)) for r in find_regions(stats, lmap, 10.0))
+    assert kinds == [("line", len(stadium)), ("multiple", len(twins))]

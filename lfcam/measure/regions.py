@@ -8,7 +8,12 @@ each cluster by the energy-weighted second moments of its lenslet centres:
 * ``spot`` — near-isotropic footprint (elongation √(λ1/λ2) < ``LINE_ELONGATION``);
 * ``line`` — elongated footprint;
 * ``extended`` — too large a share of the array to be a point or line (textured regions):
-  reported, never forced into a point or line model.
+  reported, never forced into a point or line model;
+* ``multiple`` — an elongated footprint with a waist: the lit width across its long axis
+  drops below ``WAIST_RATIO`` of its maxima on both sides, each side holding at least
+  ``WAIST_SIDE_SHARE`` of the lenslets. Two blurs that touch look like this (a line's blur is
+  a stadium, without a waist); reported without a distance rather than measured as one
+  source.
 
 Far from focus a blur has a faint halo (the singlet's spherical aberration throws light outside
 the rim rays) in which a few lenslets pass the threshold apart from the main disc. Such a
@@ -17,8 +22,8 @@ bigger cluster, no lenslet brighter than that cluster's 90th percentile (a small
 focus concentrates its light: it stays apart), lying within ``HALO_REACH`` times that
 cluster's radius of its centroid — is merged into it: one region per source. Two clusters of
 comparable size are never merged, so two sources whose blurs do not touch stay two regions.
-Blurs that touch form one connected cluster and are reported as one region (a known limit);
-``parts`` counts the clusters merged into a region.
+Blurs that touch form one connected cluster: ``multiple`` when a waist shows it, otherwise
+one region. ``parts`` counts the clusters merged into a region.
 """
 
 from __future__ import annotations
@@ -38,6 +43,9 @@ EXTENDED_SHARE = 0.25
 NOISE_SIGMAS = 8.0
 MIN_LENSLETS = 3
 FRAGMENT_SHARE = 0.2
+WAIST_RATIO = 0.6
+WAIST_SIDE_SHARE = 0.25
+WAIST_MIN_LENSLETS = 40
 HALO_REACH = 1.6
 
 
@@ -110,6 +118,8 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
         elong = float(np.sqrt(evals[1] / evals[0]))
         if members.size > EXTENDED_SHARE * len(centres):
             kind = "extended"
+        elif elong >= LINE_ELONGATION and _has_waist(pos, evecs[:, 1], pitch_px):
+            kind = "multiple"
         elif elong >= LINE_ELONGATION:
             kind = "line"
         else:
@@ -164,3 +174,30 @@ def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarr
         groups.append(np.sort(np.concatenate([members[k] for k in joined])))
         parts.append(int(joined.size))
     return groups, parts
+
+
+def _has_waist(pos: np.ndarray, axis: np.ndarray, pitch_px: float) -> bool:
+    """Whether a footprint (lenslet centres ``pos``, long axis ``axis``) narrows between two
+    wide parts: the count of lenslets per slice across the axis (a pitch or 1/24 of the
+    length, whichever is wider; smoothed 1-2-1) dips
+    below ``WAIST_RATIO`` of the widest slice on each side, with ``WAIST_SIDE_SHARE`` of the
+    lenslets or more on each side of the dip."""
+    if len(pos) < WAIST_MIN_LENSLETS:
+        return False
+    t = (pos - pos.mean(axis=0)) @ np.asarray(axis, dtype=np.float64)
+    step = max(pitch_px, float(np.ptp(t)) / 24.0)
+    edges = np.arange(t.min(), t.max() + step, step)
+    width, _ = np.histogram(t, edges)
+    if width.size < 5:
+        return False
+    width = np.convolve(np.pad(width.astype(np.float64), 1, mode="edge"), [0.25, 0.5, 0.25],
+                        mode="valid")
+    total = float(width.sum())
+    for i in range(1, width.size - 1):
+        left, right = width[:i].max(), width[i + 1 :].max()
+        share_l = width[:i].sum() / total
+        share_r = width[i + 1 :].sum() / total
+        if (width[i] < WAIST_RATIO * min(left, right) and share_l >= WAIST_SIDE_SHARE
+                and share_r >= WAIST_SIDE_SHARE):
+            return True
+    return False
