@@ -329,13 +329,15 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
     _save(fig, img_dir / "error_vs_distance.png")
     plt.close(fig)
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
     markers = {"lightfield": "o", "lightfield-fast": "s", "lenslet": "D", "diameter": "^"}
     colours = dict(zip(MODELS, ("C0", "C1", "C2", "C3", "C4"), strict=True))
-    for ax, system in zip(axes, SYSTEMS, strict=True):
+    panels = [(system, "point") for system in SYSTEMS] + [("system1", "line")]
+    for ax, (system, source) in zip(axes, panels, strict=True):
         pts, labels = [], []
         for t in table:
-            if t["system"] != system or t["source"] != "point" or t["mean_error_pct"] == "nan":
+            if (t["system"] != system or t["source"] != source
+                    or t["mean_error_pct"] == "nan"):
                 continue
             x, y = float(t["time_per_region_ms"]), float(t["mean_error_pct"])
             pts.append((x, y))
@@ -349,7 +351,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
         ax.set_yscale("log")
         ax.set_xlabel("time per region (ms, measurement + model, 1 core)")
         ax.set_ylabel("mean ERROR (%)")
-        ax.set_title(f"{system}: point sources")
+        ax.set_title(f"{system}: {'point sources' if source == 'point' else '10 mm lines'}")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
