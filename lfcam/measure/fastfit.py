@@ -184,9 +184,22 @@ class LensletModel:
         self.evaluations += 1
         src = np.atleast_2d(sources)
         with np.errstate(over="ignore", invalid="ignore"):
-            return self._simulate(src, separate=True).reshape(len(src), -1, 4)
+            return self._simulate(src, np.arange(len(src)), len(src)).reshape(len(src), -1, 4)
 
-    def _simulate(self, sources: np.ndarray, separate: bool = False) -> np.ndarray:
+    def simulate_sets(self, sets: list) -> np.ndarray:
+        """(S, K, 4) moments of ``S`` source sets (each a point ``(3,)`` or points ``(M, 3)``),
+        in one trace: each set's moments equal :meth:`simulate` of that set (the same sums in
+        the same order), without the per-call overhead. Counts ``S`` evaluations."""
+        pts = [np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in sets]
+        self.evaluations += len(pts)
+        group = np.concatenate([np.full(len(v), g, dtype=np.int64) for g, v in enumerate(pts)])
+        with np.errstate(over="ignore", invalid="ignore"):
+            out = self._simulate(np.concatenate(pts), group, len(pts))
+        return out.reshape(len(pts), -1, 4)
+
+    def _simulate(self, sources: np.ndarray, group: np.ndarray | None = None,
+                  groups: int = 1) -> np.ndarray:
+        """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
         p = self.profile
         lens = p.main_lens
         fx = p.mla.focal_length_mm
@@ -195,7 +208,6 @@ class LensletModel:
         x0, y0 = self.mom.box[:2]
         h, w = self.mom.labels.shape
         points = np.atleast_2d(sources)
-        groups = len(points) if separate else 1
         out = np.zeros((groups * len(self.mom.data), 4))
         # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
         mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
@@ -222,7 +234,7 @@ class LensletModel:
         sx = fx * tr.dx[ok] / tr.dz[ok]
         sy = fx * tr.dy[ok] / tr.dz[ok]
         gaps = spacing[rows_ok]
-        tag = rows_ok if separate else np.zeros(rows_ok.size, dtype=np.int64)
+        tag = group[rows_ok] if group is not None else np.zeros(rows_ok.size, dtype=np.int64)
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
         share = np.clip(0.5 - gap / gaps, 0.0, 0.5)
         split = share > 0
@@ -239,7 +251,7 @@ class LensletModel:
         known = k >= 0
         return _moments_of(self.mom.centres_px, self.geom.pitch_px, cols[known] + x0,
                            rows[known] + y0, wts_[known], k[known],
-                           tag[ray[known]] if separate else None, groups)
+                           tag[ray[known]] if group is not None else None, groups)
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
         """Data minus the best-scaled model moments, over the data's norm."""
@@ -339,8 +351,11 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.einsum("ki,k->i", jac, r)
 
 
-def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
+def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
+
+    ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
+    one by one (the difference Jacobian's columns in one model pass).
 
     Returns (q, residual, cost, Jacobian at the last linearisation).
     """
@@ -350,8 +365,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
     lam = 1e-4
     jac = None
     for _ in range(max_iter):
-        jac = np.column_stack([(fun(q + h * e) - r) / h
-                               for h, e in zip(steps, np.eye(len(q)), strict=True)])
+        jac = _fd_jacobian(fun, fun_many, q, r, steps)
         jtj = _gram(jac)
         g = _jt(jac, r)
         improved = False
@@ -374,6 +388,14 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6):
         if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
             break
     return q, r, f, jac
+
+
+def _fd_jacobian(fun, fun_many, q, r, steps) -> np.ndarray:
+    """Forward-difference Jacobian of ``fun`` at ``q`` (value ``r``), steps ``steps``; with
+    ``fun_many``, all columns in one call."""
+    points = [q + h * e for h, e in zip(steps, np.eye(len(q)), strict=True)]
+    values = fun_many(points) if fun_many is not None else [fun(p) for p in points]
+    return np.column_stack([(v - r) / h for v, h in zip(values, steps, strict=True)])
 
 
 def _region_box(geom: Geometry, region: Region, shape) -> tuple[int, int, int, int]:
@@ -501,9 +523,12 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         return q
     err = float(np.linalg.norm((t - t_data) / scale))
 
+    def t_many(qs):
+        ms = model.simulate_sets([frame.source(qq) for qq in qs])
+        return [summary(profile, geom, mom, m) for m in ms]
+
     def fd_jacobian(q, t):
-        return np.column_stack([(t_of(q + h * e) - t) / h
-                                for h, e in zip(steps, np.eye(3), strict=True)])
+        return _fd_jacobian(t_of, t_many, q, t, steps)
 
     jac = fd_jacobian(q, t)
     fresh = True
@@ -577,6 +602,10 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def fun_of(model):
         return lambda q: model.residual(frame.source(q))
 
+    def many_of(model):
+        return lambda qs: [model.residual_of(m)
+                           for m in model.simulate_sets([frame.source(q) for q in qs])]
+
     scan = LensletModel(profile, geom, mom, SCAN_RAYS)
     starts, t_data = _starts(profile, geom, mom, frame, scan)
     best = None
@@ -587,7 +616,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if best is None or f < best[1]:
             best = (q, f)
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
-                                        COARSE_ITERATIONS, 1e-3)
+                                        COARSE_ITERATIONS, 1e-3, many_of(coarse))
     fun = fun_of(fine)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     misfit = math.sqrt(f)
@@ -656,8 +685,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def fun_of(model, count):
         return lambda q: model.residual(_line_points(frame, q, count))
 
+    def many_of(model, count):
+        return lambda qs: [model.residual_of(m) for m in model.simulate_sets(
+            [_line_points(frame, q, count) for q in qs])]
+
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse, LINE_POINTS), q0, steps,
-                                        COARSE_ITERATIONS, 1e-3)
+                                        COARSE_ITERATIONS, 1e-3, many_of(coarse, LINE_POINTS))
     fun = fun_of(fine, LINE_POINTS)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     pts = _line_points(frame, q, 2)
