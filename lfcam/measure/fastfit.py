@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -66,13 +67,18 @@ _LATTICES: dict[int, LocalLattice | None] = {}
 _PEDESTAL: dict = {}
 
 
+@lru_cache(maxsize=64)
 def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral),
-    turned by ``phase`` radians."""
+    turned by ``phase`` radians. Cached (every model of every region draws the same few
+    samples); the arrays are read-only."""
     i = np.arange(n, dtype=np.float64)
     r = np.sqrt((i + 0.5) / n)
     t = i * GOLDEN_ANGLE + phase
-    return r * np.cos(t), r * np.sin(t)
+    x, y = r * np.cos(t), r * np.sin(t)
+    x.flags.writeable = False
+    y.flags.writeable = False
+    return x, y
 
 
 def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
