@@ -165,6 +165,10 @@ class LensletModel:
         u, v = vogel_disc(n_rays, phase)
         self.rx, self.ry = u * half, v * half
         self.spacing = lens.pupil_diameter_mm * math.sqrt(math.pi / (4.0 * n_rays))
+        # sensor-plane spacing of the rays (px): the pupil sample spacing, imaged by a lenslet
+        mag = (profile.mla.focal_length_mm / (geom.d_in_mm - lens.exit_pupil_z_mm)
+               / profile.sensor.pixel_pitch_mm)
+        self.s_px = min(0.9, self.spacing * mag)
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
         self.evaluations = 0
         self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
@@ -215,9 +219,7 @@ class LensletModel:
         h, w = self.mom.labels.shape
         points = np.atleast_2d(sources)
         out = np.zeros((groups * len(self.mom.data), 4))
-        # sensor-plane spacing of the rays: the pupil sample spacing, imaged by a lenslet
-        mag = fx / (self.geom.d_in_mm - lens.exit_pupil_z_mm) / pp
-        s_px = min(0.9, self.spacing * mag)
+        s_px = self.s_px
         # every point's rays in one trace (lines: LINE_POINTS points)
         tr = trace_sources_fast(lens, points, self.rx, self.ry, self.geom.d_in_mm)
         ok = tr.ok
@@ -227,16 +229,15 @@ class LensletModel:
         rho2 = (self.rx[None, :] - points[:, :1]) ** 2 + (self.ry[None, :] - points[:, 1:2]) ** 2
         wt = ((along * along / (rho2 + along * along)) ** 1.5)[ok]
         # MLA-plane ray spacing: each footprint's extent over the pupil's, times the pupil
-        # spacing
-        xm = np.where(ok, tr.x, np.nan)
-        ym = np.where(ok, tr.y, np.nan)
-        lit = ok.any(axis=1)
-        foot = np.zeros(len(points))
-        foot[lit] = np.maximum(np.nanmax(xm[lit], 1) - np.nanmin(xm[lit], 1),
-                               np.nanmax(ym[lit], 1) - np.nanmin(ym[lit], 1))
-        spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
+        # spacing (rays of one point are contiguous: per-point extremes by reduceat)
         rows_ok = np.nonzero(ok)[0]
         x, y = tr.x[ok], tr.y[ok]
+        lit, first = np.unique(rows_ok, return_index=True)
+        foot = np.zeros(len(points))
+        foot[lit] = np.maximum(
+            np.maximum.reduceat(x, first) - np.minimum.reduceat(x, first),
+            np.maximum.reduceat(y, first) - np.minimum.reduceat(y, first))
+        spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
         sx = fx * tr.dx[ok] / tr.dz[ok]
         sy = fx * tr.dy[ok] / tr.dz[ok]
         gaps = spacing[rows_ok]
