@@ -144,7 +144,8 @@ def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarr
     Returns the member lenslets of each merged cluster and how many connected
     clusters each holds.
     """
-    members = [lit[comp == c] for c in range(n)]
+    by_comp = np.argsort(comp, kind="stable")
+    members = np.split(lit[by_comp], np.cumsum(np.bincount(comp, minlength=n))[:-1])
     size = np.array([m.size for m in members])
     e = np.array([energy[m].sum() for m in members])
     cen = np.array([(centres[m] * energy[m, None]).sum(0) / max(energy[m].sum(), 1e-300)
@@ -179,9 +180,8 @@ def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarr
 def _has_waist(pos: np.ndarray, axis: np.ndarray, pitch_px: float) -> bool:
     """Whether a footprint (lenslet centres ``pos``, long axis ``axis``) narrows between two
     wide parts: the count of lenslets per slice across the axis (a pitch or 1/24 of the
-    length, whichever is wider; smoothed 1-2-1) dips
-    below ``WAIST_RATIO`` of the widest slice on each side, with ``WAIST_SIDE_SHARE`` of the
-    lenslets or more on each side of the dip."""
+    length, whichever is wider; smoothed 1-2-1) dips below ``WAIST_RATIO`` of the widest slice
+    on each side, with ``WAIST_SIDE_SHARE`` of the lenslets or more on each side of the dip."""
     if len(pos) < WAIST_MIN_LENSLETS:
         return False
     t = (pos - pos.mean(axis=0)) @ np.asarray(axis, dtype=np.float64)
