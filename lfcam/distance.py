@@ -332,31 +332,36 @@ def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, pr
         order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
         out: list = [None] * len(regions)
         # one BLAS thread a worker: spawned interpreters read this before importing numpy
-        # (setting it in the initializer is too late); restored when the pool is up
+        # (setting it in the initializer is too late); restored once the workers are started
         saved = {v: os.environ.get(v) for v in _BLAS_THREAD_VARS}
         os.environ.update({v: "1" for v in _BLAS_THREAD_VARS})
         try:
-            pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
-                                       initializer=_worker_init, initargs=init)
-            futures = {pool.submit(_worker_region, regions[i]): i for i in order}
-        finally:
-            for v, old in saved.items():
-                if old is None:
-                    os.environ.pop(v, None)
-                else:
-                    os.environ[v] = old
-        with pool:
-            from concurrent.futures import as_completed
+            with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
+                                     initializer=_worker_init, initargs=init) as pool:
+                futures = {pool.submit(_worker_region, regions[i]): i for i in order}
+                _restore_environ(saved)
+                from concurrent.futures import as_completed
 
-            for done, fut in enumerate(as_completed(futures), start=1):
-                out[futures[fut]] = fut.result()
-                if progress:
-                    progress("regions", done, len(regions))
+                for done, fut in enumerate(as_completed(futures), start=1):
+                    out[futures[fut]] = fut.result()
+                    if progress:
+                        progress("regions", done, len(regions))
+        finally:
+            _restore_environ(saved)
         return out
     finally:
         for shm in shms:
             shm.close()
             shm.unlink()
+
+
+def _restore_environ(saved: dict) -> None:
+    """Put environment variables back as ``saved`` (``None``: was unset)."""
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 def _gate_regions(profile, geom, stats, regions, results, measurements) -> tuple[list, list]:
