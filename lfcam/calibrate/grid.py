@@ -48,6 +48,7 @@ from lfcam.calibrate.microimage import (
     own_light_centroids,
     own_light_fit,
 )
+from lfcam.calibrate.parallel import run_bands
 from lfcam.errors import CalibrationError
 from lfcam.optics.mla import lattice_basis, rotation_matrix
 
@@ -220,24 +221,45 @@ def find_candidates(image: np.ndarray, pitch: float) -> tuple[np.ndarray, np.nda
     a disc of radius 0.45·pitch, above 20 % of the bright level.
     """
     img = np.ascontiguousarray(image, dtype=np.float32)
+    h = img.shape[0]
     rad = max(1, int(round(0.3 * pitch)))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
     k = (k / k.sum()).astype(np.float32)
-    mean = cv2.filter2D(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    mean2 = cv2.filter2D(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    score = mean - 2.0 * np.sqrt(np.maximum(mean2 - mean * mean, 0.0))
-    score = cv2.GaussianBlur(score, (0, 0), sigmaX=max(0.1 * pitch, 0.5),
-                             borderType=cv2.BORDER_REFLECT)
+    sigma = max(0.1 * pitch, 0.5)
     rmax = max(1, int(round(0.45 * pitch)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rmax + 1, 2 * rmax + 1))
-    dil = cv2.dilate(score, kernel, borderType=cv2.BORDER_REFLECT)
+    # row bands on threads; each band is computed with a margin that covers the reach of
+    # the three filters (box, Gaussian ≤ 4σ + 1, dilation), so its own rows are exact
+    margin = rad + int(np.ceil(4.0 * sigma)) + 1 + rmax + 2
+    score = np.empty_like(img)
+    dil = np.empty_like(img)
+
+    def band(r0: int, r1: int) -> None:
+        a, b = max(0, r0 - margin), min(h, r1 + margin)
+        sub = img[a:b]
+        mean = cv2.filter2D(sub, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+        var = cv2.filter2D(sub * sub, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+        var -= mean * mean
+        np.maximum(var, 0.0, out=var)
+        np.sqrt(var, out=var)
+        var *= 2.0
+        mean -= var
+        sc = cv2.GaussianBlur(mean, (0, 0), sigmaX=sigma, borderType=cv2.BORDER_REFLECT)
+        score[r0:r1] = sc[r0 - a:r1 - a]
+        dil[r0:r1] = cv2.dilate(sc, kernel, borderType=cv2.BORDER_REFLECT)[r0 - a:r1 - a]
+
+    run_bands(band, h)
     level = float(np.percentile(score[::3, ::3], 99.5))
     if level <= 0.0:
         raise CalibrationError("white image is dark")
-    peaks = (score >= dil) & (score > 0.2 * level)
-    ys, xs = np.nonzero(peaks)
-    pts = np.stack([xs, ys], axis=1)
-    vals = score[ys, xs]
+
+    def peaks(r0: int, r1: int) -> np.ndarray:
+        sc = score[r0:r1]
+        ys, xs = np.nonzero((sc >= dil[r0:r1]) & (sc > 0.2 * level))
+        return np.stack([xs, ys + r0], axis=1)
+
+    pts = np.concatenate(run_bands(peaks, h))
+    vals = score[pts[:, 1], pts[:, 0]]
     if len(pts) > 1:  # plateaus: keep one maximum per 0.5·pitch cluster (the first)
         tree = cKDTree(pts)
         pairs = tree.query_pairs(0.5 * pitch, output_type="ndarray")

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 from scipy.stats import median_abs_deviation
 
+from lfcam.calibrate.parallel import run_bands
 from lfcam.errors import CalibrationError
 
 
@@ -45,15 +46,27 @@ def remove_hot_pixels(image: np.ndarray) -> tuple[np.ndarray, int]:
     img = np.ascontiguousarray(image, dtype=np.float32)
     kernel = np.ones((3, 3), np.uint8)
     kernel[1, 1] = 0
-    nb_max = cv2.dilate(img, kernel, borderType=cv2.BORDER_REFLECT)
     h, w = img.shape
     crop = img[h // 2 - min(h, 512) // 2:, w // 2 - min(w, 512) // 2:][:512, :512]
     step = (crop - cv2.medianBlur(np.ascontiguousarray(crop), 3)).ravel()
     sigma = float(median_abs_deviation(step, scale="normal"))
-    hot = img > nb_max + 0.5 * np.abs(nb_max) + 6.0 * sigma
-    n_hot = int(hot.sum())
+
+    def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+        # rows r0 − 1 … r1 (the 3×3 neighbourhood), reflected only at the image border
+        a, b = max(0, r0 - 1), min(h, r1 + 1)
+        nb_max = cv2.dilate(img[a:b], kernel, borderType=cv2.BORDER_REFLECT)[r0 - a:r1 - a]
+        lim = np.abs(nb_max)
+        lim *= 0.5
+        lim += nb_max
+        lim += 6.0 * sigma
+        ys, xs = np.nonzero(img[r0:r1] > lim)
+        return ys + r0, xs
+
+    found = run_bands(band, h)
+    ys = np.concatenate([f[0] for f in found])
+    xs = np.concatenate([f[1] for f in found])
+    n_hot = int(ys.size)
     if n_hot:
-        ys, xs = np.nonzero(hot)
         padded = np.pad(img, 1, mode="reflect")
         ring = [padded[ys + 1 + dy, xs + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
                 if dy or dx]

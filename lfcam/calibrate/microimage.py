@@ -32,12 +32,14 @@ micro-image only keep their measured value, so the model matters only on the sea
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
+from lfcam.calibrate.parallel import run_chunks
 from lfcam.errors import CalibrationError
 from lfcam.progress import Progress
 
@@ -110,9 +112,14 @@ def _disc_terms(p: _Patches, centres: np.ndarray, coef: np.ndarray, model: DiscM
     return dx, dy, d, cov, band, b
 
 
-def _chunks(n: int):
-    for s in range(0, n, CHUNK):
-        yield slice(s, min(n, s + CHUNK))
+def _chunks(n: int, chunk: int = CHUNK):
+    for s in range(0, n, chunk):
+        yield slice(s, min(n, s + chunk))
+
+
+def _run_chunks(fn, n: int, chunk: int = CHUNK) -> list:
+    """:func:`lfcam.calibrate.parallel.run_chunks` with this module's lens chunk."""
+    return run_chunks(fn, n, chunk)
 
 
 def core_radius_px(model: DiscModel, pitch_px: float) -> float:
@@ -459,7 +466,7 @@ def own_light_fit(
     anchor: np.ndarray | None = None,
     iterations: int = 3,
     tol_px: float = 5e-3,
-    polish: int = 2,
+    polish: int = 1,
     polish_damping: float = 1.0,
     polish_tol_px: float = 1e-3,
     refit: bool = True,
@@ -616,7 +623,11 @@ def own_light_fit(
     bflat = (base[:, 1] + pad) * wp + (base[:, 0] + pad)
     groups = _scatter_groups(base + pad, side)
     ns = int(seam.sum())
-    idx_s = bflat[:, None] + lin_s  # (n, ns) seam pixel indices in the padded image
+
+    def idx_s(k: np.ndarray) -> np.ndarray:
+        """Seam pixel indices of the lenses ``k`` in the padded image, (len(k), ns)."""
+        return bflat[k, None] + lin_s
+
 
     # once: brightness planes about the base pixel (fixed lenses: the anchor's, extrapolated),
     # inner sums, seam and outer pixel values, each plane on the seam pixels
@@ -629,7 +640,8 @@ def own_light_fit(
     cut_fit = fix[(c[fix, 0] >= 0) & (c[fix, 0] <= w - 1) & (c[fix, 1] >= 0)
                   & (c[fix, 1] <= h - 1)] if polish else fix[:0]
     gathered = np.r_[free, cut_fit]
-    for sl in _chunks(gathered.size):
+
+    def gather(sl: slice) -> None:
         k = gathered[sl]
         pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
         pc = pt[:, cols_c]
@@ -638,7 +650,9 @@ def own_light_fit(
         s_in[k] = pt @ w_in
         p_s[k] = pt.take(cols_s, axis=1)
         p_o[k] = pt.take(cols_o, axis=1)
-    del padded, patches
+
+    _run_chunks(gather, gathered.size)
+    padded = patches = None  # free the padded copy
     # on-sensor masks of the cut discs that are fitted: seam, outer, and inner moments
     cut_row = np.full(n, -1)
     cut_row[cut_fit] = np.arange(cut_fit.size)
@@ -657,9 +671,12 @@ def own_light_fit(
         """Cut lenses: the anchor's plane, extrapolated; every plane on the seam pixels."""
         coef[fix] = coef[anchor[fix]]
         coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
-        for sl in _chunks(n):
+
+        def one(sl: slice) -> None:
             cf = coef[sl].astype(np.float32)
             np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0, out=plane[sl])
+
+        _run_chunks(one, n)
 
     planes_on_seams()
     kmom = _coverage_moments(model)
@@ -674,10 +691,14 @@ def own_light_fit(
     flux = np.zeros(n)
     c_mod = np.full((n, 2), np.nan)  # the disc centres M currently holds
 
+    scatter_lock = threading.Lock()
+
     def remodel(mov: np.ndarray, frac: np.ndarray) -> None:
         """Model m_k of the lenses ``mov`` on their seam pixels; scatter the change into M,
-        one group at a time (indices never repeat within a group, so ``+=`` is exact)."""
-        for sl in _chunks(mov.size):
+        one group at a time (indices never repeat within a group, so ``+=`` is exact; one
+        thread scatters at a time, the others compute meanwhile)."""
+
+        def one(sl: slice) -> None:
             k = mov[sl]
             mk = oxs - frac[k, :1]
             mk *= mk
@@ -693,19 +714,23 @@ def own_light_fit(
             delta = mk - m_cur[k]
             m_cur[k] = mk
             gs = groups[k]
-            for gk in np.unique(gs):
-                sel = np.flatnonzero(gs == gk)
-                total[idx_s[k[sel]]] += delta[sel]
+            with scatter_lock:
+                for gk in np.unique(gs):
+                    sel = np.flatnonzero(gs == gk)
+                    total[idx_s(k[sel])] += delta[sel]
+
+        _run_chunks(one, mov.size)
 
     def attribute(att: np.ndarray, frac: np.ndarray) -> np.ndarray:
         """Own-light centroid and flux of the lenses ``att`` (seam pixels split in proportion
         m_k / M; outer pixels, which no neighbour reaches, are the lens's own where its model
         is non-zero); returns the disc centres whose model centroids are those centroids."""
         new = c[att].copy()
-        for sl in _chunks(att.size):
+
+        def one(sl: slice) -> None:
             k = att[sl]
             mk = m_cur[k]
-            big = total[idx_s[k]]
+            big = total.take(idx_s(k))
             np.maximum(big, mk, out=big)
             np.maximum(big, np.float32(1e-30), out=big)
             q = p_s[k] * mk
@@ -722,13 +747,16 @@ def own_light_fit(
             a_d = coef[k, 0] + np.sum(coef[k, 1:] * fr, axis=1)
             shift = coef[k, 1:] * (kmom / np.where(a_d > 0, a_d, np.inf))[:, None]
             new[sl] = np.where(ok[:, None], cen - shift, c[k])
+
+        _run_chunks(one, att.size)
         return new
 
     def edge_step(act: np.ndarray, frac: np.ndarray) -> np.ndarray:
         """Gauss–Newton step of the disc centres ``act`` on their ring pixels, against the data
         minus the neighbours' model (the disc edges; brightness planes held)."""
         dc = np.zeros((act.size, 2))
-        for sl in _chunks(act.size):
+
+        def one(sl: slice) -> None:
             k = act[sl]
             cf = coef[k].astype(np.float32)
             sums = np.zeros((k.size, 5), np.float64)  # Σ jx², jy², jx·jy, jx·r, jy·r
@@ -760,7 +788,7 @@ def own_light_fit(
                     r = b * t
                     np.subtract(pix[k], r, out=r)
                 else:
-                    r = pix[k] - total[idx_s[k]]
+                    r = pix[k] - total.take(idx_s(k))
                 if cm.any():  # cut discs: only on-sensor pixels
                     gsc[cm] *= ins[cr[cm]]
                     t[cm] *= ins[cr[cm]]
@@ -786,14 +814,18 @@ def own_light_fit(
             sx = np.where(ok, (ayy * bx - axy * by) / np.where(ok, det, 1.0), 0.0)
             sy = np.where(ok, (axx * by - axy * bx) / np.where(ok, det, 1.0), 0.0)
             dc[sl] = polish_damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
+
+        _run_chunks(one, act.size)
         return dc
 
     def refit_planes(frac: np.ndarray) -> None:
         """Brightness planes about the current disc centres (not the start positions); the
         model must then be recomputed."""
-        for sl in _chunks(free.size):
+        def one(sl: slice) -> None:
             k = free[sl]
             coef[k] = _core_planes(p_c[k], frac[k], oxc, oyc, quad, core_px)
+
+        _run_chunks(one, free.size)
         planes_on_seams()
 
     moving = np.ones(n, bool)  # lenses whose model is re-evaluated
@@ -838,8 +870,13 @@ def own_light_fit(
         # Gauss–Newton polish of the disc edges: the fixed point's discs match centroids, the
         # polished ones the edges, which split the seams better where the brightness is not a
         # plane or the micro-images are not discs (cat's-eye corners)
+        # lenses whose model image disc is within tol of their centre start from that disc
+        # (their last fixed-point update is dropped rather than re-modelling them for it);
+        # the others are re-modelled where they are
+        held = np.all(np.abs(c - c_mod) < tol_px, axis=1)  # False where c_mod is NaN
+        c[held] = c_mod[held]
         frac = (c - base).astype(np.float32)
-        remodel(np.flatnonzero(np.any(c != c_mod, axis=1)), frac)
+        remodel(np.flatnonzero(~held), frac)
         act = np.r_[free, cut_fit]
         for it in range(polish):
             dc = edge_step(act, frac)
@@ -910,8 +947,8 @@ def circle_window_centroids(
         pt = view[by, bx].reshape(len(base), -1)  # padded index = pixel + half
         return pt - pt.min(axis=1, keepdims=True)
 
-    for s in range(0, len(centres), chunk):
-        e = min(len(centres), s + chunk)
+    def one(sl: slice) -> None:
+        s, e = sl.start, sl.stop
         base = np.round(centres[s:e]).astype(np.int64)
         pt = gather(base)
         # 1. plain centroid in the fixed disc → re-centre to the nearest pixel
@@ -949,5 +986,7 @@ def circle_window_centroids(
         centres[s:e] = base + dxy.astype(np.float64)
         flux[s:e] = s0
         converged[s:e] = ok & (step < 10 * tol_px) & (np.abs(dxy) <= slack).all(axis=1)
-        progress("centroids", e, len(centres))
+    # chunks on threads (each writes its own slice); progress once, from this thread
+    _run_chunks(one, len(centres), chunk)
+    progress("centroids", len(centres), len(centres))
     return centres, flux, converged
