@@ -274,8 +274,9 @@ def fit_discs(
         The last centre update was below ``10·tol_px``.
 
     ``fixed`` marks discs whose brightness cannot be measured (micro-images cut by the sensor
-    border): their brightness plane is the nearest measured disc's, extrapolated to their
-    centre, so their light on the seams of visible neighbours is accounted for. Their centres
+    border): their brightness plane is the nearest measured disc's, about their own centre
+    (neighbouring micro-images repeat one brightness pattern), so their light on the seams
+    of visible neighbours is accounted for. Their centres
     are fitted only when ``fit_fixed_centres`` says so (enough of their edge is visible).
     ``hold`` marks measured discs whose centres are kept (their light is modelled with their
     own brightness planes): the context of a fit of a subset of the lenses.
@@ -301,8 +302,11 @@ def fit_discs(
         out = np.zeros((len(c), 3))
         out[free] = brightness_planes(img, c[free], half, core)
         out = out[donor]
-        # fixed discs: the donor's plane extrapolated to their centre
-        out[:, 0] += np.sum(out[:, 1:] * (c - c[donor]), axis=1)
+        # fixed discs: the donor's plane as it is about the donor's centre. The gradient
+        # within a micro-image is mostly its own pattern (cos⁴ and the stop across the
+        # lenslet's view), which every neighbour repeats; extrapolated over a pitch as if it
+        # were a trend across the sensor it made cut discs on the dim side 5–10 % too dim,
+        # and their fully visible neighbours' centroids 0.1 px off (docs/calibration.md)
         return out
 
     coef = planes()
@@ -670,6 +674,9 @@ def own_light_fit(
     def planes_on_seams() -> None:
         """Cut lenses: the anchor's plane, extrapolated; every plane on the seam pixels."""
         coef[fix] = coef[anchor[fix]]
+        # extrapolated here (the Gauss–Newton path copies the plane instead): with touching
+        # discs only edge ramps are shared, and on the rendered system 1 white the extrapolated
+        # plane left the border row at 0.032 px against 0.039 px for the copy
         coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
 
         def one(sl: slice) -> None:
