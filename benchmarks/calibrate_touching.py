@@ -23,8 +23,14 @@ extracted with ``git archive`` into a temporary directory; "new" is a copy of th
 tree's ``lfcam`` taken at the start.
 Both run in the same invocation, one after the other, on the same image.
 
+``--critical-path`` adds an idle-machine wall-time estimate for 2 threads from CPU times
+(:func:`critical_path`; for a loaded machine); ``--plenopticam PYTHON`` runs PlenoptiCam's
+``LfpCalibrator`` on each case too (``benchmarks/plenopticam_driver.py``, micro-image size
+preset to the pitch by default), scored the same way; "vs new wall" is each row's wall time
+over the new code's.
+
 Run:  python benchmarks/calibrate_touching.py [--cases illum-touching f01-touching ...]
-      [--skip-old] [--repeats N]
+      [--skip-old] [--baseline REV] [--repeats N] [--critical-path] [--plenopticam PYTHON]
 """
 
 from __future__ import annotations
@@ -60,8 +66,75 @@ def worker(impl_root: str, image_path: str, out_path: str) -> None:
     img, _ = prepare_white(image)
     fit = find_centres(img)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    crit = critical_path(image) if os.environ.get("LFCAM_BENCH_CRITICAL") else {}
     np.savez(out_path, centres=fit.centres_px, wall=wall, cpu=cpu, pitch=fit.pitch_px,
-             method=fit.diagnostics.get("centroid_method", "?"))
+             method=fit.diagnostics.get("centroid_method", "?"),
+             crit=np.array([crit.get(t, np.nan) for t in (1, 2, 4)]))
+
+
+def critical_path(image: np.ndarray) -> dict:
+    """Idle-machine wall-time estimate of ``prepare_white`` + ``find_centres`` for 1, 2 and 4
+    threads, measured on a loaded machine.
+
+    The calibration runs once more, single-threaded (OpenCV too), with
+    :mod:`lfcam.calibrate.parallel`'s chunk and band runners replaced by serial ones that
+    record each chunk's thread CPU time. Estimate = CPU outside those loops + for each loop
+    the makespan of its chunks on T threads (longest first, greedy). CPU time is what other
+    processes on the machine do not inflate (much); the estimate ignores memory-bandwidth
+    contention between the threads, so it is a lower bound of the idle wall time.
+    Empty when the code at hand has no ``lfcam.calibrate.parallel``.
+    """
+    try:
+        import lfcam.calibrate.parallel as par
+    except ImportError:
+        return {}
+    import cv2
+
+    import lfcam.calibrate.grid as grid_mod
+    import lfcam.calibrate.image as image_mod
+    import lfcam.calibrate.microimage as micro_mod
+
+    calls: list[list[float]] = []
+
+    def chunks(fn, n, chunk):
+        out, ts = [], []
+        for s in range(0, n, chunk):
+            t = time.thread_time()
+            out.append(fn(slice(s, min(n, s + chunk))))
+            ts.append(time.thread_time() - t)
+        calls.append(ts)
+        return out
+
+    def bands(fn, height, min_rows=256):
+        nb = max(1, min(2 * 2, height // max(1, min_rows)))  # as run_bands with 2 threads
+        edges = [round(i * height / nb) for i in range(nb + 1)]
+        out, ts = [], []
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            t = time.thread_time()
+            out.append(fn(a, b))
+            ts.append(time.thread_time() - t)
+        calls.append(ts)
+        return out
+
+    def makespan(ts: list[float], threads: int) -> float:
+        load = [0.0] * threads
+        for x in sorted(ts, reverse=True):
+            load[int(np.argmin(load))] += x
+        return max(load)
+
+    cv2.setNumThreads(1)
+    for mod in (par, micro_mod):
+        if hasattr(mod, "run_chunks"):
+            mod.run_chunks = chunks
+    for mod in (par, grid_mod, image_mod):
+        if hasattr(mod, "run_bands"):
+            mod.run_bands = bands
+    t0 = time.thread_time()
+    img, _ = image_mod.prepare_white(image)
+    grid_mod.find_centres(img)
+    total = time.thread_time() - t0
+    looped = sum(sum(c) for c in calls)
+    return {t: total - looped + sum(makespan(c, t) for c in calls) for t in (1, 2, 4)}
 
 
 def load(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,7 +194,7 @@ def score(centres: np.ndarray, truth: np.ndarray, lit: np.ndarray, pitch: float)
     matched = (dc < lim) & (it[ic] == np.arange(len(centres)))
     err = np.hypot(*(centres[matched] - truth[ic[matched]]).T)
     d_lit, _ = cKDTree(lit).query(centres)
-    return {"found": int(matched.sum()), "truth": len(truth),
+    return {"found": int(matched.sum()), "truth": len(truth), "pitch": pitch,
             "missed": int(len(truth) - matched.sum()),
             "invented": int(np.sum(d_lit > lim)),
             "rms": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
@@ -148,7 +221,17 @@ def main() -> None:
     ap.add_argument("--baseline", default=BASELINE, help="git revision of the old code")
     ap.add_argument("--skip-old", action="store_true", help="run the new code only")
     ap.add_argument("--repeats", type=int, default=1, help="runs of the new code per case")
+    ap.add_argument("--critical-path", action="store_true",
+                    help="also estimate the idle-machine wall time (see critical_path)")
+    ap.add_argument("--plenopticam", metavar="PYTHON",
+                    help="interpreter of a venv with plenopticam installed; runs it on each case")
+    ap.add_argument("--plenopticam-m", default="pitch", metavar="M",
+                    help="micro-image size handed to PlenoptiCam: 'pitch' (the case's pitch, "
+                         "rounded), 'auto' (its own estimate) or pixels")
+    ap.add_argument("--plenopticam-timeout", type=float, default=1800.0, metavar="S")
     args = ap.parse_args()
+    if args.critical_path:
+        os.environ["LFCAM_BENCH_CRITICAL"] = "1"
 
     with (tempfile.TemporaryDirectory(prefix="lfcam_old_") as old_root,
           tempfile.TemporaryDirectory(prefix="lfcam_new_") as new_root):
@@ -170,22 +253,48 @@ def main() -> None:
                     for _ in range(args.repeats if label == "new" else 1):
                         r = run(root, image_file)
                         s = score(r["centres"], truth, lit, float(r["pitch"]))
+                        crit = r["crit"] if "crit" in r else np.full(3, np.nan)
                         rows.append((name, label, str(r["method"]), float(r["wall"]),
-                                     float(r["cpu"]), s))
+                                     float(r["cpu"]), s, crit))
                         print(f"{name} {label}: {float(r['wall']):.1f} s wall, "
-                              f"{float(r['cpu']):.1f} s CPU, rms {s['rms']:.4f}, "
+                              f"{float(r['cpu']):.1f} s CPU, critical path 2 threads "
+                              f"{crit[1]:.1f} s, rms {s['rms']:.4f}, "
                               f"load {os.getloadavg()[0]:.1f}", flush=True)
+            if args.plenopticam:
+                from calibrate import run_plenopticam
+
+                m_px = (str(int(round(float(rows[-1][5]["pitch"]))))
+                        if args.plenopticam_m == "pitch" else args.plenopticam_m)
+                pc = run_plenopticam(args.plenopticam, image, "area", m_px,
+                                     args.plenopticam_timeout)
+                if "error" in pc:
+                    rows.append((name, f"PlenoptiCam M={m_px}", pc["error"], np.nan, np.nan,
+                                 None, np.full(3, np.nan)))
+                else:
+                    cen = np.asarray(pc["centres_xy"], float).reshape(-1, 2)
+                    s = (score(cen, truth, lit, float(rows[-1][5]["pitch"])) if len(cen)
+                         else {"found": 0, "truth": len(truth), "missed": len(truth),
+                               "invented": 0, "rms": np.nan, "max": np.nan})
+                    rows.append((name, f"PlenoptiCam M={m_px}", "area",
+                                 float(pc["total_s"]), np.nan, s, np.full(3, np.nan)))
+                print(f"{name} PlenoptiCam: {rows[-1][3]:.1f} s, {rows[-1][2]}, load "
+                      f"{os.getloadavg()[0]:.1f}", flush=True)
 
     print(f"\ncores {os.cpu_count()}, load avg (1 min) at the end {os.getloadavg()[0]:.2f}")
-    fmt = "{:<15} {:<15} {:<18} {:>8} {:>8} {:>7} {:>8} {:>8} {:>15} {:>6} {:>8}"
-    print(fmt.format("case", "code", "method", "wall s", "CPU s", "ratio", "RMS px", "max px",
-                     "found/visible", "missed", "invented"))
-    for name, label, method, wall, cpu, s in rows:
-        old = [r for r in rows if r[0] == name and r[1].startswith("old")]
-        ratio = f"{old[0][3] / wall:.1f}x" if old and label == "new" else "-"
-        print(fmt.format(name, label, method, f"{wall:.1f}", f"{cpu:.1f}", ratio,
-                         f"{s['rms']:.4f}", f"{s['max']:.4f}", f"{s['found']}/{s['truth']}",
-                         s["missed"], s["invented"]))
+    fmt = ("{:<15} {:<19} {:<18} {:>8} {:>8} {:>9} {:>12} {:>8} {:>8} {:>15} {:>6} "
+           "{:>8}")
+    print(fmt.format("case", "code", "method", "wall s", "CPU s", "crit. 2t", "vs new wall",
+                     "RMS px", "max px", "found/visible", "missed", "invented"))
+    for name, label, method, wall, cpu, s, crit in rows:
+        new = [r for r in rows if r[0] == name and r[1] == "new"]
+        ratio = f"{wall / new[0][3]:.1f}x" if new and label != "new" else "-"
+        if s is None:
+            print(fmt.format(name, label, method[:18], "-", "-", "-", "-", "-", "-", "-", "-",
+                             "-"))
+            continue
+        print(fmt.format(name, label, method[:18], f"{wall:.1f}", f"{cpu:.1f}",
+                         f"{crit[1]:.1f}", ratio, f"{s['rms']:.4f}", f"{s['max']:.4f}",
+                         f"{s['found']}/{s['truth']}", s["missed"], s["invented"]))
 
 
 if __name__ == "__main__":

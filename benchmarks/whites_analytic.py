@@ -44,13 +44,34 @@ def analytic_white(profile: CameraProfile, samples: int = 16, seed: int = 0,
     ----------
     profile : CameraProfile
     samples : int
-        Jittered samples per pixel and lenslet (a perfect square: √n × √n strata of the pixel
-        paired with a random permutation of √n × √n strata of the aperture).
+        Jittered samples per pixel and lenslet (a perfect square: √n × √n strata of the pixel,
+        each paired with a random stratum of the aperture).
     seed : int
     full_well_e, read_noise_e : float
         Electrons at the brightest pixel; read noise σ in electrons.
     noise : bool
         Add shot and read noise (else the expectation, scaled to 65535 at the peak).
+    """
+    return analytic_white_truth(profile, samples, seed, full_well_e, read_noise_e, noise)[0]
+
+
+def analytic_white_truth(profile: CameraProfile, samples: int = 16, seed: int = 0,
+                         full_well_e: float = 20000.0, read_noise_e: float = 3.0,
+                         noise: bool = True) -> tuple[np.ndarray, dict]:
+    """:func:`analytic_white` plus the truth of every lenslet that lights the sensor.
+
+    Returns
+    -------
+    white : (H, W) float
+    truth : dict
+        ``indices`` (N, 2) lattice indices (i, j) of the MLA grid; ``centroid_px`` (N, 2)
+        intensity centroid of each lenslet's own (noise-free) light; ``flux`` (N,);
+        ``complete`` (N,) the lenslet puts < 1e-4 of its light on the outermost pixel rows
+        and columns (its micro-image is fully on the sensor); ``sigma_px`` (N,) the noise-
+        limited error of an own-light centroid, √(σx² + σy²): pixel noise (shot at
+        ``full_well_e`` for the brightest pixel plus read noise, in the same units) split
+        between the lenslets sharing the pixel in proportion to their light,
+        σx² = Σ (x − cx)² · share² · var / flux².
     """
     rng = np.random.default_rng(seed)
     s = profile.sensor
@@ -69,41 +90,84 @@ def analytic_white(profile: CameraProfile, samples: int = 16, seed: int = 0,
     cols = np.arange(s.width_px, dtype=np.float64)
     st = (np.arange(k) + 0.5) / k - 0.5  # stratum centres in [−½, ½)
     su, sv = [a.ravel() for a in np.meshgrid(st, st)]
+    # lattice index range of every lenslet that can light the sensor (corners ± 3)
+    cu, cv = grid.lattice_coords((np.array([0, s.width_px, 0, s.width_px]) - ax) * pp / mag,
+                                 (np.array([0, 0, s.height_px, s.height_px]) - ay) * pp / mag)
+    ilo, jlo = int(np.floor(cu.min())) - 3, int(np.floor(cv.min())) - 3
+    ni, nj = int(np.ceil(cu.max())) + 4 - ilo, int(np.ceil(cv.max())) + 4 - jlo
+    # per lenslet: Σ e·(1, x, y); border light; for the noise: Σ share²·E·(1, x, y, x², y²)
+    # (shot part) and Σ share²·(…) (read part), combined at the end when the scale is known
+    mom = np.zeros((3, ni * nj))
+    border = np.zeros(ni * nj)
+    var_shot = np.zeros((5, ni * nj))
+    var_read = np.zeros((5, ni * nj))
     for r0 in range(0, s.height_px, rows):
         r1 = min(s.height_px, r0 + rows)
         yy, xx = np.meshgrid(np.arange(r0, r1, dtype=np.float64), cols, indexing="ij")
         xp, yp = xx.ravel(), yy.ravel()
         m = xp.size
+        edge_pix = (xp == 0) | (xp == s.width_px - 1) | (yp == 0) | (yp == s.height_px - 1)
         # the lenslet whose micro-image centre is nearest, and its 8 neighbours
         u, v = grid.lattice_coords((xp - ax) * pp / mag, (yp - ay) * pp / mag)
         i0, j0 = np.rint(u), np.rint(v)
         acc = np.zeros(m)
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                cx, cy = grid.centre_mm(i0 + di, j0 + dj)
-                for t in range(n):
-                    jit = rng.random((4, m)) / k
-                    # pixel stratum t, aperture stratum π(t) (a fresh permutation per pixel)
-                    q = rng.integers(0, n, m)
-                    sxm = (xp + su[t] + jit[0] - 0.5 / k - ax) * pp
-                    sym = (yp + sv[t] + jit[1] - 0.5 / k - ay) * pp
-                    a = su[q] + jit[2] - 0.5 / k
-                    b = sv[q] + jit[3] - 0.5 / k
-                    px = cx + basis[0, 0] * a + basis[0, 1] * b
-                    py = cy + basis[1, 0] * a + basis[1, 1] * b
-                    slx, sly = (sxm - cx) / fx, (sym - cy) / fx
-                    tr = trace_backward_fast(lens, px, py, d_in, slx, sly)
-                    ex, ey = sxm - px, sym - py
-                    cos2 = fx * fx / (fx * fx + ex * ex + ey * ey)
-                    acc += np.where(tr.ok, cos2 * cos2, 0.0)
-        out[r0:r1] = (acc / n).reshape(r1 - r0, s.width_px)
-    scale = full_well_e / out.max()
+        per = np.zeros((9, m))
+        ids = np.zeros((9, m), np.int64)
+        for q9, (di, dj) in enumerate((a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)):
+            cx, cy = grid.centre_mm(i0 + di, j0 + dj)
+            ids[q9] = (i0 + di - ilo).astype(np.int64) * nj + (j0 + dj - jlo).astype(np.int64)
+            for t in range(n):
+                jit = rng.random((4, m)) / k
+                # pixel stratum t, a random aperture stratum (drawn per pixel)
+                q = rng.integers(0, n, m)
+                sxm = (xp + su[t] + jit[0] - 0.5 / k - ax) * pp
+                sym = (yp + sv[t] + jit[1] - 0.5 / k - ay) * pp
+                a = su[q] + jit[2] - 0.5 / k
+                b = sv[q] + jit[3] - 0.5 / k
+                px = cx + basis[0, 0] * a + basis[0, 1] * b
+                py = cy + basis[1, 0] * a + basis[1, 1] * b
+                slx, sly = (sxm - cx) / fx, (sym - cy) / fx
+                tr = trace_backward_fast(lens, px, py, d_in, slx, sly)
+                ex, ey = sxm - px, sym - py
+                cos2 = fx * fx / (fx * fx + ex * ex + ey * ey)
+                per[q9] += np.where(tr.ok, cos2 * cos2, 0.0)
+        per /= n
+        acc = per.sum(axis=0)
+        share = per / np.where(acc > 0, acc, 1.0)
+        feats = np.stack([np.ones(m), xp, yp, xp * xp, yp * yp])
+        for q9 in range(9):
+            e = per[q9]
+            lit = e > 0
+            if not lit.any():
+                continue
+            li = ids[q9][lit]
+            for c_, f_ in enumerate((e, e * xp, e * yp)):
+                mom[c_] += np.bincount(li, f_[lit], ni * nj)
+            border += np.bincount(li, (e * edge_pix)[lit], ni * nj)
+            s2 = share[q9][lit] ** 2
+            for c_ in range(5):
+                var_shot[c_] += np.bincount(li, (s2 * acc[lit] * feats[c_][lit]), ni * nj)
+                var_read[c_] += np.bincount(li, (s2 * feats[c_][lit]), ni * nj)
+        out[r0:r1] = acc.reshape(r1 - r0, s.width_px)
+    scale = full_well_e / out.max()  # electrons per unit of ``out``
     electrons = out * scale
+    # noise-limited centroid error per lenslet (variance in units of ``out``²)
+    var = var_shot / scale + var_read * (read_noise_e / scale) ** 2
+    lit = mom[0] > 0
+    f0 = np.where(lit, mom[0], 1.0)
+    cxs, cys = mom[1] / f0, mom[2] / f0
+    sx2 = var[3] - 2 * cxs * var[1] + cxs * cxs * var[0]
+    sy2 = var[4] - 2 * cys * var[2] + cys * cys * var[0]
+    sigma = np.sqrt(np.maximum(sx2 + sy2, 0.0)) / f0
+    ii, jj = np.divmod(np.arange(ni * nj), nj)
+    truth = {"indices": np.column_stack([ii + ilo, jj + jlo])[lit],
+             "centroid_px": np.column_stack([cxs, cys])[lit], "flux": mom[0][lit],
+             "complete": (border < 1e-4 * mom[0])[lit], "sigma_px": sigma[lit]}
     if noise:
         electrons = rng.poisson(electrons).astype(np.float64)
         electrons += rng.normal(0.0, read_noise_e, electrons.shape)
     dn = electrons * (65535.0 / full_well_e)
-    return np.clip(np.rint(dn), 0, 65535)
+    return np.clip(np.rint(dn), 0, 65535), truth
 
 
 def _summary(cal, visible: int) -> str:
