@@ -90,3 +90,26 @@ def test_fixed_point_converges_from_rough_start():
 def test_overlapping_discs_keep_gauss_newton():
     assert not fixed_point_applies(DiscModel(8.79, 0.5, 0.0), 16.1)  # system 2
     assert fixed_point_applies(DiscModel(7.96, 0.6, 0.0), 16.4)  # system 1
+
+
+def test_threads_give_the_serial_result(monkeypatch):
+    """The chunked loops on threads (``lfcam.calibrate.parallel``) give the serial result:
+    small chunks, so a 560×420 white has 9–36 of them per loop, on 1 and on 3 threads."""
+    import lfcam.calibrate.microimage as micro
+
+    sw = make_touching_white(560, 420, 14.29, rotation_rad=np.deg2rad(0.7), noise=True,
+                             read_noise=3.0, vignetting=0.45)
+    monkeypatch.setattr(micro, "CHUNK", 128)
+    out = {}
+    for threads in ("1", "3"):
+        monkeypatch.setenv("LFCAM_THREADS", threads)
+        img, n_hot = prepare_white(sw.image)
+        out[threads] = (find_centres(img), n_hot)
+    (f1, h1), (f3, h3) = out["1"], out["3"]
+    assert h1 == h3
+    assert np.array_equal(f1.indices, f3.indices)
+    # the model image is summed in another order on threads (float32): a few 1e-6 px at most
+    assert np.abs(f1.centres_px - f3.centres_px).max() < 1e-4
+    matched, err = _match(f3.centres_px, sw.centres_px, 14.29)
+    assert matched.sum() >= len(sw.centres_px) - 2
+    assert float(np.sqrt(np.mean(err**2))) < 0.023

@@ -117,9 +117,9 @@ def _chunks(n: int, chunk: int = CHUNK):
         yield slice(s, min(n, s + chunk))
 
 
-def _run_chunks(fn, n: int, chunk: int = CHUNK) -> list:
+def _run_chunks(fn, n: int, chunk: int | None = None) -> list:
     """:func:`lfcam.calibrate.parallel.run_chunks` with this module's lens chunk."""
-    return run_chunks(fn, n, chunk)
+    return run_chunks(fn, n, CHUNK if chunk is None else chunk)
 
 
 def core_radius_px(model: DiscModel, pitch_px: float) -> float:
@@ -946,7 +946,7 @@ def circle_window_centroids(
     centres = np.array(start, dtype=np.float64)
     flux = np.zeros(len(centres))
     converged = np.zeros(len(centres), bool)
-    chunk = 4 * CHUNK
+    chunk = 4 * CHUNK  # read at call time (tests shrink CHUNK to exercise the threads)
 
     def gather(base: np.ndarray) -> np.ndarray:
         bx = np.clip(base[:, 0], 0, w - 1)
