@@ -315,15 +315,24 @@ def fit_discs(
         if it % 4 == 3:
             coef = planes()
         total = np.zeros(img.size)
-        cache = []
-        for sl in _chunks(len(c)):
+        lock = threading.Lock()
+
+        def model_part(sl: slice, c: np.ndarray = c, coef: np.ndarray = coef,
+                       total: np.ndarray = total, lock: threading.Lock = lock):
             p = _Patches(img.shape, c[sl], half)
             terms = _disc_terms(p, c[sl], coef[sl], model)
             mk = np.maximum(terms[5], 0.0) * terms[3]
-            total += np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=img.size)
-            cache.append((p, terms) if cache_ok else None)
+            part = np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=img.size)
+            with lock:  # one thread adds to the model image at a time (in order of completion:
+                total += part  # float64, the order changes it by ~1e-16)
+            return (p, terms) if cache_ok else None
+
+        cache = _run_chunks(model_part, len(c))
         new_c = c.copy()
-        for sl, hit in zip(_chunks(len(c)), cache, strict=True):
+
+        def step_part(sl: slice, c: np.ndarray = c, coef: np.ndarray = coef, cache: list = cache,
+                      total: np.ndarray = total, new_c: np.ndarray = new_c) -> None:
+            hit = cache[sl.start // CHUNK]
             if hit is None:
                 p = _Patches(img.shape, c[sl], half)
                 hit = (p, _disc_terms(p, c[sl], coef[sl], model))
@@ -347,6 +356,8 @@ def fit_discs(
             dc = damping * np.clip(np.column_stack([sx, sy]), -0.5, 0.5)
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
+
+        _run_chunks(step_part, len(c))
         new_c[hold] = c[hold]
         step[fixed | held] = 0.0
         c = new_c
