@@ -311,6 +311,8 @@ def fit_discs(
 
     coef = planes()
     cache_ok = len(c) * (2 * half + 1) ** 2 <= CACHE_PIXELS
+    # at least four chunks, so that a full sensor of ~10 000 lenses keeps the threads busy
+    chunk = max(512, min(CHUNK, -(-len(c) // 4)))
     for it in range(iterations):
         if it % 4 == 3:
             coef = planes()
@@ -327,12 +329,12 @@ def fit_discs(
                 total += part  # float64, the order changes it by ~1e-16)
             return (p, terms) if cache_ok else None
 
-        cache = _run_chunks(model_part, len(c))
+        cache = _run_chunks(model_part, len(c), chunk)
         new_c = c.copy()
 
         def step_part(sl: slice, c: np.ndarray = c, coef: np.ndarray = coef, cache: list = cache,
                       total: np.ndarray = total, new_c: np.ndarray = new_c) -> None:
-            hit = cache[sl.start // CHUNK]
+            hit = cache[sl.start // chunk]
             if hit is None:
                 p = _Patches(img.shape, c[sl], half)
                 hit = (p, _disc_terms(p, c[sl], coef[sl], model))
@@ -357,7 +359,7 @@ def fit_discs(
             new_c[sl] = c[sl] + dc
             step[sl] = np.abs(dc).max(axis=1)
 
-        _run_chunks(step_part, len(c))
+        _run_chunks(step_part, len(c), chunk)
         new_c[hold] = c[hold]
         step[fixed | held] = 0.0
         c = new_c
