@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from lfcam.errors import OpticsError, ProfileError
-from lfcam.optics.lens import Prescription
+from lfcam.optics.lens import Prescription, ideal_lens
 from lfcam.validate import Fields
 
 if sys.version_info >= (3, 11):
@@ -27,6 +27,33 @@ else:  # pragma: no cover - exercised on 3.10 only
 GRIDS = ("rect", "hex")
 BAYER_PATTERNS = ("none", "RGGB", "BGGR", "GRBG", "GBRG")
 FOCAL_LENGTH_RTOL = 1e-4  # docs/profiles.md: a stated focal length must agree to 0.01 %
+
+
+@dataclass(frozen=True)
+class BlackBox:
+    """What is known of a main lens whose prescription is not (CONTRACT §2a, black-box form).
+
+    Parameters
+    ----------
+    focal_length_mm : float
+        Focal length printed on the barrel or stored by the camera.
+    f_number : float
+        Infinity f-number.
+    exit_pupil_mm : float or None
+        Exit pupil → MLA distance (positive when the exit pupil lies in front of the MLA),
+        when known (Lytro metadata ``exitPupilOffset``).
+    """
+
+    focal_length_mm: float
+    f_number: float
+    exit_pupil_mm: float | None = None
+
+    def to_dict(self) -> dict:
+        """The ``[main_lens]`` table of this form."""
+        out = {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number}
+        if self.exit_pupil_mm is not None:
+            out["exit_pupil_mm"] = self.exit_pupil_mm
+        return out
 
 
 @dataclass(frozen=True)
@@ -52,6 +79,11 @@ class MainLens:
         :attr:`rim_z_mm`).
     prescription : Prescription or None
         General form; leave the singlet fields unset.
+    black_box : BlackBox or None
+        Set for the **black-box** form (focal length and f-number only): ``prescription`` is
+        then only a *seed* ideal lens (:func:`lfcam.optics.lens.ideal_lens`), good for
+        drawing and first guesses; distances need the lens learned from target captures
+        (``lfcam calibrate --targets``, :mod:`lfcam.calibrate.lensfit`).
     """
 
     radius_mm: float | None = None
@@ -59,8 +91,11 @@ class MainLens:
     refractive_index: float | None = None
     pupil_diameter_mm: float | None = None
     prescription: Prescription | None = field(default=None, compare=True)
+    black_box: BlackBox | None = None
 
     def __post_init__(self) -> None:
+        if self.black_box is not None and self.prescription is None:
+            raise ProfileError("main lens: a black box needs its seed prescription")
         singlet = (self.radius_mm, self.thickness_mm, self.refractive_index)
         if self.prescription is None:
             if any(v is None for v in singlet) or self.pupil_diameter_mm is None:
@@ -82,6 +117,11 @@ class MainLens:
     def is_singlet(self) -> bool:
         """True for the seed's symmetric biconvex singlet form."""
         return self.prescription is None
+
+    @property
+    def is_black_box(self) -> bool:
+        """True for the black-box form: the prescription is a seed, not the lens."""
+        return self.black_box is not None
 
     @property
     def as_prescription(self) -> Prescription:
@@ -206,7 +246,9 @@ class MainLens:
         return z_mm - self.front_vertex_z_mm
 
     def to_dict(self) -> dict:
-        """The ``[main_lens]`` table of a profile (singlet keys or ``surfaces``)."""
+        """The ``[main_lens]`` table of a profile (singlet keys, ``surfaces`` or black box)."""
+        if self.black_box is not None:
+            return self.black_box.to_dict()
         if self.is_singlet:
             return {
                 "radius_mm": self.radius_mm, "thickness_mm": self.thickness_mm,
@@ -313,6 +355,12 @@ class CameraProfile:
             return self.mla.distance_mm
         if self.mla.focus_mm is not None:
             return self.main_lens.d_in_for_focus(self.mla.focus_mm)
+        if self.main_lens.is_black_box:
+            raise ProfileError(
+                f"profile {self.name!r}: the main lens is a black box (focal length, f-number) "
+                "and the MLA distance is unknown: calibrate with --targets first, or give "
+                "--d-in / --focus"
+            )
         raise ProfileError(
             f"profile {self.name!r}: mla.distance_mm (d_in) is unknown: set mla.distance_mm or "
             "mla.focus_mm, or calibrate it from a reference-plane capture"
@@ -381,8 +429,55 @@ _SINGLET_KEYS = {"radius_mm", "thickness_mm", "refractive_index", "pupil_diamete
                  "focal_length_mm"}
 
 
-def _main_lens_from_table(ml: dict, source: str = "") -> MainLens:
-    """``[main_lens]``: the singlet keys, ``surfaces = [...]`` or ``zmx = "lens.zmx"``."""
+_BLACK_BOX_KEYS = {"focal_length_mm", "f_number", "exit_pupil_mm", "name"}
+
+
+def _black_box_from_table(ml: dict, mt: dict) -> MainLens:
+    """The black-box ``[main_lens]`` (CONTRACT §2a) and its seed ideal lens.
+
+    The seed: principal plane at the lens front; the MLA at ``mla.distance_mm`` when given,
+    else where ``mla.focus_mm`` (default infinity) is in paraxial focus; the exit pupil
+    ``exit_pupil_mm`` in front of that MLA, else on the principal plane.
+    """
+    _known_keys(ml, "main_lens", _BLACK_BOX_KEYS)
+    if "f_number" not in ml:
+        raise ProfileError(
+            "main_lens: a lens given by its focal length alone also needs f_number (black-box "
+            "form), or the singlet keys / surfaces"
+        )
+    f = _check_positive("main_lens.focal_length_mm", _required(ml, "main_lens", "focal_length_mm"))
+    n_f = _check_positive("main_lens.f_number", ml["f_number"])
+    if n_f < 0.3 or n_f > 1000.0:
+        raise ProfileError(f"main_lens.f_number: implausible, got {n_f} (0.3 to 1000)")
+    xp = None
+    if "exit_pupil_mm" in ml:
+        xp = _number("main_lens.exit_pupil_mm", ml["exit_pupil_mm"])
+        if abs(xp) > 100.0 * f:
+            raise ProfileError(
+                f"main_lens.exit_pupil_mm: implausible, {xp} mm for a {f} mm lens"
+            )
+    name = ml.get("name", "black box")
+    if not isinstance(name, str):
+        raise ProfileError("main_lens.name: expected a string")
+    box = BlackBox(focal_length_mm=f, f_number=n_f, exit_pupil_mm=xp)
+    d_in = mt.get("distance_mm") if isinstance(mt, dict) else None
+    if isinstance(d_in, (int, float)) and not isinstance(d_in, bool) and d_in > 0:
+        d_in = float(d_in)
+    else:
+        focus = mt.get("focus_mm", math.inf) if isinstance(mt, dict) else math.inf
+        if isinstance(focus, (int, float)) and not isinstance(focus, bool) and focus > f:
+            d_in = f + (1.0 / (1.0 / f - 1.0 / focus) - f if math.isfinite(focus) else 0.0)
+        else:
+            d_in = f
+    seed = ideal_lens(f, n_f, 0.0, None if xp is None else d_in - xp, name=name)
+    return MainLens(prescription=seed, black_box=box)
+
+
+def _main_lens_from_table(ml: dict, source: str = "", mla_table: dict | None = None) -> MainLens:
+    """``[main_lens]``: the singlet keys, ``surfaces = [...]``, ``zmx = "lens.zmx"`` or the
+    black box (``focal_length_mm``, ``f_number``, optional ``exit_pupil_mm``)."""
+    if {"f_number", "exit_pupil_mm"} & set(ml) or set(ml) <= {"focal_length_mm", "name"}:
+        return _black_box_from_table(ml, mla_table if mla_table is not None else {})
     forms = [k for k in ("surfaces", "zmx") if k in ml]
     if forms:
         if len(forms) > 1 or set(ml) & (_SINGLET_KEYS - {"focal_length_mm"}):
@@ -487,9 +582,9 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
         raise ProfileError(f"name: expected a string, got {name!r}")
 
     ml = _table(data, "main_lens")
-    lens = _main_lens_from_table(ml, source)
-
     mt = _table(data, "mla")
+    lens = _main_lens_from_table(ml, source, mt)
+
     _known_keys(
         mt,
         "mla",

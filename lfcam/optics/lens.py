@@ -47,12 +47,25 @@ class Surface:
         Conic constant k (0 sphere, −1 paraboloid, < −1 hyperboloid, > 0 oblate ellipsoid).
     stop : bool
         True on the aperture-stop surface (exactly one per prescription).
+    focal_length_mm : float or None
+        ``None`` (default): an ordinary refracting surface. A number makes this an **ideal
+        (paraxial) surface**, like Zemax's ``PARAXIAL`` type: flat (``radius_mm`` must be
+        infinite, sag 0), air on both sides, and it bends a ray that meets it at (x, y) in
+        tangent space, slope s = (dx/dz, dy/dz): ``s_out = s_in − (x, y)·P(r)``, with
+        ``P(r) = 1/f + a1·r² + a2·r⁴ + …`` (r² = x² + y²). Every object plane is imaged
+        perfectly onto its Gaussian image plane when ``spherical`` is empty.
+    spherical : tuple of float
+        Ideal surface only: the aberration coefficients (a1, a2, …) of P(r), aᵢ in mm^−(2i+1)
+        (a1 in mm⁻³, a2 in mm⁻⁵). A positive a1 makes the margin stronger than the paraxial
+        zone (under-corrected spherical aberration, as a simple positive lens).
 
     Raises
     ------
     ProfileError
         On a non-finite or non-positive index or semi-diameter, a zero or NaN radius, a
-        non-finite thickness, or a semi-diameter beyond the edge of the conic.
+        non-finite thickness, or a semi-diameter beyond the edge of the conic; for an ideal
+        surface, a curved or conic surface, a zero or non-finite focal length, glass after it,
+        or a non-finite aberration coefficient.
     """
 
     radius_mm: float
@@ -61,6 +74,8 @@ class Surface:
     semi_diameter_mm: float
     conic: float = 0.0
     stop: bool = False
+    focal_length_mm: float | None = None
+    spherical: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("radius_mm", "thickness_mm", "refractive_index", "semi_diameter_mm", "conic"):
@@ -87,6 +102,47 @@ class Surface:
                 f"semi_diameter_mm {h} reaches beyond the edge of the surface "
                 f"(radius {self.radius_mm}, conic {self.conic})"
             )
+        self._check_ideal()
+
+    def _check_ideal(self) -> None:
+        """Validate the ideal-surface fields (see the class docstring)."""
+        coeffs = tuple(self.spherical)
+        for a in coeffs:
+            if isinstance(a, bool) or not isinstance(a, (int, float, np.floating)):
+                raise ProfileError(f"spherical: coefficients must be numbers, got {a!r}")
+            if not math.isfinite(float(a)):
+                raise ProfileError(f"spherical: coefficients must be finite, got {a!r}")
+        object.__setattr__(self, "spherical", tuple(float(a) for a in coeffs))
+        f = self.focal_length_mm
+        if f is None:
+            if self.spherical:
+                raise ProfileError("spherical: only an ideal surface (focal_length_mm) takes it")
+            return
+        if isinstance(f, bool) or not isinstance(f, (int, float, np.floating)):
+            raise ProfileError(f"focal_length_mm must be a number, got {f!r}")
+        f = float(f)
+        if not math.isfinite(f) or f == 0.0:
+            raise ProfileError(f"focal_length_mm must be finite and non-zero, got {f}")
+        object.__setattr__(self, "focal_length_mm", f)
+        if not math.isinf(self.radius_mm) or self.conic != 0.0:
+            raise ProfileError("an ideal surface (focal_length_mm) is flat: radius_mm = inf")
+        if self.refractive_index != 1.0:
+            raise ProfileError("an ideal surface (focal_length_mm) has air after it (index 1)")
+
+    @property
+    def is_ideal(self) -> bool:
+        """True for an ideal (paraxial) surface."""
+        return self.focal_length_mm is not None
+
+    def ideal_power_per_mm(self, r2_mm2: np.ndarray | float) -> np.ndarray | float:
+        """P(r) = 1/f + a1·r² + a2·r⁴ + … of an ideal surface at r² = ``r2_mm2``."""
+        r2 = np.asarray(r2_mm2, dtype=np.float64)
+        out = np.full(r2.shape, 1.0 / self.focal_length_mm)
+        term = np.ones(r2.shape)
+        for a in self.spherical:
+            term = term * r2
+            out = out + a * term
+        return out if out.ndim else float(out)
 
     @property
     def curvature_per_mm(self) -> float:
@@ -192,6 +248,12 @@ class Prescription:
                 f"main_lens.surfaces: exactly one surface must be the stop, found "
                 f"{len(stops)}{where}"
             )
+        nb = self.index_before
+        for i, s in enumerate(surfaces):
+            if s.is_ideal and nb[i] != 1.0:
+                raise ProfileError(
+                    f"main_lens.surfaces[{i}]: an ideal surface needs air before it too"
+                )
 
     # ------------------------------------------------------------------ construction
 
@@ -278,7 +340,10 @@ class Prescription:
             if i > first:
                 prev = self.surfaces[i - 1]
                 m = _transfer(prev.thickness_mm, prev.refractive_index) @ m
-            m = _refraction(nb[i], s.refractive_index, s.curvature_per_mm) @ m
+            if s.is_ideal:  # thin lens in air: nu' = nu - y/f
+                m = np.array([[1.0, 0.0], [-1.0 / s.focal_length_mm, 1.0]]) @ m
+            else:
+                m = _refraction(nb[i], s.refractive_index, s.curvature_per_mm) @ m
         return m
 
     def system_matrix(self) -> np.ndarray:
@@ -460,3 +525,68 @@ class Prescription:
                 exp_z = vz[last] + gap
                 exp_d = 2.0 * sd * abs(pa + gap * pc / n_img)
         return float(enp_z), float(enp_d), float(exp_z), float(exp_d)
+
+
+def ideal_lens(
+    focal_length_mm: float,
+    f_number: float,
+    principal_z_mm: float = 0.0,
+    exit_pupil_z_mm: float | None = None,
+    spherical: tuple[float, ...] = (),
+    name: str = "ideal lens",
+) -> Prescription:
+    """A first-order lens as a prescription of ideal surfaces: the black-box main lens.
+
+    Surfaces: 0, a flat dummy at the lens front (z = 0, where object distances start); 1, an
+    ideal surface (:class:`Surface` with ``focal_length_mm``) at ``principal_z_mm`` (both
+    principal planes; a thick lens's H–H′ separation is a shift of image space, which the MLA
+    distance absorbs); 2, the aperture stop, placed in image space at the exit pupil
+    (``exit_pupil_z_mm``; default: on the ideal surface), so the exit pupil *is* the stop and
+    the entrance pupil its image through the ideal surface. The stop radius gives the stated
+    infinity f-number (EFL / entrance-pupil diameter). The stop's thickness may be negative
+    (an exit pupil in front of the ideal surface is a virtual one; rays are traced along
+    their image-space lines to it).
+
+    Parameters
+    ----------
+    focal_length_mm : float
+        EFL f (> 0).
+    f_number : float
+        Infinity f-number f / D_entrance (> 0).
+    principal_z_mm : float
+        Lens front → principal plane.
+    exit_pupil_z_mm : float or None
+        z of the exit pupil (front-vertex frame); ``None``: the principal plane.
+    spherical : tuple of float
+        Aberration coefficients of the ideal surface (see :class:`Surface`).
+    name : str
+        Label.
+
+    Raises
+    ------
+    ProfileError
+        On a non-positive focal length or f-number, or an exit pupil in the rear focal plane
+        (the entrance pupil would be at infinity, no f-number can be set).
+    """
+    f, n_f = float(focal_length_mm), float(f_number)
+    if not (math.isfinite(f) and f > 0.0):
+        raise ProfileError(f"main_lens.focal_length_mm must be positive, got {focal_length_mm}")
+    if not (math.isfinite(n_f) and n_f > 0.0):
+        raise ProfileError(f"main_lens.f_number must be positive, got {f_number}")
+    h = float(principal_z_mm)
+    z_xp = h if exit_pupil_z_mm is None else float(exit_pupil_z_mm)
+    if not (math.isfinite(h) and math.isfinite(z_xp)):
+        raise ProfileError("ideal lens: the principal plane and exit pupil must be finite")
+    big = 20.0 * f  # dummy and ideal surfaces never vignette; the stop does
+    # entrance pupil = the stop imaged backward by the ideal surface: height scale 1/|A|
+    e = z_xp - h  # ideal surface → stop (image space)
+    a = 1.0 - e / f
+    if abs(a) < 1e-9:
+        raise ProfileError(
+            "ideal lens: the exit pupil lies in the rear focal plane (entrance pupil at infinity)"
+        )
+    stop_semi = 0.5 * (f / n_f) * abs(a)
+    front = Surface(math.inf, h, 1.0, big)
+    lens = Surface(math.inf, e, 1.0, big, focal_length_mm=f, spherical=tuple(spherical))
+    stop = Surface(math.inf, 0.0, 1.0, stop_semi, stop=True)
+    return Prescription((front, lens, stop), name=name)

@@ -148,6 +148,18 @@ def _run(
             h2 = s.semi_diameter_mm * s.semi_diameter_mm * (1.0 + RIM_TOLERANCE)
             _flag(status, surface, r2 > h2, RayStatus.VIGNETTED, i)
         z1 = vz[i] + zl
+        if s.is_ideal:
+            if last_refracts or i != last:
+                # ideal surface, tangent space: s_out = s_in − (x, y)·P(r) forward,
+                # s_in = s_out + (x, y)·P(r) backward; the direction keeps its sense of z
+                p = s.ideal_power_per_mm(x1 * x1 + y1 * y1)
+                sx = dx / dz - sign * x1 * p
+                sy = dy / dz - sign * y1 * p
+                dz = sign / np.sqrt(1.0 + sx * sx + sy * sy)
+                dx = sx * dz
+                dy = sy * dz
+            x, y, z = x1, y1, z1
+            continue
         if reverse:
             n1, n2 = s.refractive_index, n_before[i]
         else:

@@ -2,7 +2,8 @@
 
 Zemax support (read only): ``UNIT MM``; ``SURF`` blocks of ``TYPE STANDARD`` with ``CURV``
 (curvature, 1/mm), ``DISZ`` (thickness; ``INFINITY`` on the object surface), ``CONI``,
-``DIAM`` (semi-diameter), ``STOP`` and ``GLAS``. A glass is either a name from
+``DIAM`` (semi-diameter), ``STOP`` and ``GLAS``; ``TYPE PARAXIAL`` (an ideal surface,
+``PARM 1`` = its focal length; :class:`~lfcam.optics.lens.Surface`). A glass is either a name from
 :data:`GLASS_ND` or the explicit model form ``GLAS ___BLANK 1 0 <nd> <vd> ...`` (the index is
 the 4th token). Everything is taken at the d line (587.56 nm): lfcam is monochromatic.
 The object surface (``SURF 0``) and the image surface (the last one) are dropped; the last
@@ -10,7 +11,7 @@ lens surface keeps its ``DISZ`` (the design's image gap) as ``thickness_mm``, wh
 model ignores. Files may be UTF-16 (LE/BE, with BOM — Zemax's default) or UTF-8/ASCII.
 
 Not supported (clear :class:`~lfcam.errors.ZmxError` naming the surface): other surface
-types (even asphere, paraxial, coordinate breaks, gratings…), mirrors, decentres/tilts,
+types (even asphere, coordinate breaks, gratings…), mirrors, decentres/tilts,
 glasses not in the table, other units.
 """
 
@@ -155,6 +156,7 @@ def parse_zmx(text: str) -> ZmxLens:
                 "diam": None,
                 "stop": False,
                 "glass": None,
+                "parm": {},
             }
             blocks.append(current)
         elif current is not None:
@@ -173,6 +175,10 @@ def parse_zmx(text: str) -> ZmxLens:
                 current["stop"] = True
             elif key == "GLAS":
                 current["glass"] = tokens[1:]
+            elif key == "PARM" and len(tokens) > 2:
+                current["parm"][int(_number(tokens[1], "PARM index", n))] = _number(
+                    tokens[2], "PARM", n
+                )
     return _build(blocks, name)
 
 
@@ -208,8 +214,17 @@ def _build(blocks: list[dict[str, Any]], name: str) -> ZmxLens:
     surfaces = []
     for b in lens_blocks:
         n = b["number"]
-        if b["type"] != "STANDARD":
-            raise ZmxError(f"SURF {n}: surface TYPE {b['type']} is not supported (STANDARD only)")
+        if b["type"] not in ("STANDARD", "PARAXIAL"):
+            raise ZmxError(
+                f"SURF {n}: surface TYPE {b['type']} is not supported (STANDARD, PARAXIAL)"
+            )
+        ideal = None
+        if b["type"] == "PARAXIAL":  # PARM 1 = focal length; flat, air after it
+            ideal = b["parm"].get(1)
+            if ideal is None or ideal == 0.0:
+                raise ZmxError(
+                    f"SURF {n}: a PARAXIAL surface needs a non-zero PARM 1 (focal length)"
+                )
         if b["diam"] is None or not b["diam"] > 0.0:
             raise ZmxError(f"SURF {n}: needs a positive DIAM (semi-diameter)")
         if not math.isfinite(b["disz"]):
@@ -224,6 +239,7 @@ def _build(blocks: list[dict[str, Any]], name: str) -> ZmxLens:
                     semi_diameter_mm=b["diam"],
                     conic=b["coni"],
                     stop=b["stop"],
+                    focal_length_mm=ideal,
                 )
             )
         except ProfileError as err:
@@ -252,6 +268,8 @@ def load_zmx(path: str | Path) -> ZmxLens:
 
 _REQUIRED = ("radius_mm", "thickness_mm", "refractive_index", "semi_diameter_mm")
 _OPTIONAL = ("conic", "stop")
+_IDEAL_REQUIRED = ("focal_length_mm", "thickness_mm", "semi_diameter_mm")
+_IDEAL_OPTIONAL = ("spherical", "stop")
 
 
 def prescription_to_toml_dict(prescription: Prescription, gap_mm: float | None = None) -> dict:
@@ -262,6 +280,18 @@ def prescription_to_toml_dict(prescription: Prescription, gap_mm: float | None =
     """
     rows = []
     for s in prescription.surfaces:
+        if s.is_ideal:
+            row = {
+                "focal_length_mm": s.focal_length_mm,
+                "thickness_mm": s.thickness_mm,
+                "semi_diameter_mm": s.semi_diameter_mm,
+            }
+            if s.spherical:
+                row["spherical"] = list(s.spherical)
+            if s.stop:
+                row["stop"] = True
+            rows.append(row)
+            continue
         row: dict[str, Any] = {
             "radius_mm": s.radius_mm,
             "thickness_mm": s.thickness_mm,
@@ -298,14 +328,28 @@ def prescription_from_toml_dict(data: dict) -> Prescription:
         where = f"main_lens.surfaces[{i}]"
         if not isinstance(row, dict):
             raise ProfileError(f"{where}: must be a table, got {row!r}")
-        unknown = sorted(set(row) - set(_REQUIRED) - set(_OPTIONAL))
+        ideal = "focal_length_mm" in row
+        required, optional = (
+            (_IDEAL_REQUIRED, _IDEAL_OPTIONAL) if ideal else (_REQUIRED, _OPTIONAL)
+        )
+        unknown = sorted(set(row) - set(required) - set(optional))
         if unknown:
-            raise ProfileError(f"{where}: unknown key(s) {', '.join(unknown)}")
-        missing = [k for k in _REQUIRED if k not in row]
+            what = " (an ideal surface takes focal_length_mm, thickness_mm, semi_diameter_mm, " \
+                "spherical, stop)" if ideal else ""
+            raise ProfileError(f"{where}: unknown key(s) {', '.join(unknown)}{what}")
+        missing = [k for k in required if k not in row]
         if missing:
             raise ProfileError(f"{where}: missing {', '.join(missing)}")
+        kwargs = dict(row)
+        if ideal:
+            kwargs.update(radius_mm=math.inf, refractive_index=1.0)
+            if "spherical" in kwargs:
+                sph = kwargs["spherical"]
+                if not isinstance(sph, list):
+                    raise ProfileError(f"{where}.spherical: expected a list of numbers")
+                kwargs["spherical"] = tuple(sph)
         try:
-            surfaces.append(Surface(**row))
+            surfaces.append(Surface(**kwargs))
         except ProfileError as err:
             raise ProfileError(f"{where}.{err}") from None
     return Prescription(tuple(surfaces))
