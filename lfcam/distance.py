@@ -198,6 +198,12 @@ def run_distance(
         The image does not fit the profile's sensor or the calibration's white image.
     """
     check_distance_model(model)
+    from lfcam.calibrate.lensfit import calibration_sigma_mm, resolve_profile
+
+    learned = None
+    if profile.main_lens.is_black_box:  # the lens learned from targets replaces the seed
+        learned = None if calibration is None else calibration.learned_lens
+        profile = resolve_profile(profile, calibration)
     if method not in METHODS:
         raise ModelError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     t0 = time.perf_counter()
@@ -248,6 +254,15 @@ def run_distance(
         ))
         measurements.append(meas)
     results, checks = _gate_regions(profile, geom, stats, regions, results, measurements)
+    if learned is not None:  # the learned lens's parameter covariance, in quadrature
+        from dataclasses import replace as _replace
+
+        results = [
+            _replace(r, uncertainty_mm=float(np.hypot(
+                r.uncertainty_mm, calibration_sigma_mm(learned, profile, r.distance_mm))))
+            if r.status == RegionStatus.OK and np.isfinite(r.distance_mm) else r
+            for r in results
+        ]
     for reg, res in zip(regions, results, strict=True):
         if res.status == RegionStatus.OK:
             paint_region(dmap, reg, geom.lmap, geom.pitch_px, res.distance_mm)

@@ -152,7 +152,11 @@ def process_capture(job: Job) -> dict:
         profile = profile_for_capture(path, s.profile)
         cap = load_capture(path, profile)
         image = cap.grey()
-        geom = _geometry(job.calibration_sha256, profile, image.shape)
+        from lfcam.calibrate.lensfit import resolve_profile
+
+        geom = _geometry(job.calibration_sha256,
+                         resolve_profile(profile, _CALIBRATIONS[job.calibration_sha256]),
+                         image.shape)
         run = run_distance(image, profile, _CALIBRATIONS[job.calibration_sha256],
                            model=s.model, method=s.method, tolerance_pct=s.tolerance_pct,
                            fast=s.fast, geometry=geom)

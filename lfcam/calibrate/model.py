@@ -88,6 +88,10 @@ class Calibration:
     diagnostics : dict
     lattice_radial : tuple or None
         (cx, cy, k1, k2) of the radial term of ``projective+radial`` (ρ in units of 1000 px).
+    learned_lens : dict or None
+        The main lens learned from target captures (``lfcam calibrate --targets``,
+        :meth:`lfcam.calibrate.lensfit.LensFit.to_dict`): ideal-surface prescription,
+        ``d_in_mm``, parameters, σ, covariance, kept terms, per-source residuals.
     quality : dict or None
         The quality block (:mod:`lfcam.calibrate.quality`: coverage, residual, misfit,
         ``verdict`` ``ok``/``poor``, ``reasons``, ``accepted_poor``); None = unknown (a
@@ -117,6 +121,7 @@ class Calibration:
     lattice_radial: tuple | None = None
     quality: dict | None = None
     source: str = ""
+    learned_lens: dict | None = None
 
     def __post_init__(self) -> None:
         for name in ("centres_px", "indices", "lattice_matrix"):
@@ -397,6 +402,7 @@ def to_json_dict(cal: Calibration) -> dict:
         "rejected_px": [[round(x, 4), round(y, 4), r] for x, y, r in cal.rejected_px],
         "diagnostics": cal.diagnostics,
         **({} if cal.quality is None else {"quality": cal.quality}),
+        **({} if cal.learned_lens is None else {"learned_lens": cal.learned_lens}),
         "centres_px": np.round(cal.centres_px, 5).tolist(),
         "indices": cal.indices.tolist(),
     }
@@ -576,9 +582,17 @@ def calibration_from_dict(d: Any, source: str = "") -> Calibration:
         lattice_radial=radial,
         quality=_quality_from_dict(d.get("quality"), where),
         source=source,
+        learned_lens=None if d.get("learned_lens") is None else _learned_from_dict(
+            d["learned_lens"], where),
     )
     _check_plausible(cal, where)
     return cal
+
+
+def _learned_from_dict(block: Any, where: str) -> dict:
+    from lfcam.calibrate.lensfit import validate_learned
+
+    return validate_learned(block, where)
 
 
 def _quality_from_dict(q: Any, where: str) -> dict | None:

@@ -1,5 +1,5 @@
 """``lfcam calibrate WHITE [--dark DARK] [--profile P] [--reference CAPTURE
---reference-distance MM] -o calib.json``."""
+--reference-distance MM | --targets targets.csv] -o calib.json``."""
 
 from __future__ import annotations
 
@@ -37,6 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "at --reference-distance; d_in is then calibrated and stored (needs --profile)")
     p.add_argument("--reference-distance", metavar="MM", type=positive_float,
                    help="dot plane → front vertex of the main lens, mm")
+    p.add_argument("--targets", metavar="CSV",
+                   help="learn a black-box main lens (and d_in) from captures of point sources "
+                   "on planes at known distances: CSV columns capture,distance_mm (paths "
+                   "relative to the CSV's folder; distance = plane → lens front, mm). Needs "
+                   "--profile in the black-box form (focal_length_mm, f_number)")
     p.add_argument("-o", "--output", required=True, help="calibration JSON to write")
     p.add_argument("--accept-poor", action="store_true",
                    help="write a calibration that fails the quality gates (coverage, lattice "
@@ -60,13 +65,33 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError("--reference and --reference-distance go together")
     if ref is not None and args.profile is None:
         raise CalibrationError("--reference needs --profile (main lens, MLA and sensor)")
+    targets_csv = getattr(args, "targets", None)
+    if targets_csv is not None:
+        if args.profile is None:
+            raise CalibrationError("--targets needs --profile (the black-box main lens, MLA "
+                                   "and sensor)")
+        if ref is not None:
+            raise CalibrationError("--targets learns d_in with the lens: leave out --reference")
     refuse_overwrite([*capture_files(args.white), *capture_files(args.dark),
-                      profile_file(args.profile), ref], [out])
+                      profile_file(args.profile), ref, targets_csv], [out])
     check_output_dir(out.parent)
     with terminal_progress(args.quiet) as bar:
         cal = calibrate_white_file(args.white, dark=args.dark, profile=args.profile,
-                                   output=None if ref is not None else out,
+                                   output=None if (ref or targets_csv) else out,
                                    progress=bar, accept_poor=args.accept_poor)
+        fit = None
+        if targets_csv is not None and not (cal.is_poor and not args.accept_poor):
+            from dataclasses import replace
+
+            from lfcam.calibrate import save_calibration
+            from lfcam.calibrate.lensfit import fit_lens, read_targets
+            from lfcam.camera import load_profile
+
+            prof = load_profile(args.profile)
+            fit = fit_lens(prof, cal, read_targets(targets_csv, prof), progress=bar)
+            cal = replace(cal, learned_lens=fit.to_dict(), d_in_mm=fit.d_in_mm,
+                          d_in_method="lens-fit")
+            save_calibration(cal, out)
     if cal.is_poor and not args.accept_poor:  # the reference route: nothing written yet
         raise CalibrationQualityError(
             f"{args.white}: poor calibration, not written: {'; '.join(cal.quality['reasons'])}"
@@ -89,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         "rejected": cal.rejected, "d_in_mm": cal.d_in_mm, "d_in_method": cal.d_in_method,
         "quality": cal.quality,
     }
+    if fit is not None:
+        summary["learned_lens"] = fit.to_dict()
     if din is not None:
         summary.update(d_in_sigma_mm=din.sigma_mm, d_in_paraxial_mm=din.d_in_paraxial_mm,
                        reference_dots=din.n_dots)
@@ -100,6 +127,16 @@ def run(args: argparse.Namespace) -> int:
               f"{cal.rotation_rad:.6f} rad, {cal.model} model, residual RMS "
               f"{cal.residual_rms_px:.4f} px; rejected: {rej}; quality "
               f"{cal.quality['verdict'] if cal.quality else 'unknown'} -> {out}")
+        if fit is not None:
+            print(f"learned lens from {fit.n_sources} sources on {fit.n_planes} planes "
+                  f"({fit.iterations} rounds):")
+            for name, v, sg in zip(fit.names, fit.values, fit.sigma, strict=True):
+                print(f"  {name:18s} {v:12.4f} ± {sg:.4f}   {fit.why[name]}")
+            print(f"  kept terms: {', '.join(fit.kept)}")
+            print("  target  plane_mm  fitted_mm  error_%  x_px  y_px")
+            for r in fit.residuals:
+                print(f"  {r.target}  {r.distance_mm:9.2f}  {r.fitted_mm:9.2f}  "
+                      f"{r.error_pct:+7.3f}  {r.x_px:6.1f}  {r.y_px:6.1f}")
         if din is not None:
             # σ needs at least two dots; the paraxial seed may not exist: print only numbers
             sigma = f" ± {din.sigma_mm:.4f}" if math.isfinite(din.sigma_mm) else ""

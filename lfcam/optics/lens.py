@@ -529,11 +529,12 @@ class Prescription:
 
 def ideal_lens(
     focal_length_mm: float,
-    f_number: float,
+    f_number: float | None,
     principal_z_mm: float = 0.0,
     exit_pupil_z_mm: float | None = None,
     spherical: tuple[float, ...] = (),
     name: str = "ideal lens",
+    exit_pupil_diameter_mm: float | None = None,
 ) -> Prescription:
     """A first-order lens as a prescription of ideal surfaces: the black-box main lens.
 
@@ -551,8 +552,9 @@ def ideal_lens(
     ----------
     focal_length_mm : float
         EFL f (> 0).
-    f_number : float
-        Infinity f-number f / D_entrance (> 0).
+    f_number : float or None
+        Infinity f-number f / D_entrance (> 0); or ``None`` and give
+        ``exit_pupil_diameter_mm`` (the stop's diameter) instead.
     principal_z_mm : float
         Lens front → principal plane.
     exit_pupil_z_mm : float or None
@@ -561,18 +563,24 @@ def ideal_lens(
         Aberration coefficients of the ideal surface (see :class:`Surface`).
     name : str
         Label.
+    exit_pupil_diameter_mm : float or None
+        The aperture given on the image side (exclusive with ``f_number``).
 
     Raises
     ------
     ProfileError
-        On a non-positive focal length or f-number, or an exit pupil in the rear focal plane
-        (the entrance pupil would be at infinity, no f-number can be set).
+        On a non-positive focal length, f-number or pupil diameter, or an exit pupil in the
+        rear focal plane (the entrance pupil would be at infinity, no f-number can be set).
     """
-    f, n_f = float(focal_length_mm), float(f_number)
+    f = float(focal_length_mm)
     if not (math.isfinite(f) and f > 0.0):
         raise ProfileError(f"main_lens.focal_length_mm must be positive, got {focal_length_mm}")
-    if not (math.isfinite(n_f) and n_f > 0.0):
-        raise ProfileError(f"main_lens.f_number must be positive, got {f_number}")
+    if (f_number is None) == (exit_pupil_diameter_mm is None):
+        raise ProfileError("ideal lens: give exactly one of f_number and exit_pupil_diameter_mm")
+    aperture = float(f_number if f_number is not None else exit_pupil_diameter_mm)
+    if not (math.isfinite(aperture) and aperture > 0.0):
+        raise ProfileError(
+            f"main_lens.f_number / exit pupil diameter must be positive, got {aperture}")
     h = float(principal_z_mm)
     z_xp = h if exit_pupil_z_mm is None else float(exit_pupil_z_mm)
     if not (math.isfinite(h) and math.isfinite(z_xp)):
@@ -585,7 +593,7 @@ def ideal_lens(
         raise ProfileError(
             "ideal lens: the exit pupil lies in the rear focal plane (entrance pupil at infinity)"
         )
-    stop_semi = 0.5 * (f / n_f) * abs(a)
+    stop_semi = 0.5 * (f / aperture) * abs(a) if f_number is not None else 0.5 * aperture
     front = Surface(math.inf, h, 1.0, big)
     lens = Surface(math.inf, e, 1.0, big, focal_length_mm=f, spherical=tuple(spherical))
     stop = Surface(math.inf, 0.0, 1.0, stop_semi, stop=True)

@@ -138,7 +138,10 @@ def _run(
             _flag(status, surface, miss, RayStatus.MISSED, i)
             path = t + step
         if first_surface:
-            _flag(status, surface, path < 0.0, RayStatus.BACKWARD, i)
+            # a flat surface with air on both sides (a dummy plane, an ideal surface, a stop
+            # at a virtual pupil) acts on the ray's line: reaching it backward is no failure
+            if not (c == 0.0 and n_before[i] == 1.0 and s.refractive_index == 1.0):
+                _flag(status, surface, path < 0.0, RayStatus.BACKWARD, i)
             first_surface = False
         if clip or ratio is not None:
             r2 = x1 * x1 + y1 * y1
