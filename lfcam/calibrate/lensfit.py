@@ -47,6 +47,11 @@ TOL_D_IN_MM = 2e-4
 MIN_PLANES = 3
 MAX_SOURCES = 1000
 MIN_RELATIVE_SPREAD = 0.25  # planes must span ≥ 25 % in 1/distance (vergence) of the nearest
+SEARCH_SPHERICAL = True
+LSA_BOUND_F = 0.01  # |marginal longitudinal spherical aberration| ≤ 1 % of f
+LSA_TOL_F = 1e-4
+LSA_MAX_EVALUATIONS = 12
+F_CRITICAL = 4.0  # ~95 % for one extra parameter
 SEED_D_IN_F = 1.2  # seed MLA distance (focal lengths behind the principal plane)
 APEX_FLOOR_MM = 1e-4  # σ floor of one apex (numerical noise of the lenslet fit)
 
@@ -96,6 +101,7 @@ class LensFit:
     iterations: int
     exit_pupil_mm: float | None
     f_number: float
+    spherical_lsa_mm: float = 0.0
 
     def param(self, name: str) -> float:
         """A parameter's value by name."""
@@ -111,6 +117,7 @@ class LensFit:
             "d_in_mm": float(self.d_in_mm),
             "f_number": float(self.f_number),
             "exit_pupil_mm": self.exit_pupil_mm,
+            "spherical_lsa_mm": float(self.spherical_lsa_mm),
             "parameters": {n: float(v) for n, v in zip(self.names, self.values, strict=True)},
             "sigma": {n: float(v) for n, v in zip(self.names, self.sigma, strict=True)},
             "covariance": self.covariance.tolist(),
@@ -130,8 +137,20 @@ class LensFit:
 # ----------------------------------------------------------------------------- the model
 
 
+def spherical_coefficients(profile: CameraProfile, focal_length_mm: float,
+                           lsa_mm: float) -> tuple[float, ...]:
+    """Ideal-surface coefficient a1 (mm⁻³) giving a marginal longitudinal spherical
+    aberration ``lsa_mm`` for an object at infinity: the marginal ray (at the entrance-pupil
+    radius r = f / 2N) crosses the axis at 1/P(r) ≈ f − f²·a1·r², so a1 = −LSA / (f² r²)."""
+    if lsa_mm == 0.0:
+        return ()
+    r = 0.5 * focal_length_mm / profile.main_lens.black_box.f_number
+    return (-lsa_mm / (focal_length_mm**2 * r * r),)
+
+
 def build_lens(profile: CameraProfile, focal_length_mm: float, principal_mm: float,
-               d_in_mm: float, exit_pupil_diameter_mm: float | None = None) -> CameraProfile:
+               d_in_mm: float, exit_pupil_diameter_mm: float | None = None,
+               lsa_mm: float = 0.0) -> CameraProfile:
     """``profile`` with the ideal lens of these parameters and the MLA at ``d_in_mm``.
 
     The exit pupil lies the black box's ``exit_pupil_mm`` in front of the MLA when the profile
@@ -150,6 +169,7 @@ def build_lens(profile: CameraProfile, focal_length_mm: float, principal_mm: flo
             else exit_pupil_diameter_mm)
     try:
         rx = ideal_lens(focal_length_mm, None, principal_mm, xp,
+                        spherical=spherical_coefficients(profile, focal_length_mm, lsa_mm),
                         name=f"learned ideal lens f {focal_length_mm:.3f} mm",
                         exit_pupil_diameter_mm=d_xp)
     except LfcamError as exc:
@@ -292,6 +312,11 @@ def _apexes(profile_values: np.ndarray, sources: list[_Source]) -> tuple[np.ndar
     return a, np.maximum(da, APEX_FLOOR_MM)
 
 
+def _total_misfit(sources: list[_Source]) -> float:
+    """Σ misfit² of the sources' lenslet fits (relative moment residuals)."""
+    return float(sum(s_.misfit**2 for s_ in sources if np.isfinite(s_.misfit)))
+
+
 def _check_targets(targets: list[Target], profile: CameraProfile) -> None:
     if not targets:
         raise CalibrationError("no target captures given")
@@ -368,29 +393,61 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         d_in0 = SEED_D_IN_F * f0
     q = np.array([f0, 0.0, d_in0])
     free = np.array([True, True, True])
-    sources: list[_Source] = []
-    iteration = 0
-    for iteration in range(1, MAX_ITERATIONS + 1):
-        current = build_lens(profile, *q)
-        sources = _measure(current, cal, targets)
-        if len(sources) > MAX_SOURCES:
-            raise CalibrationError(f"{len(sources)} target sources: at most {MAX_SOURCES}")
-        d = np.array([s.distance_mm for s in sources])
-        a, sa = _apexes(q, sources)
-        q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0)
-        moved = abs(q_new[2] - q[2])
-        q = q_new
+    calls = [0]
+
+    def tick(stage: str) -> None:
+        calls[0] += 1
         if progress:
-            progress("lens fit", iteration, MAX_ITERATIONS)
-        if moved < TOL_D_IN_MM:
-            break
-    else:
-        raise CalibrationError(
-            f"the lens fit did not settle in {MAX_ITERATIONS} rounds (d_in still moving by "
-            f"{moved:.3g} mm)")
+            progress(stage, calls[0], calls[0] + 1)
+
+    def converge(q: np.ndarray, lsa: float, rounds: int) -> tuple[np.ndarray, list, int]:
+        """Measure → fit rounds at a fixed aberration until d_in settles."""
+        moved = math.inf
+        for it in range(1, rounds + 1):
+            srcs = _measure(build_lens(profile, *q, lsa_mm=lsa), cal, targets)
+            if len(srcs) > MAX_SOURCES:
+                raise CalibrationError(f"{len(srcs)} target sources: at most {MAX_SOURCES}")
+            d = np.array([s_.distance_mm for s_ in srcs])
+            a, sa = _apexes(q, srcs)
+            q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0)
+            moved = abs(q_new[2] - q[2])
+            q = q_new
+            tick("lens fit")
+            if moved < TOL_D_IN_MM:
+                return q, srcs, it
+        if rounds >= MAX_ITERATIONS:
+            raise CalibrationError(
+                f"the lens fit did not settle in {MAX_ITERATIONS} rounds (d_in still moving by "
+                f"{moved:.3g} mm)")
+        return q, srcs, rounds
+
+    q, sources, iteration = converge(q, 0.0, MAX_ITERATIONS)
+    misfit0 = _total_misfit(sources)
+    lsa, why_sa = 0.0, "not tried"
+    if SEARCH_SPHERICAL:
+        from scipy.optimize import minimize_scalar
+
+        cache: dict = {}
+
+        def objective(x: float) -> float:
+            qq, srcs, _ = converge(q, x * f0, 2)
+            cache[x] = (qq, srcs)
+            return _total_misfit(srcs)
+
+        res = minimize_scalar(objective, bounds=(-LSA_BOUND_F, LSA_BOUND_F), method="bounded",
+                              options={"xatol": LSA_TOL_F, "maxiter": LSA_MAX_EVALUATIONS})
+        misfit1 = float(res.fun)
+        n_src = len(sources)
+        # F-test on the per-source misfits (one extra parameter shared by n_src sources)
+        f_stat = (misfit0 - misfit1) / max(misfit1 / max(n_src - 1, 1), 1e-300)
+        if f_stat > F_CRITICAL and res.x in cache:
+            lsa = float(res.x) * f0
+            q, _ = cache[res.x]
+            q, sources, _ = converge(q, lsa, MAX_ITERATIONS)
+        why_sa = (f"{'kept' if lsa else 'dropped'}: misfit² {misfit0:.4g} without, "
+                  f"{misfit1:.4g} at LSA {float(res.x) * f0:+.4f} mm (F = {f_stat:.3g}, "
+                  f"limit {F_CRITICAL})")
     # final: measure with the learned lens, keep terms by BIC, σ from the Jacobian
-    final = build_lens(profile, *q)
-    sources = _measure(final, cal, targets)
     d = np.array([s.distance_mm for s in sources])
     a, sa = _apexes(q, sources)
     w = 1.0 / sa
@@ -427,7 +484,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     if not (np.isfinite(sigma).all() and sigma[2] < 0.05 * q[2]):
         raise CalibrationError("the targets cannot determine the lens: the MLA distance is "
                                f"uncertain to {sigma[2]:.3g} mm; spread the planes in distance")
-    learned = build_lens(profile, *q)
+    learned = build_lens(profile, *q, lsa_mm=lsa)
     fitted = distance_of_apex(*q, a)
     resid = [
         SourceResidual(s.target, s.distance_mm, float(fd), s.offset_mm, s.x_px, s.y_px,
@@ -435,12 +492,15 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         for s, fd, ai in zip(sources, fitted, a, strict=True)
     ]
     kept = tuple(n_ for n_, k in zip(PARAMS, (keep_f, True, True), strict=True) if k)
+    why["spherical_lsa_mm"] = why_sa
+    if lsa:
+        kept = (*kept, "spherical_lsa_mm")
     return LensFit(
         prescription=learned.main_lens.as_prescription, d_in_mm=float(q[2]), names=PARAMS,
         values=q.copy(), sigma=sigma, covariance=cov, kept=kept, why=why,
         residuals=tuple(resid), n_planes=len({s.distance_mm for s in sources}),
-        n_sources=len(sources), iterations=iteration, exit_pupil_mm=box.exit_pupil_mm,
-        f_number=box.f_number)
+        n_sources=len(sources), iterations=calls[0], exit_pupil_mm=box.exit_pupil_mm,
+        f_number=box.f_number, spherical_lsa_mm=lsa)
 
 
 def read_targets(csv_path, profile: CameraProfile) -> list[Target]:
