@@ -18,7 +18,7 @@ lens, and the lens parameters are fitted to the apexes by Gauss–Newton:
     a_i = principal + v(D_i + principal; f) − d_in,     v(u; f) = f·u / (u − f)
 
 with D_i the known plane distance. The geometry (micro-image centre → lenslet centre) depends on
-the lens, so measure → fit is iterated until ``d_in`` moves by less than ``TOL_D_IN_MM``.
+the lens, so measure → fit is iterated until the target distances settle (``TOL_DISTANCE_REL``).
 
 Terms: ``d_in_mm`` and ``principal_mm`` are always fitted; ``focal_length_mm`` is fitted with
 the stated value as a prior (``FOCAL_PRIOR_REL``) and kept free only where the data support it
@@ -42,15 +42,16 @@ from lfcam.progress import Progress
 
 PARAMS = ("focal_length_mm", "principal_mm", "d_in_mm")
 FOCAL_PRIOR_REL = 0.05  # a barrel's focal length is good to a few %
-MAX_ITERATIONS = 6
-TOL_D_IN_MM = 2e-4
+MAX_ITERATIONS = 8
+TOL_DISTANCE_REL = 2e-4  # rounds stop when no target distance moves by more
 MIN_PLANES = 3
 MAX_SOURCES = 1000
 MIN_RELATIVE_SPREAD = 0.25  # planes must span ≥ 25 % in 1/distance (vergence) of the nearest
-SEARCH_SPHERICAL = True
 LSA_BOUND_F = 0.01  # |marginal longitudinal spherical aberration| ≤ 1 % of f
 LSA_TOL_F = 1e-4
-LSA_MAX_EVALUATIONS = 12
+SEARCH_EVALUATIONS = 12  # measure rounds per 1-D search (bounded Brent)
+PUPIL_MAG_BOUND = 2.0  # exit-pupil diameter within [1/2, 2] × f/N
+PUPIL_LOG_TOL = 0.005
 F_CRITICAL = 4.0  # ~95 % for one extra parameter
 SEED_D_IN_F = 1.2  # seed MLA distance (focal lengths behind the principal plane)
 APEX_FLOOR_MM = 1e-4  # σ floor of one apex (numerical noise of the lenslet fit)
@@ -102,6 +103,7 @@ class LensFit:
     exit_pupil_mm: float | None
     f_number: float
     spherical_lsa_mm: float = 0.0
+    exit_pupil_diameter_mm: float = math.nan
 
     def param(self, name: str) -> float:
         """A parameter's value by name."""
@@ -113,11 +115,13 @@ class LensFit:
 
         return {
             "model": "ideal-lens",
-            "surfaces": prescription_to_toml_dict(self.prescription)["main_lens"]["surfaces"],
+            "surfaces": _surfaces_to_json(
+                prescription_to_toml_dict(self.prescription)["main_lens"]["surfaces"]),
             "d_in_mm": float(self.d_in_mm),
             "f_number": float(self.f_number),
             "exit_pupil_mm": self.exit_pupil_mm,
             "spherical_lsa_mm": float(self.spherical_lsa_mm),
+            "exit_pupil_diameter_mm": float(self.exit_pupil_diameter_mm),
             "parameters": {n: float(v) for n, v in zip(self.names, self.values, strict=True)},
             "sigma": {n: float(v) for n, v in zip(self.names, self.sigma, strict=True)},
             "covariance": self.covariance.tolist(),
@@ -132,6 +136,23 @@ class LensFit:
                 for r in self.residuals
             ],
         }
+
+
+def _surfaces_to_json(rows: list[dict]) -> list[dict]:
+    """Surface tables for JSON: a flat surface's infinite radius is written as null."""
+    return [{k: (None if k == "radius_mm" and math.isinf(v) else v) for k, v in r.items()}
+            for r in rows]
+
+
+def _surfaces_from_json(rows: Any) -> Prescription:
+    """The prescription of a JSON ``surfaces`` list (null radius = flat)."""
+    from lfcam.optics.zmx import prescription_from_toml_dict
+
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise CalibrationError("learned_lens.surfaces must be a list of tables")
+    rows = [{k: (math.inf if k == "radius_mm" and v is None else v) for k, v in r.items()}
+            for r in rows]
+    return prescription_from_toml_dict({"surfaces": rows})
 
 
 # ----------------------------------------------------------------------------- the model
@@ -349,7 +370,7 @@ def _check_targets(targets: list[Target], profile: CameraProfile) -> None:
 
 
 def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
-             progress: Progress | None = None) -> LensFit:
+             progress: Progress | None = None, search_spherical: bool = True) -> LensFit:
     """Learn the black-box main lens and the MLA distance from target captures.
 
     Parameters
@@ -363,7 +384,11 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         Linear grey captures of point sources on planes at known distances from the lens
         front (lateral positions unknown), one plane a capture.
     progress : Progress, optional
-        Called as ``progress("lens fit", iteration, MAX_ITERATIONS)``.
+        Called as ``progress("lens fit", round, round + 1)`` after every measure → fit round.
+    search_spherical : bool
+        Try the spherical-aberration term (a 1-D search over the marginal LSA, each step a
+        measure → fit round; kept by an F-test on the lenslet-fit misfits). ``False``: a
+        first-order lens only (≈ 10× faster).
 
     Returns
     -------
@@ -401,32 +426,51 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
             progress(stage, calls[0], calls[0] + 1)
 
     def converge(q: np.ndarray, lsa: float, rounds: int) -> tuple[np.ndarray, list, int]:
-        """Measure → fit rounds at a fixed aberration until d_in settles."""
-        moved = math.inf
+        """Measure → fit rounds at a fixed cone and aberration until the distances the lens
+        gives the target image points change by less than ``TOL_DISTANCE_REL`` (or stop
+        shrinking: the lenslet fits' numerical noise)."""
+        moved, last = math.inf, math.inf
         for it in range(1, rounds + 1):
-            srcs = _measure(build_lens(profile, *q, lsa_mm=lsa), cal, targets)
+            srcs = _measure(build_lens(profile, *q, d_xp, lsa), cal, targets)
             if len(srcs) > MAX_SOURCES:
                 raise CalibrationError(f"{len(srcs)} target sources: at most {MAX_SOURCES}")
             d = np.array([s_.distance_mm for s_ in srcs])
             a, sa = _apexes(q, srcs)
             q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0)
-            moved = abs(q_new[2] - q[2])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                moved = float(np.nanmax(np.abs(distance_of_apex(*q_new, a)
+                                               / distance_of_apex(*q, a) - 1.0)))
             q = q_new
             tick("lens fit")
-            if moved < TOL_D_IN_MM:
+            if moved < TOL_DISTANCE_REL or (it >= 3 and moved >= 0.7 * last
+                                            and moved < 100 * TOL_DISTANCE_REL):
                 return q, srcs, it
+            last = moved
         if rounds >= MAX_ITERATIONS:
             raise CalibrationError(
-                f"the lens fit did not settle in {MAX_ITERATIONS} rounds (d_in still moving by "
-                f"{moved:.3g} mm)")
+                f"the lens fit did not settle in {MAX_ITERATIONS} rounds (target distances "
+                f"still moving by {100 * moved:.3g} %)")
         return q, srcs, rounds
 
+    # the image-side cone must be right before the image points mean anything: its exit-pupil
+    # diameter (f/N times the unknown pupil magnification) from the lenslet-fit misfits
+    from scipy.optimize import minimize_scalar
+
+    def aperture_misfit(log_m: float) -> float:
+        srcs = _measure(build_lens(profile, *q, math.exp(log_m) * f0 / box.f_number), cal,
+                        targets)
+        tick("exit pupil")
+        return _total_misfit(srcs)
+
+    res = minimize_scalar(aperture_misfit, bounds=(-math.log(PUPIL_MAG_BOUND),
+                                                   math.log(PUPIL_MAG_BOUND)),
+                          method="bounded", options={"xatol": PUPIL_LOG_TOL,
+                                                     "maxiter": SEARCH_EVALUATIONS})
+    d_xp = math.exp(float(res.x)) * f0 / box.f_number
     q, sources, iteration = converge(q, 0.0, MAX_ITERATIONS)
     misfit0 = _total_misfit(sources)
     lsa, why_sa = 0.0, "not tried"
-    if SEARCH_SPHERICAL:
-        from scipy.optimize import minimize_scalar
-
+    if search_spherical:
         cache: dict = {}
 
         def objective(x: float) -> float:
@@ -435,7 +479,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
             return _total_misfit(srcs)
 
         res = minimize_scalar(objective, bounds=(-LSA_BOUND_F, LSA_BOUND_F), method="bounded",
-                              options={"xatol": LSA_TOL_F, "maxiter": LSA_MAX_EVALUATIONS})
+                              options={"xatol": LSA_TOL_F, "maxiter": SEARCH_EVALUATIONS})
         misfit1 = float(res.fun)
         n_src = len(sources)
         # F-test on the per-source misfits (one extra parameter shared by n_src sources)
@@ -484,7 +528,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     if not (np.isfinite(sigma).all() and sigma[2] < 0.05 * q[2]):
         raise CalibrationError("the targets cannot determine the lens: the MLA distance is "
                                f"uncertain to {sigma[2]:.3g} mm; spread the planes in distance")
-    learned = build_lens(profile, *q, lsa_mm=lsa)
+    learned = build_lens(profile, *q, d_xp, lsa)
     fitted = distance_of_apex(*q, a)
     resid = [
         SourceResidual(s.target, s.distance_mm, float(fd), s.offset_mm, s.x_px, s.y_px,
@@ -493,6 +537,9 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     ]
     kept = tuple(n_ for n_, k in zip(PARAMS, (keep_f, True, True), strict=True) if k)
     why["spherical_lsa_mm"] = why_sa
+    why["exit_pupil_diameter_mm"] = (
+        f"always fitted: {d_xp:.4f} mm = {d_xp * box.f_number / f0:.4f} × f/N, least "
+        "lenslet-fit misfit")
     if lsa:
         kept = (*kept, "spherical_lsa_mm")
     return LensFit(
@@ -500,7 +547,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         values=q.copy(), sigma=sigma, covariance=cov, kept=kept, why=why,
         residuals=tuple(resid), n_planes=len({s.distance_mm for s in sources}),
         n_sources=len(sources), iterations=calls[0], exit_pupil_mm=box.exit_pupil_mm,
-        f_number=box.f_number, spherical_lsa_mm=lsa)
+        f_number=box.f_number, spherical_lsa_mm=lsa, exit_pupil_diameter_mm=d_xp)
 
 
 def read_targets(csv_path, profile: CameraProfile) -> list[Target]:
@@ -557,9 +604,7 @@ def read_targets(csv_path, profile: CameraProfile) -> list[Target]:
 def learned_profile(profile: CameraProfile, learned: dict) -> CameraProfile:
     """``profile`` with the calibration's learned lens and MLA distance (block of
     :meth:`LensFit.to_dict`, validated by the calibration loader)."""
-    from lfcam.optics.zmx import prescription_from_toml_dict
-
-    rx = prescription_from_toml_dict({"surfaces": learned["surfaces"]})
+    rx = _surfaces_from_json(learned["surfaces"])
     mla = replace(profile.mla, distance_mm=float(learned["d_in_mm"]), focus_mm=None)
     return replace(profile, main_lens=MainLens(prescription=rx), mla=mla)
 
@@ -600,8 +645,6 @@ def calibration_sigma_mm(learned: dict, profile: CameraProfile, distance_mm: flo
 
 def validate_learned(block: Any, where: str) -> dict:
     """Check a calibration file's ``learned_lens`` block (sizes, numbers, plausibility)."""
-    from lfcam.optics.zmx import prescription_from_toml_dict
-
     if not isinstance(block, dict):
         raise CalibrationError(f"{where}: learned_lens must be an object")
     for key in ("surfaces", "d_in_mm", "parameters", "sigma", "covariance"):
@@ -611,7 +654,7 @@ def validate_learned(block: Any, where: str) -> dict:
     if not isinstance(surfaces, list) or not 1 <= len(surfaces) <= 64:
         raise CalibrationError(f"{where}: learned_lens.surfaces must list 1–64 surfaces")
     try:
-        rx = prescription_from_toml_dict({"surfaces": surfaces})
+        rx = _surfaces_from_json(surfaces)
         efl = rx.paraxial.efl_mm
     except (LfcamError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{where}: learned_lens.surfaces: {exc}") from None
