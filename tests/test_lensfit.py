@@ -8,6 +8,7 @@ other distances and offsets are checked against that prescription and the render
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -69,7 +70,8 @@ def rig():
     true, d_in = _true_profile()
     box = profile_from_dict(_camera(
         {"focal_length_mm": 50.0, "f_number": 4.0, "exit_pupil_mm": EXIT_PUPIL_MM}, {}))
-    _, used, truth = simulate(true, scene_from_dict({"seed": 3, "objects": [{"type": "white"}]}))
+    white, used, truth = simulate(true, scene_from_dict({"seed": 3,
+                                                         "objects": [{"type": "white"}]}))
     lenses = truth["lenses"]
     complete = np.asarray(lenses["complete"], dtype=bool)
     centres = np.asarray(lenses["centroid_px"], dtype=np.float64)[complete]
@@ -97,17 +99,17 @@ def rig():
 
     targets = [Target(capture(d, (0.15 * (-1) ** i, 0.1), 10 + i), d, f"plane{i}")
                for i, d in enumerate(PLANES_MM)]
-    return true, d_in, box, cal, targets, capture
+    return true, d_in, box, cal, targets, capture, white
 
 
 @pytest.fixture(scope="module")
 def fitted(rig):
-    _, _, box, cal, targets, _ = rig
+    _, _, box, cal, targets, _, _ = rig
     return fit_lens(box, cal, targets, search_spherical=False)
 
 
 def test_fit_recovers_the_hidden_lens(rig, fitted):
-    _, d_in, _, _, _, _ = rig
+    _, d_in, _, _, _, _, _ = rig
     fit = fitted
     f, h, d = (fit.param(n) for n in PARAMS)
     # image-space truth: the MLA's distance behind the principal plane and the focal length
@@ -123,7 +125,7 @@ def test_fit_recovers_the_hidden_lens(rig, fitted):
 
 
 def test_hidden_sources_with_the_learned_lens(rig, fitted, tmp_path):
-    _, _, box, cal, _, capture = rig
+    _, _, box, cal, _, capture, _ = rig
     learned_cal = replace(cal, learned_lens=fitted.to_dict(), d_in_mm=fitted.d_in_mm)
     # through the calibration file, as lfcam distance reads it
     save_calibration(learned_cal, tmp_path / "c.json")
@@ -174,7 +176,7 @@ def test_learned_block_validation(fitted):
 
 
 def test_black_box_without_a_learned_lens_refuses_distances(rig):
-    _, _, box, cal, targets, _ = rig
+    _, _, box, cal, targets, _, _ = rig
     with pytest.raises(CalibrationError, match="--targets"):
         run_distance(targets[0].image, box, cal, model="exact", method="lenslet")
     with pytest.raises(CalibrationError, match="--targets"):
@@ -182,7 +184,7 @@ def test_black_box_without_a_learned_lens_refuses_distances(rig):
 
 
 def test_targets_that_cannot_determine_the_lens(rig):
-    true, _, box, cal, targets, _ = rig
+    true, _, box, cal, targets, _, _ = rig
     img = targets[0].image
     cases = [
         ([Target(img, 300.0), Target(img, 3500.0)], "at least 3 planes"),
@@ -203,7 +205,7 @@ def test_targets_that_cannot_determine_the_lens(rig):
 
 
 def test_read_targets_errors(tmp_path, rig):
-    _, _, box, _, _, _ = rig
+    _, _, box, _, _, _, _ = rig
     with pytest.raises(CalibrationError, match="not found"):
         read_targets(tmp_path / "none.csv", box)
     csv = tmp_path / "t.csv"
@@ -216,3 +218,67 @@ def test_read_targets_errors(tmp_path, rig):
     csv.write_text("file,dist\na.png,300\n")
     with pytest.raises(CalibrationError, match="columns"):
         read_targets(csv, box)
+
+
+BOX_TOML = """name = "box"
+[main_lens]
+focal_length_mm = 50.0
+f_number = 4.0
+exit_pupil_mm = 40.0
+[mla]
+focal_length_mm = 0.4
+pitch_mm = 0.1
+grid = "rect"
+[sensor]
+pixel_pitch_mm = 0.00625
+width_px = 320
+height_px = 320
+"""
+
+
+def test_cli_calibrate_targets_then_distance(rig, tmp_path, capsys):
+    """What a user runs: white + targets.csv → calib.json → lfcam distance on a new capture."""
+    import csv
+
+    import cv2
+
+    from lfcam.cli.main import main
+
+    _, _, _, _, targets, capture, white = rig
+    (tmp_path / "box.toml").write_text(BOX_TOML)
+    cv2.imwrite(str(tmp_path / "white.png"), white.astype(np.uint16))
+    rows = ["capture,distance_mm"]
+    for t in (targets[0], targets[1], targets[3], targets[4]):
+        cv2.imwrite(str(tmp_path / f"{t.name}.png"), t.image.astype(np.uint16))
+        rows.append(f"{t.name}.png,{t.distance_mm:g}")
+    (tmp_path / "targets.csv").write_text("\n".join(rows) + "\n")
+    args = ["calibrate", str(tmp_path / "white.png"), "--profile", str(tmp_path / "box.toml"),
+            "--targets", str(tmp_path / "targets.csv"), "--lens-model", "ideal", "-q",
+            "-o", str(tmp_path / "calib.json")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "d_in_mm" in out and "kept terms" in out and "plane3.png" in out
+    cal = load_calibration(tmp_path / "calib.json")
+    assert cal.d_in_method == "lens-fit"
+    assert cal.learned_lens["n_planes"] == 4 and len(cal.learned_lens["residuals"]) == 4
+    f, h, d = (cal.learned_lens["parameters"][n] for n in PARAMS)
+    assert f == pytest.approx(F_TRUE_MM, rel=0.01)
+    # a hidden source, through the command line
+    cv2.imwrite(str(tmp_path / "scene.png"), capture(2000.0, (0.2, 0.0), 77).astype(np.uint16))
+    args = ["distance", str(tmp_path / "scene.png"), "--profile", str(tmp_path / "box.toml"),
+            "--calibration", str(tmp_path / "calib.json"), "--method", "lenslet", "--model",
+            "exact", "-o", str(tmp_path / "out")]
+    assert main(args) == 0
+    with (tmp_path / "out" / "regions.csv").open() as fh:
+        regions = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    assert len(regions) == 1
+    assert float(regions[0]["distance_mm"]) == pytest.approx(2000.0, rel=0.005)
+    # the same profile with a calibration that learned no lens: one clear line, exit 1
+    plain = json.loads((tmp_path / "calib.json").read_text())
+    del plain["learned_lens"]
+    (tmp_path / "plain.json").write_text(json.dumps(plain))
+    args[5] = str(tmp_path / "plain.json")
+    args[-1] = str(tmp_path / "out2")
+    capsys.readouterr()
+    assert main(args) == 1
+    assert "--targets" in capsys.readouterr().err

@@ -49,11 +49,13 @@ MAX_SOURCES = 1000
 MIN_RELATIVE_SPREAD = 0.25  # planes must span ≥ 25 % in 1/distance (vergence) of the nearest
 LSA_BOUND_F = 0.01  # |marginal longitudinal spherical aberration| ≤ 1 % of f
 LSA_TOL_F = 1e-4
+MERGE_RATIO = 5.0  # a source fitting this many times worse than the median one: merged light
+MERGE_MISFIT = 0.2
 SEARCH_EVALUATIONS = 12  # measure rounds per 1-D search (bounded Brent)
-PUPIL_MAG_BOUND = 2.0  # exit-pupil diameter within [1/2, 2] × f/N
+PUPIL_MAG_BOUND = 1.6  # exit-pupil diameter within [1/1.6, 1.6] × f/N
 PUPIL_LOG_TOL = 0.005
 F_CRITICAL = 4.0  # ~95 % for one extra parameter
-SEED_D_IN_F = 1.2  # seed MLA distance (focal lengths behind the principal plane)
+SEED_D_IN_F = (1.04, 1.1, 1.25)  # seed MLA distances (focal lengths behind the principal plane)
 APEX_FLOOR_MM = 1e-4  # σ floor of one apex (numerical noise of the lenslet fit)
 
 
@@ -230,21 +232,42 @@ def distance_gradient(values: np.ndarray, apex: float) -> np.ndarray:
     return g
 
 
+def _bounded(q: np.ndarray, f_label: float, d_in_min: float = -math.inf) -> np.ndarray:
+    """Keep a Gauss–Newton iterate physical: f within [0.7, 1.4] of the label, the principal
+    plane from 1 f in front of the lens front to 1.5 f behind it, the MLA 1.0001–3 f behind
+    the principal plane and not in front of ``d_in_min`` (a stated exit pupil stays behind the
+    lens front)."""
+    f = float(np.clip(q[0], 0.7 * f_label, 1.4 * f_label))
+    h = float(np.clip(q[1], -1.0 * f_label, 1.5 * f_label))
+    d = float(np.clip(q[2] - h, 1.0001 * f, 3.0 * f)) + h
+    return np.array([f, h, max(d, d_in_min)])
+
+
 def _solve(d: np.ndarray, a: np.ndarray, w: np.ndarray, q0: np.ndarray, free: np.ndarray,
-           f_prior: float | None) -> tuple[np.ndarray, np.ndarray, float]:
+           f_prior: float | None, robust: bool = False,
+           d_in_min: float = -math.inf) -> tuple[np.ndarray, np.ndarray, float]:
     """Weighted Gauss–Newton of ``apex_mm`` on (f, principal, d_in); parameters not ``free``
-    stay at ``q0``. Returns (q, Jacobian over the free parameters, χ² without the prior)."""
+    stay at ``q0``. ``robust``: Huber weights (1.5 × the residuals' robust scale) so that one
+    badly measured plane does not drag an early round. Returns (q, Jacobian over the free
+    parameters, χ² without the prior)."""
     q = np.array(q0, dtype=np.float64)
     idx = np.flatnonzero(free)
     jac = np.zeros((len(d), len(idx)))
+    label = f_prior if f_prior is not None else float(q0[0])
     for _ in range(50):
         r = (a - apex_mm(*q, d)) * w
+        ww = w
+        if robust:
+            scale = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1.0)
+            hub = np.minimum(1.0, 1.5 * scale / np.maximum(np.abs(r), 1e-300))
+            ww = w * np.sqrt(hub)
+            r = r * np.sqrt(hub)
         cols = []
         for j in idx:
             h = 1e-6 * max(1.0, abs(q[j]))
             qp = q.copy()
             qp[j] += h
-            cols.append((apex_mm(*qp, d) - apex_mm(*q, d)) * w / h)
+            cols.append((apex_mm(*qp, d) - apex_mm(*q, d)) * ww / h)
         jac = np.column_stack(cols)
         rows_j, rows_r = [jac], [r]
         if f_prior is not None and free[0]:
@@ -254,10 +277,27 @@ def _solve(d: np.ndarray, a: np.ndarray, w: np.ndarray, q0: np.ndarray, free: np
             rows_r.append(np.array([(f_prior - q[0]) / (FOCAL_PRIOR_REL * f_prior)]))
         jj, rr = np.vstack(rows_j), np.concatenate(rows_r)
         step, *_ = np.linalg.lstsq(jj, rr, rcond=None)
-        q[idx] += step
-        if not np.isfinite(q).all():
-            raise CalibrationError("the lens fit diverged: the targets cannot determine the lens")
-        if np.all(np.abs(step) < 1e-10 * np.maximum(1.0, np.abs(q[idx]))):
+
+        def cost(qq: np.ndarray, ww: np.ndarray = ww) -> float:
+            res = (a - apex_mm(*qq, d)) * ww
+            out = float(res @ res)
+            if f_prior is not None and free[0]:
+                out += ((f_prior - qq[0]) / (FOCAL_PRIOR_REL * f_prior)) ** 2
+            return out if math.isfinite(out) else math.inf
+
+        c0 = cost(q)
+        for _ in range(30):  # halve the step until the cost drops (damped Gauss–Newton)
+            q_try = q.copy()
+            q_try[idx] += step
+            q_new = _bounded(q_try, label, d_in_min)
+            if cost(q_new) <= c0:
+                break
+            step = 0.5 * step
+        else:
+            break
+        done = np.all(np.abs(q_new - q) < 1e-10 * np.maximum(1.0, np.abs(q)))
+        q = q_new
+        if done:
             break
     r = (a - apex_mm(*q, d)) * w
     return q, jac, float(r @ r)
@@ -305,7 +345,10 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
                 "is elongated: sources merge (space them farther apart) or one is not a point")
         found = []
         for reg in regions:
-            fit = fit_lenslet_point(profile, geom, img, reg)
+            try:
+                fit = fit_lenslet_point(profile, geom, img, reg)
+            except (LfcamError, ArithmeticError, ValueError, np.linalg.LinAlgError):
+                continue  # this lens cannot place the source: the region counts as unfitted
             if not fit.ok:
                 continue
             src = fit.source_mm
@@ -319,6 +362,15 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
                 f"target {t.name} ({t.distance_mm:g} mm): none of its {len(regions)} light "
                 "region(s) fits a point source")
         out.extend(found)
+    misfits = np.array([s_.misfit for s_ in out])
+    limit = max(MERGE_RATIO * float(np.nanmedian(misfits)), MERGE_MISFIT)
+    for s_ in out:
+        if s_.misfit > limit:
+            raise CalibrationError(
+                f"target {s_.target} ({s_.distance_mm:g} mm): the light near ({s_.x_px:.0f}, "
+                f"{s_.y_px:.0f}) px does not fit one point source (misfit {s_.misfit:.2f}, the "
+                f"others' median {np.nanmedian(misfits):.2f}): its sources merge; space them "
+                "farther apart")
     return out
 
 
@@ -412,11 +464,11 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     try:
         d_in0 = profile.d_in_mm
     except LfcamError:
-        # no MLA distance given: seed the MLA 1.2 f behind the principal plane, so that every
-        # image point behind the seed's rear focal point (sources on both sides of the real
-        # focus) has a real source through the seed lens
-        d_in0 = SEED_D_IN_F * f0
-    q = np.array([f0, 0.0, d_in0])
+        # no MLA distance given: seeds with the MLA a little behind the rear focal point (every
+        # image point behind the seed's F′, on both sides of the real focus, has a real
+        # source through the seed lens), the best explaining one kept
+        d_in0 = None
+    d_in_min = -math.inf
     free = np.array([True, True, True])
     calls = [0]
 
@@ -436,7 +488,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
                 raise CalibrationError(f"{len(srcs)} target sources: at most {MAX_SOURCES}")
             d = np.array([s_.distance_mm for s_ in srcs])
             a, sa = _apexes(q, srcs)
-            q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0)
+            q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0, robust=True, d_in_min=d_in_min)
             with np.errstate(invalid="ignore", divide="ignore"):
                 moved = float(np.nanmax(np.abs(distance_of_apex(*q_new, a)
                                                / distance_of_apex(*q, a) - 1.0)))
@@ -452,9 +504,23 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
                 f"still moving by {100 * moved:.3g} %)")
         return q, srcs, rounds
 
-    # the image-side cone must be right before the image points mean anything: its exit-pupil
-    # diameter (f/N times the unknown pupil magnification) from the lenslet-fit misfits
     from scipy.optimize import minimize_scalar
+
+    # 1. seed: the MLA distance (focal lengths behind the principal plane) whose lens explains
+    # the target blurs best, with the cone of pupil magnification 1
+    d_xp = f0 / box.f_number
+    if d_in0 is None:
+        seeds = []
+        for k in SEED_D_IN_F:
+            qk = np.array([f0, 0.0, k * f0])
+            srcs = _measure(build_lens(profile, *qk, d_xp), cal, targets)
+            tick("seed")
+            seeds.append((_total_misfit(srcs), k))
+        d_in0 = min(seeds)[1] * f0
+    q = np.array([f0, 0.0, d_in0])
+    # 2. first-order rounds, 3. the exit-pupil diameter (f/N times the unknown pupil
+    # magnification) of least lenslet-fit misfit at that lens, 4. rounds again
+    q, sources, iteration = converge(q, 0.0, MAX_ITERATIONS)
 
     def aperture_misfit(log_m: float) -> float:
         srcs = _measure(build_lens(profile, *q, math.exp(log_m) * f0 / box.f_number), cal,
@@ -495,9 +561,10 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     d = np.array([s.distance_mm for s in sources])
     a, sa = _apexes(q, sources)
     w = 1.0 / sa
-    q_free, jac, chi2_free = _solve(d, a, w, q, free, None)
+    q_free, jac, chi2_free = _solve(d, a, w, q, free, None, d_in_min=d_in_min)
     fixed = np.array([False, True, True])
-    q_fix, jac_fix, chi2_fix = _solve(d, a, w, np.array([f0, q[1], q[2]]), fixed, None)
+    q_fix, jac_fix, chi2_fix = _solve(d, a, w, np.array([f0, q[1], q[2]]), fixed, None,
+                                      d_in_min=d_in_min)
     n = len(d)
     bic_free = n * math.log(max(chi2_free, 1e-300) / n) + 3 * math.log(n)
     bic_fix = n * math.log(max(chi2_fix, 1e-300) / n) + 2 * math.log(n)
@@ -510,6 +577,12 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         q, jac, chi2, n_par = q_free, jac, chi2_free, 3
     else:
         q, jac, chi2, n_par = q_fix, jac_fix, chi2_fix, 2
+    edge = np.array([[0.7, -1.0], [1.4, 1.5]]) * f0
+    if np.any(np.abs(q[[0, 1]] - edge) < 1e-6 * f0):
+        raise CalibrationError(
+            f"the lens fit ran into its bounds (f {q[0]:.4g} mm for a {f0:g} mm label, "
+            f"principal plane {q[1]:.4g} mm, MLA {q[2]:.4g} mm): the targets do not describe "
+            "this lens; check the plane distances and the profile")
     dof = n - n_par
     if dof <= 0:
         raise CalibrationError(

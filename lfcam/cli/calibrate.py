@@ -42,6 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "on planes at known distances: CSV columns capture,distance_mm (paths "
                    "relative to the CSV's folder; distance = plane → lens front, mm). Needs "
                    "--profile in the black-box form (focal_length_mm, f_number)")
+    p.add_argument("--lens-model", choices=("ideal", "ideal+spherical"),
+                   default="ideal+spherical",
+                   help="--targets: the learned lens's terms (ideal: first order and the "
+                   "exit pupil only, several times faster; default also tries spherical "
+                   "aberration and keeps it where the data support it)")
     p.add_argument("-o", "--output", required=True, help="calibration JSON to write")
     p.add_argument("--accept-poor", action="store_true",
                    help="write a calibration that fails the quality gates (coverage, lattice "
@@ -88,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
             from lfcam.camera import load_profile
 
             prof = load_profile(args.profile)
-            fit = fit_lens(prof, cal, read_targets(targets_csv, prof), progress=bar)
+            fit = fit_lens(prof, cal, read_targets(targets_csv, prof), progress=bar,
+                           search_spherical=args.lens_model == "ideal+spherical")
             cal = replace(cal, learned_lens=fit.to_dict(), d_in_mm=fit.d_in_mm,
                           d_in_method="lens-fit")
             save_calibration(cal, out)
