@@ -282,3 +282,18 @@ def test_cli_calibrate_targets_then_distance(rig, tmp_path, capsys):
     capsys.readouterr()
     assert main(args) == 1
     assert "--targets" in capsys.readouterr().err
+
+
+def test_spherical_coefficients_give_the_stated_aberrations(rig):
+    """a1, a2 from the marginal and zonal LSA: −f²(a1 r² + a2 r⁴) at r_m and r_m/√2."""
+    from lfcam.calibrate.lensfit import spherical_coefficients
+
+    box = rig[2]
+    f, r_m = 50.0, 50.0 / (2 * 4.0)
+    a1, a2 = spherical_coefficients(box, f, -0.15, -0.12)
+    for rho, lsa in ((1.0, -0.15), (math.sqrt(0.5), -0.12)):
+        r = rho * r_m
+        assert -f * f * (a1 * r**2 + a2 * r**4) == pytest.approx(lsa, rel=1e-12)
+    (b1,) = spherical_coefficients(box, f, -0.15)  # pure r² term: the zone has half the LSA
+    assert -f * f * b1 * r_m**2 == pytest.approx(-0.15, rel=1e-12)
+    assert spherical_coefficients(box, f, 0.0) == ()

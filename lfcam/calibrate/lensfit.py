@@ -51,6 +51,7 @@ LSA_BOUND_F = 0.01  # |marginal longitudinal spherical aberration| ≤ 1 % of f
 LSA_TOL_F = 1e-4
 MERGE_RATIO = 5.0  # a source fitting this many times worse than the median one: merged light
 MERGE_MISFIT = 0.2
+TRIM_SHARE = 0.2
 SEARCH_EVALUATIONS = 12  # measure rounds per 1-D search (bounded Brent)
 PUPIL_MAG_BOUND = 1.6  # exit-pupil diameter within [1/1.6, 1.6] × f/N
 PUPIL_LOG_TOL = 0.005
@@ -105,6 +106,7 @@ class LensFit:
     exit_pupil_mm: float | None
     f_number: float
     spherical_lsa_mm: float = 0.0
+    spherical_zone_lsa_mm: float | None = None
     exit_pupil_diameter_mm: float = math.nan
 
     def param(self, name: str) -> float:
@@ -123,6 +125,7 @@ class LensFit:
             "f_number": float(self.f_number),
             "exit_pupil_mm": self.exit_pupil_mm,
             "spherical_lsa_mm": float(self.spherical_lsa_mm),
+            "spherical_zone_lsa_mm": self.spherical_zone_lsa_mm,
             "exit_pupil_diameter_mm": float(self.exit_pupil_diameter_mm),
             "parameters": {n: float(v) for n, v in zip(self.names, self.values, strict=True)},
             "sigma": {n: float(v) for n, v in zip(self.names, self.sigma, strict=True)},
@@ -160,26 +163,34 @@ def _surfaces_from_json(rows: Any) -> Prescription:
 # ----------------------------------------------------------------------------- the model
 
 
-def spherical_coefficients(profile: CameraProfile, focal_length_mm: float,
-                           lsa_mm: float) -> tuple[float, ...]:
-    """Ideal-surface coefficient a1 (mm⁻³) giving a marginal longitudinal spherical
-    aberration ``lsa_mm`` for an object at infinity: the marginal ray (at the entrance-pupil
-    radius r = f / 2N) crosses the axis at 1/P(r) ≈ f − f²·a1·r², so a1 = −LSA / (f² r²)."""
-    if lsa_mm == 0.0:
+def spherical_coefficients(profile: CameraProfile, focal_length_mm: float, lsa_mm: float,
+                           zone_lsa_mm: float | None = None) -> tuple[float, ...]:
+    """Ideal-surface coefficients (a1 in mm⁻³, a2 in mm⁻⁵) giving a longitudinal spherical
+    aberration ``lsa_mm`` for the marginal ray and ``zone_lsa_mm`` for the ray at 1/√2 of
+    the pupil radius, object at infinity. A ray at height r crosses the axis at
+    1/P(r) ≈ f − f²·(a1 r² + a2 r⁴); with r_m = f / 2N the entrance-pupil radius,
+    A = a1 r_m², B = a2 r_m⁴: A + B = −LSA_m / f², A/2 + B/4 = −LSA_z / f². Without a zone
+    value the aberration is pure a1 (LSA_z = LSA_m / 2)."""
+    if lsa_mm == 0.0 and not zone_lsa_mm:
         return ()
-    r = 0.5 * focal_length_mm / profile.main_lens.black_box.f_number
-    return (-lsa_mm / (focal_length_mm**2 * r * r),)
+    f = focal_length_mm
+    r = 0.5 * f / profile.main_lens.black_box.f_number
+    zone = 0.5 * lsa_mm if zone_lsa_mm is None else zone_lsa_mm
+    b = 2.0 * (2.0 * zone - lsa_mm) / (f * f)
+    a = -lsa_mm / (f * f) - b
+    return (a / r**2,) if b == 0.0 else (a / r**2, b / r**4)
 
 
 def build_lens(profile: CameraProfile, focal_length_mm: float, principal_mm: float,
                d_in_mm: float, exit_pupil_diameter_mm: float | None = None,
-               lsa_mm: float = 0.0) -> CameraProfile:
+               lsa_mm: float = 0.0, zone_lsa_mm: float | None = None) -> CameraProfile:
     """``profile`` with the ideal lens of these parameters and the MLA at ``d_in_mm``.
 
     The exit pupil lies the black box's ``exit_pupil_mm`` in front of the MLA when the profile
     states it, else on the principal plane. Its diameter is ``exit_pupil_diameter_mm``,
     default f / N (a pupil magnification of 1: what the image side sees does not then depend
-    on where the fit has put the principal plane).
+    on where the fit has put the principal plane). Spherical aberration: see
+    :func:`spherical_coefficients`.
     """
     box = profile.main_lens.black_box
     if box is None:
@@ -192,7 +203,8 @@ def build_lens(profile: CameraProfile, focal_length_mm: float, principal_mm: flo
             else exit_pupil_diameter_mm)
     try:
         rx = ideal_lens(focal_length_mm, None, principal_mm, xp,
-                        spherical=spherical_coefficients(profile, focal_length_mm, lsa_mm),
+                        spherical=spherical_coefficients(profile, focal_length_mm, lsa_mm,
+                                                         zone_lsa_mm),
                         name=f"learned ideal lens f {focal_length_mm:.3f} mm",
                         exit_pupil_diameter_mm=d_xp)
     except LfcamError as exc:
@@ -362,16 +374,32 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
                 f"target {t.name} ({t.distance_mm:g} mm): none of its {len(regions)} light "
                 "region(s) fits a point source")
         out.extend(found)
-    misfits = np.array([s_.misfit for s_ in out])
-    limit = max(MERGE_RATIO * float(np.nanmedian(misfits)), MERGE_MISFIT)
-    for s_ in out:
+    return out
+
+
+def _misfit_limit(sources: list[_Source]) -> float:
+    misfits = np.array([s_.misfit for s_ in sources])
+    return max(MERGE_RATIO * float(np.nanmedian(misfits)), MERGE_MISFIT)
+
+
+def _inliers(sources: list[_Source]) -> list[_Source]:
+    """Sources whose point fit is not far worse than the rest (early rounds: a lens still far
+    from the truth may fail on a few)."""
+    limit = _misfit_limit(sources)
+    good = [s_ for s_ in sources if s_.misfit <= limit]
+    return good if len(good) >= MIN_PLANES else sources
+
+
+def _check_merged(sources: list[_Source]) -> None:
+    """With the learned lens, a source fitting far worse than the others is merged light."""
+    limit = _misfit_limit(sources)
+    med = float(np.nanmedian([s_.misfit for s_ in sources]))
+    for s_ in sources:
         if s_.misfit > limit:
             raise CalibrationError(
                 f"target {s_.target} ({s_.distance_mm:g} mm): the light near ({s_.x_px:.0f}, "
                 f"{s_.y_px:.0f}) px does not fit one point source (misfit {s_.misfit:.2f}, the "
-                f"others' median {np.nanmedian(misfits):.2f}): its sources merge; space them "
-                "farther apart")
-    return out
+                f"others' median {med:.2f}): its sources merge; space them farther apart")
 
 
 def _apexes(profile_values: np.ndarray, sources: list[_Source]) -> tuple[np.ndarray, np.ndarray]:
@@ -386,8 +414,11 @@ def _apexes(profile_values: np.ndarray, sources: list[_Source]) -> tuple[np.ndar
 
 
 def _total_misfit(sources: list[_Source]) -> float:
-    """Σ misfit² of the sources' lenslet fits (relative moment residuals)."""
-    return float(sum(s_.misfit**2 for s_ in sources if np.isfinite(s_.misfit)))
+    """Σ misfit² of the sources' lenslet fits (relative moment residuals), the worst
+    ``TRIM_SHARE`` left out (a source the current lens fails on must not steer a search)."""
+    m = np.sort([s_.misfit**2 for s_ in sources if np.isfinite(s_.misfit)])
+    keep = max(1, int(math.ceil((1.0 - TRIM_SHARE) * len(m))))
+    return float(m[:keep].sum())
 
 
 def _check_targets(targets: list[Target], profile: CameraProfile) -> None:
@@ -477,17 +508,19 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         if progress:
             progress(stage, calls[0], calls[0] + 1)
 
-    def converge(q: np.ndarray, lsa: float, rounds: int) -> tuple[np.ndarray, list, int]:
+    def converge(q: np.ndarray, lsa: float, rounds: int,
+                 zone: float | None = None) -> tuple[np.ndarray, list, int]:
         """Measure → fit rounds at a fixed cone and aberration until the distances the lens
         gives the target image points change by less than ``TOL_DISTANCE_REL`` (or stop
         shrinking: the lenslet fits' numerical noise)."""
         moved, last = math.inf, math.inf
         for it in range(1, rounds + 1):
-            srcs = _measure(build_lens(profile, *q, d_xp, lsa), cal, targets)
+            srcs = _measure(build_lens(profile, *q, d_xp, lsa, zone), cal, targets)
             if len(srcs) > MAX_SOURCES:
                 raise CalibrationError(f"{len(srcs)} target sources: at most {MAX_SOURCES}")
-            d = np.array([s_.distance_mm for s_ in srcs])
-            a, sa = _apexes(q, srcs)
+            use = _inliers(srcs)
+            d = np.array([s_.distance_mm for s_ in use])
+            a, sa = _apexes(q, use)
             q_new, _, _ = _solve(d, a, 1.0 / sa, q, free, f0, robust=True, d_in_min=d_in_min)
             with np.errstate(invalid="ignore", divide="ignore"):
                 moved = float(np.nanmax(np.abs(distance_of_apex(*q_new, a)
@@ -535,29 +568,52 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     d_xp = math.exp(float(res.x)) * f0 / box.f_number
     q, sources, iteration = converge(q, 0.0, MAX_ITERATIONS)
     misfit0 = _total_misfit(sources)
-    lsa, why_sa = 0.0, "not tried"
+    lsa, zone, why_sa, why_zone = 0.0, None, "not tried", "not tried"
     if search_spherical:
+        n_src = len(sources)
         cache: dict = {}
 
-        def objective(x: float) -> float:
+        def search(objective, lo: float, hi: float):
+            return minimize_scalar(objective, bounds=(lo, hi), method="bounded",
+                                   options={"xatol": LSA_TOL_F, "maxiter": SEARCH_EVALUATIONS})
+
+        def f_test(before: float, after: float) -> float:
+            # one extra parameter shared by n_src sources, on their lenslet-fit misfits
+            return (before - after) / max(after / max(n_src - 1, 1), 1e-300)
+
+        def objective_m(x: float) -> float:
             qq, srcs, _ = converge(q, x * f0, 2)
-            cache[x] = (qq, srcs)
+            cache[("m", x)] = qq
             return _total_misfit(srcs)
 
-        res = minimize_scalar(objective, bounds=(-LSA_BOUND_F, LSA_BOUND_F), method="bounded",
-                              options={"xatol": LSA_TOL_F, "maxiter": SEARCH_EVALUATIONS})
+        res = search(objective_m, -LSA_BOUND_F, LSA_BOUND_F)
         misfit1 = float(res.fun)
-        n_src = len(sources)
-        # F-test on the per-source misfits (one extra parameter shared by n_src sources)
-        f_stat = (misfit0 - misfit1) / max(misfit1 / max(n_src - 1, 1), 1e-300)
-        if f_stat > F_CRITICAL and res.x in cache:
-            lsa = float(res.x) * f0
-            q, _ = cache[res.x]
-            q, sources, _ = converge(q, lsa, MAX_ITERATIONS)
-        why_sa = (f"{'kept' if lsa else 'dropped'}: misfit² {misfit0:.4g} without, "
-                  f"{misfit1:.4g} at LSA {float(res.x) * f0:+.4f} mm (F = {f_stat:.3g}, "
+        f1 = f_test(misfit0, misfit1)
+        why_sa = (f"{'kept' if f1 > F_CRITICAL else 'dropped'}: misfit² {misfit0:.4g} "
+                  f"without, {misfit1:.4g} at LSA {float(res.x) * f0:+.4f} mm (F = {f1:.3g}, "
                   f"limit {F_CRITICAL})")
-    # final: measure with the learned lens, keep terms by BIC, σ from the Jacobian
+        if f1 > F_CRITICAL and ("m", res.x) in cache:
+            lsa = float(res.x) * f0
+            q = cache[("m", res.x)]
+
+            def objective_z(x: float) -> float:
+                qq, srcs, _ = converge(q, lsa, 2, 0.5 * lsa + x * f0)
+                cache[("z", x)] = qq
+                return _total_misfit(srcs)
+
+            res2 = search(objective_z, -LSA_BOUND_F, LSA_BOUND_F)
+            misfit2 = float(res2.fun)
+            f2 = f_test(misfit1, misfit2)
+            z_val = 0.5 * lsa + float(res2.x) * f0
+            why_zone = (f"{'kept' if f2 > F_CRITICAL else 'dropped'}: misfit² {misfit1:.4g} "
+                        f"with the r² term alone, {misfit2:.4g} with the zone at LSA "
+                        f"{z_val:+.4f} mm (F = {f2:.3g}, limit {F_CRITICAL})")
+            if f2 > F_CRITICAL and ("z", res2.x) in cache:
+                zone = z_val
+                q = cache[("z", res2.x)]
+            q, sources, _ = converge(q, lsa, MAX_ITERATIONS, zone)
+    # final: measured with the learned lens; keep terms by BIC, σ from the Jacobian
+    _check_merged(sources)
     d = np.array([s.distance_mm for s in sources])
     a, sa = _apexes(q, sources)
     w = 1.0 / sa
@@ -601,7 +657,7 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     if not (np.isfinite(sigma).all() and sigma[2] < 0.05 * q[2]):
         raise CalibrationError("the targets cannot determine the lens: the MLA distance is "
                                f"uncertain to {sigma[2]:.3g} mm; spread the planes in distance")
-    learned = build_lens(profile, *q, d_xp, lsa)
+    learned = build_lens(profile, *q, d_xp, lsa, zone)
     fitted = distance_of_apex(*q, a)
     resid = [
         SourceResidual(s.target, s.distance_mm, float(fd), s.offset_mm, s.x_px, s.y_px,
@@ -610,17 +666,21 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
     ]
     kept = tuple(n_ for n_, k in zip(PARAMS, (keep_f, True, True), strict=True) if k)
     why["spherical_lsa_mm"] = why_sa
+    why["spherical_zone_lsa_mm"] = why_zone
     why["exit_pupil_diameter_mm"] = (
         f"always fitted: {d_xp:.4f} mm = {d_xp * box.f_number / f0:.4f} × f/N, least "
         "lenslet-fit misfit")
     if lsa:
         kept = (*kept, "spherical_lsa_mm")
+    if zone is not None:
+        kept = (*kept, "spherical_zone_lsa_mm")
     return LensFit(
         prescription=learned.main_lens.as_prescription, d_in_mm=float(q[2]), names=PARAMS,
         values=q.copy(), sigma=sigma, covariance=cov, kept=kept, why=why,
         residuals=tuple(resid), n_planes=len({s.distance_mm for s in sources}),
         n_sources=len(sources), iterations=calls[0], exit_pupil_mm=box.exit_pupil_mm,
-        f_number=box.f_number, spherical_lsa_mm=lsa, exit_pupil_diameter_mm=d_xp)
+        f_number=box.f_number, spherical_lsa_mm=lsa, exit_pupil_diameter_mm=d_xp,
+        spherical_zone_lsa_mm=zone)
 
 
 def read_targets(csv_path, profile: CameraProfile) -> list[Target]:
