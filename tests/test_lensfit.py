@@ -27,7 +27,6 @@ from lfcam.calibrate.lensfit import (
 from lfcam.calibrate.model import (
     calibration_from_dict,
     load_calibration,
-    save_calibration,
 )
 from lfcam.camera import MainLens, profile_from_dict
 from lfcam.distance import run_distance
@@ -92,7 +91,7 @@ def rig():
         # a source whose chief ray lands near image_xy_mm on the MLA
         m = (d_in - PRINCIPAL_TRUE_MM) / (distance_mm + PRINCIPAL_TRUE_MM)
         pos = [-image_xy_mm[0] / m, -image_xy_mm[1] / m]
-        scene = {"seed": seed, "rays_per_source": 150_000, "sensor": NOISE,
+        scene = {"seed": seed, "rays_per_source": 100_000, "sensor": NOISE,
                  "objects": [{"type": "point", "distance_mm": distance_mm, "position_mm": pos}]}
         raw, _, _ = simulate(true, scene_from_dict(scene))
         return raw.astype(np.float64)
@@ -103,34 +102,59 @@ def rig():
 
 
 @pytest.fixture(scope="module")
-def fitted(rig):
-    _, _, box, cal, targets, _, _ = rig
-    return fit_lens(box, cal, targets, search_spherical=False)
+def cli_run(rig, tmp_path_factory):
+    """What a user runs: white + targets.csv → ``lfcam calibrate --targets`` → calib.json.
+    Returns (folder, loaded calibration, printed summary)."""
+    import contextlib
+    import io
+
+    import cv2
+
+    from lfcam.cli.main import main
+
+    _, _, _, _, targets, _, white = rig
+    tmp = tmp_path_factory.mktemp("lensfit")
+    (tmp / "box.toml").write_text(BOX_TOML)
+    cv2.imwrite(str(tmp / "white.png"), white.astype(np.uint16))
+    rows = ["capture,distance_mm"]
+    for t in targets:
+        cv2.imwrite(str(tmp / f"{t.name}.png"), t.image.astype(np.uint16))
+        rows.append(f"{t.name}.png,{t.distance_mm:g}")
+    (tmp / "targets.csv").write_text("\n".join(rows) + "\n")
+    args = ["calibrate", str(tmp / "white.png"), "--profile", str(tmp / "box.toml"),
+            "--targets", str(tmp / "targets.csv"), "--lens-model", "ideal", "-q",
+            "-o", str(tmp / "calib.json")]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(args) == 0
+    return tmp, load_calibration(tmp / "calib.json"), out.getvalue()
 
 
-def test_fit_recovers_the_hidden_lens(rig, fitted):
+def test_fit_recovers_the_hidden_lens(rig, cli_run):
     _, d_in, _, _, _, _, _ = rig
-    fit = fitted
-    f, h, d = (fit.param(n) for n in PARAMS)
+    _, cal, printed = cli_run
+    block = cal.learned_lens
+    assert cal.d_in_method == "lens-fit" and cal.d_in_mm == block["d_in_mm"]
+    assert "kept terms" in printed and "plane3.png" in printed
+    f, h, d = (block["parameters"][n] for n in PARAMS)
     # image-space truth: the MLA's distance behind the principal plane and the focal length
     assert f == pytest.approx(F_TRUE_MM, rel=0.004)
     assert d - h == pytest.approx(d_in - PRINCIPAL_TRUE_MM, abs=0.05)
     assert h == pytest.approx(PRINCIPAL_TRUE_MM, abs=2.0)
-    assert "focal_length_mm" in fit.kept  # 0.6 % off its label: the data say so
-    assert (fit.sigma > 0).all() and fit.sigma[0] < 0.3
-    np.testing.assert_allclose(fit.covariance, fit.covariance.T)
-    errors = np.array([r.error_pct for r in fit.residuals])
-    assert fit.n_planes == 5 and fit.n_sources == 5
-    assert np.abs(errors).max() < 0.5
+    assert "focal_length_mm" in block["kept_terms"]  # 0.6 % off its label: the data say so
+    sigma = np.array([block["sigma"][n] for n in PARAMS])
+    assert (sigma > 0).all() and sigma[0] < 0.3
+    cov = np.asarray(block["covariance"])
+    np.testing.assert_allclose(cov, cov.T)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), sigma, rtol=1e-9)
+    errors = np.array([r["fitted_mm"] / r["distance_mm"] - 1.0 for r in block["residuals"]])
+    assert block["n_planes"] == 5 and block["n_sources"] == 5
+    assert np.abs(errors).max() < 0.005
 
 
-def test_hidden_sources_with_the_learned_lens(rig, fitted, tmp_path):
-    _, _, box, cal, _, capture, _ = rig
-    learned_cal = replace(cal, learned_lens=fitted.to_dict(), d_in_mm=fitted.d_in_mm)
-    # through the calibration file, as lfcam distance reads it
-    save_calibration(learned_cal, tmp_path / "c.json")
-    loaded = load_calibration(tmp_path / "c.json")
-    assert loaded.learned_lens["parameters"] == fitted.to_dict()["parameters"]
+def test_hidden_sources_with_the_learned_lens(rig, cli_run):
+    _, _, box, _, _, capture, _ = rig
+    _, loaded, _ = cli_run
     errors = []
     for i, (dist, xy) in enumerate([(420.0, (0.1, -0.1)), (560.0, (-0.3, 0.1)),
                                     (2600.0, (0.3, 0.3))]):
@@ -145,8 +169,8 @@ def test_hidden_sources_with_the_learned_lens(rig, fitted, tmp_path):
     assert np.abs(errors).max() < 0.003  # issue 15's target: 1 % mean, 2.5 % max
 
 
-def test_calibration_sigma_is_the_analytic_propagation(fitted):
-    block = fitted.to_dict()
+def test_calibration_sigma_is_the_analytic_propagation(cli_run):
+    block = cli_run[1].learned_lens
     f, h, d_in = (block["parameters"][n] for n in PARAMS)
     cov = np.asarray(block["covariance"])
     dist = 1500.0
@@ -161,8 +185,8 @@ def test_calibration_sigma_is_the_analytic_propagation(fitted):
     assert calibration_sigma_mm(block, None, dist) == pytest.approx(expected, rel=1e-4)
 
 
-def test_learned_block_validation(fitted):
-    block = fitted.to_dict()
+def test_learned_block_validation(cli_run):
+    block = cli_run[1].learned_lens
     assert validate_learned(block, "c.json")["d_in_mm"] == block["d_in_mm"]
     for bad, match in [
         ({**block, "d_in_mm": -3.0}, "d_in_mm"),
@@ -236,49 +260,30 @@ height_px = 320
 """
 
 
-def test_cli_calibrate_targets_then_distance(rig, tmp_path, capsys):
-    """What a user runs: white + targets.csv → calib.json → lfcam distance on a new capture."""
+def test_cli_distance_with_the_learned_lens(rig, cli_run, capsys):
+    """``lfcam distance`` on a new capture; without a learned lens, one clear line, exit 1."""
     import csv
 
     import cv2
 
     from lfcam.cli.main import main
 
-    _, _, _, _, targets, capture, white = rig
-    (tmp_path / "box.toml").write_text(BOX_TOML)
-    cv2.imwrite(str(tmp_path / "white.png"), white.astype(np.uint16))
-    rows = ["capture,distance_mm"]
-    for t in (targets[0], targets[1], targets[3], targets[4]):
-        cv2.imwrite(str(tmp_path / f"{t.name}.png"), t.image.astype(np.uint16))
-        rows.append(f"{t.name}.png,{t.distance_mm:g}")
-    (tmp_path / "targets.csv").write_text("\n".join(rows) + "\n")
-    args = ["calibrate", str(tmp_path / "white.png"), "--profile", str(tmp_path / "box.toml"),
-            "--targets", str(tmp_path / "targets.csv"), "--lens-model", "ideal", "-q",
-            "-o", str(tmp_path / "calib.json")]
+    capture = rig[5]
+    tmp, _, _ = cli_run
+    cv2.imwrite(str(tmp / "scene.png"), capture(2000.0, (0.2, 0.0), 77).astype(np.uint16))
+    args = ["distance", str(tmp / "scene.png"), "--profile", str(tmp / "box.toml"),
+            "--calibration", str(tmp / "calib.json"), "--method", "lenslet", "--model",
+            "exact", "-o", str(tmp / "out")]
     assert main(args) == 0
-    out = capsys.readouterr().out
-    assert "d_in_mm" in out and "kept terms" in out and "plane3.png" in out
-    cal = load_calibration(tmp_path / "calib.json")
-    assert cal.d_in_method == "lens-fit"
-    assert cal.learned_lens["n_planes"] == 4 and len(cal.learned_lens["residuals"]) == 4
-    f, h, d = (cal.learned_lens["parameters"][n] for n in PARAMS)
-    assert f == pytest.approx(F_TRUE_MM, rel=0.01)
-    # a hidden source, through the command line
-    cv2.imwrite(str(tmp_path / "scene.png"), capture(2000.0, (0.2, 0.0), 77).astype(np.uint16))
-    args = ["distance", str(tmp_path / "scene.png"), "--profile", str(tmp_path / "box.toml"),
-            "--calibration", str(tmp_path / "calib.json"), "--method", "lenslet", "--model",
-            "exact", "-o", str(tmp_path / "out")]
-    assert main(args) == 0
-    with (tmp_path / "out" / "regions.csv").open() as fh:
+    with (tmp / "out" / "regions.csv").open() as fh:
         regions = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
     assert len(regions) == 1
     assert float(regions[0]["distance_mm"]) == pytest.approx(2000.0, rel=0.005)
-    # the same profile with a calibration that learned no lens: one clear line, exit 1
-    plain = json.loads((tmp_path / "calib.json").read_text())
+    plain = json.loads((tmp / "calib.json").read_text())
     del plain["learned_lens"]
-    (tmp_path / "plain.json").write_text(json.dumps(plain))
-    args[5] = str(tmp_path / "plain.json")
-    args[-1] = str(tmp_path / "out2")
+    (tmp / "plain.json").write_text(json.dumps(plain))
+    args[5] = str(tmp / "plain.json")
+    args[-1] = str(tmp / "out2")
     capsys.readouterr()
     assert main(args) == 1
     assert "--targets" in capsys.readouterr().err
