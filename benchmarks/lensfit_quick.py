@@ -130,7 +130,7 @@ def run_config(name: str, rays: int) -> list[dict]:
         print(f"  {n:16s} {v:10.4f} ± {s:.4f}   {fit.why[n]}")
     print(f"  d_in − principal {fit.param('d_in_mm') - fit.param('principal_mm'):.4f} mm; "
           f"exit pupil diameter {fit.exit_pupil_diameter_mm:.4f} mm; "
-          f"{fit.why['spherical_lsa_mm']}")
+          f"{fit.why['spherical_lsa_mm']}; zone: {fit.why['spherical_zone_lsa_mm']}")
     res = np.array([r.error_pct for r in fit.residuals])
     print(f"targets: {fit.n_sources} sources, |error| mean {np.abs(res).mean():.3f} %, "
           f"max {np.abs(res).max():.3f} %")
