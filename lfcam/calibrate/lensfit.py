@@ -611,17 +611,6 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
             if f2 > F_CRITICAL and ("z", res2.x) in cache:
                 zone = z_val
                 q = cache[("z", res2.x)]
-            # the cone again, now that the aberration shapes the blur (coordinate descent)
-            def aperture_misfit2(log_m: float) -> float:
-                srcs = _measure(build_lens(profile, *q, math.exp(log_m) * d_xp, lsa, zone),
-                                cal, targets)
-                tick("exit pupil")
-                return _total_misfit(srcs)
-
-            res3 = minimize_scalar(aperture_misfit2, bounds=(-0.15, 0.15), method="bounded",
-                                   options={"xatol": PUPIL_LOG_TOL,
-                                            "maxiter": SEARCH_EVALUATIONS})
-            d_xp = math.exp(float(res3.x)) * d_xp
             q, sources, _ = converge(q, lsa, MAX_ITERATIONS, zone)
     # final: measured with the learned lens; keep terms by BIC, σ from the Jacobian
     _check_merged(sources)
