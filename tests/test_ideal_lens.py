@@ -200,3 +200,27 @@ def test_ideal_lens_seed_f_number_and_pupils():
         assert rx.stop_pupils[2] == pytest.approx(12.0 if xp is None else xp, abs=1e-12)
     with pytest.raises(ProfileError, match="focal plane"):
         ideal_lens(50.0, 2.8, 0.0, 50.0)
+
+
+def test_optics_forward_on_a_black_box_says_it_uses_the_seed(tmp_path, capsys):
+    from lfcam.cli.main import main
+
+    p = _write(tmp_path, "exit_pupil_mm = 40.0")
+    assert main(["optics", "forward", "--profile", str(p), "--focus", "1000", "--distance",
+                 "500", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert "seed ideal lens" in captured.err
+    # the seed: an ideal lens f = 50 on the front (z = 0), its stop (= exit pupil) placed at
+    # load time 40 mm before the MLA of the profile (no MLA distance: infinity focus, z = 50),
+    # radius (f/N)/2·(1 − e/f) (entrance pupil f/N). --focus 1000 moves the MLA to v(1000),
+    # sensor 0.5 mm behind. The upper stop-edge ray runs from the stop edge to the image of
+    # the axial source at v(500).
+    v = lambda u: 50.0 * u / (u - 50.0)  # noqa: E731
+    d_in = v(1000.0)
+    z_stop = 50.0 - 40.0
+    r_stop = 0.5 * (50.0 / 2.8) * (1.0 - z_stop / 50.0)
+    z_img, z_sensor = v(500.0), d_in + 0.5
+    y1 = r_stop * (z_img - z_sensor) / (z_img - z_stop)
+    out = __import__("json").loads(captured.out)
+    assert out["y1_mm"] == pytest.approx(y1, abs=1e-9)
+    assert out["y2_mm"] == pytest.approx(-y1, abs=1e-9)

@@ -143,8 +143,15 @@ def add_profile_args(p: argparse.ArgumentParser, focus: bool = True) -> None:
 
 
 def profile_from_args(args: argparse.Namespace) -> CameraProfile:
-    """Load ``--profile`` and apply ``--d-in`` / ``--focus`` when given."""
+    """Load ``--profile`` and apply ``--d-in`` / ``--focus`` when given. A black-box main
+    lens is used through its seed ideal lens, and a note on stderr says so."""
     profile = load_profile(args.profile)
+    if profile.main_lens.is_black_box:
+        import sys
+
+        print(f"lfcam: note: profile {profile.name!r} gives its main lens as a black box; "
+              "using its seed ideal lens (learn the real one with lfcam calibrate --targets)",
+              file=sys.stderr)
     if getattr(args, "d_in", None) is not None:
         profile = profile.with_d_in(args.d_in)
     elif getattr(args, "focus", None) is not None:
