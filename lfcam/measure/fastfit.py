@@ -59,10 +59,19 @@ COARSE_ITERATIONS = 6
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
+FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
+POLISH_RAYS = 80000  # rays of the polishing model
 LINE_POINTS = 12
 LINE_COARSE_SHARE = 12  # the coarse line model traces COARSE_RAYS / this per point
-LINE_TRIGGER = 3.0  # a point misfit over this × the model's noise floor: also try a line
-LINE_GAIN = 0.9  # ... and becomes a line when that cuts the misfit below this × the point's
+# Point or line, decided from the data (docs/distance.md, "Off-axis points taken for lines").
+# Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.006
+# (photon noise of the data: 0.002-0.005 measured from two renders of the same scene), a line
+# fitted as a point 0.15-0.69, a line fitted as a line 0.001-0.04.
+LINE_TRIGGER = 0.02  # a point misfit over this (or an elongated region): also fit a line
+LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
+#                  parameters cannot halve a misfit that is noise; a coma-stretched point's
+#                  line fit does not lower it at all)
+POOR_FIT = 0.06  # best misfit over this: neither model explains the data (status poor-fit)
 _LATTICES: dict[int, LocalLattice | None] = {}
 _PEDESTAL: dict = {}
 
@@ -626,13 +635,23 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse))
     fun = fun_of(fine)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
+    # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
+    # at 80 000. Polish with a model of POLISH_RAYS and its own Jacobian (docs/distance.md,
+    # "Off-axis points taken for lines").
+    polish = LensletModel(profile, geom, mom, POLISH_RAYS)
+    fun = fun_of(polish)
+    q, r, f, jac_fine = _levenberg_marquardt(fun, q, COARSE_STEPS, FINE_LM_ITERATIONS, 1e-3,
+                                             many_of(polish))
+    if jac_fine is not None:
+        jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(q[0])
     # the model's own sampling noise: the same source through a turned pupil sample
-    other = LensletModel(profile, geom, mom, n_rays, phase=1.0)
+    other = LensletModel(profile, geom, mom, POLISH_RAYS, phase=1.0)
     key = np.asarray(source, dtype=np.float64).tobytes()
-    m_a = fine.last[1] if fine.last[0] == key else fine.simulate(source)
+    m_a = polish.last[1] if polish.last[0] == key else polish.simulate(source)
     m_b = other.simulate(source)
     floor = math.sqrt(_sq((m_a - m_b).ravel()) / _sq(m_a.ravel()) / 2.0)
     try:
@@ -640,7 +659,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
     except np.linalg.LinAlgError:
         sigma_d = np.inf
-    evals = scan.evaluations + coarse.evaluations + fine.evaluations
+    evals = scan.evaluations + coarse.evaluations + fine.evaluations + polish.evaluations
     if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
     return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
@@ -677,12 +696,19 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     cov = (dc.T * w) @ dc / w.sum()
     evals, evecs = np.linalg.eigh(cov)
     length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
+    cbar = (c * w[:, None]).sum(0) / w.sum()
+
+    def segment(d: float, centre_mm: np.ndarray | None = None) -> np.ndarray:
+        # the footprint's long axis and length, seen from a trial distance d
+        gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]))[0]  # src/MLA
+        along = frame.z_rim - (frame.z_front - d)
+        centre = (chief_ray_offset(profile, geom.d_in_mm, d, cbar) if centre_mm is None
+                  else centre_mm) / along
+        half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
+        return np.r_[math.log(d), centre - half, centre + half]
+
     d0 = float(frame.z_front - point.source_mm[2])
-    gain = chief_ray_offset(profile, geom.d_in_mm, d0, np.array([1.0, 0.0]))[0]  # src mm / MLA mm
-    along = frame.z_rim - point.source_mm[2]
-    half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
-    centre = point.source_mm[:2] / along
-    q0 = np.r_[math.log(d0), centre - half, centre + half]
+    q0 = segment(d0, point.source_mm[:2])
     n_lit = int(lit.sum())
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     coarse = LensletModel(profile, geom, mom, max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
@@ -696,8 +722,23 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return lambda qs: [model.residual_of(m) for m in model.simulate_sets(
             [_line_points(frame, q, count) for q in qs])]
 
-    q, r, f, jac = _levenberg_marquardt(fun_of(coarse, LINE_POINTS), q0, steps,
-                                        COARSE_ITERATIONS, 1e-3, many_of(coarse, LINE_POINTS))
+    # Starts: the point fit's distance, and the best node of a distance scan of the line
+    # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
+    # for the local fit to come back from.
+    fun_c = fun_of(coarse, LINE_POINTS)
+    scan = [segment(float(d)) for d in np.geomspace(1.1 * profile.main_lens.focal_length_mm,
+                                                   3e4, SCAN_DISTANCES)]
+    costs = [_sq(fun_c(qs)) for qs in scan]
+    best_scan = scan[int(np.argmin(costs))]
+    best = None
+    for start in (q0, best_scan):
+        cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
+                                    many_of(coarse, LINE_POINTS))
+        if best is None or cand[2] < best[2]:
+            best = cand
+        if abs(best_scan[0] - q0[0]) < 0.05:
+            break  # the same basin
+    q, r, f, jac = best
     fun = fun_of(fine, LINE_POINTS)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     pts = _line_points(frame, q, 2)
@@ -732,13 +773,18 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     Measurement
     """
     fit = fit_lenslet_point(profile, geom, image, region)
-    if region.kind == "line" or (fit.ok and fit.misfit > LINE_TRIGGER * fit.noise_floor):
-        line = fit_lenslet_line(profile, geom, image, region, fit)
-        if line.ok and (not fit.ok or region.kind == "line"
-                        or line.misfit < LINE_GAIN * fit.misfit):
-            return _line_measurement(profile, geom, line)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
+    # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
+    # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
+    if region.kind == "line" or fit.misfit > LINE_TRIGGER:
+        line = fit_lenslet_line(profile, geom, image, region, fit)
+        if line.ok and line.misfit < LINE_GAIN * fit.misfit:
+            if not line.misfit <= POOR_FIT:
+                return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
+            return _line_measurement(profile, geom, line)
+    if not fit.misfit <= POOR_FIT:
+        return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
                              misfit=fit.misfit)
 
