@@ -24,7 +24,7 @@ from lfcam.measure.base import (
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.pointfit import (
-    MATCH_BLUR_PX,
+    DATA_BLUR_PX,
     SpotExtraction,
     _Patch,
     find_spots,
@@ -122,7 +122,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
 def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], noise: float) -> float:
     """The relative misfit pixel noise alone gives on the fitted patch (same blur as the fit)."""
     x0, y0, x1, y1 = box
-    blur = float(np.sqrt(MATCH_BLUR_PX**2 + 1.0 / 12.0))
+    blur = DATA_BLUR_PX
     data = cv2.GaussianBlur(np.asarray(image[y0:y1, x0:x1], np.float64), (0, 0), blur)
     return noise_misfit(noise, blur, int(data.size), float(np.sqrt((data * data).sum())))
 
