@@ -67,14 +67,15 @@ LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse
 LINE_FINE_PER_LENSLET = 10  # ... and fine model
 LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
 # Point or line, decided from the data (docs/distance.md, "Off-axis points taken for lines").
-# Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.006
-# (photon noise of the data: 0.002-0.005 measured from two renders of the same scene), a line
+# Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
+# (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
+# 0.08 for a far source that gets 2-4 % of the light of the scene's brightest), a line
 # fitted as a point 0.15-0.69, a line fitted as a line 0.001-0.04.
 LINE_TRIGGER = 0.02  # a point misfit over this (or an elongated region): also fit a line
 LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
 #                  parameters cannot halve a misfit that is noise; a coma-stretched point's
 #                  line fit does not lower it at all)
-POOR_FIT = 0.06  # best misfit over this: neither model explains the data (status poor-fit)
+POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 _LATTICES: dict[int, LocalLattice | None] = {}
 _PEDESTAL: dict = {}
 
