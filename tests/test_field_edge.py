@@ -1,6 +1,9 @@
-"""Issue 16 with ``method="lenslet"``: off-axis points at 80 % of system 1's half-field are
-points (F/2 coma stretches their blur, the region finder calls them elongated), lines stay
-lines behind focus.
+"""Issue 16, both sides of focus and the full field, against the renderer's truth.
+
+``method="lenslet"``: off-axis points at 80 % of system 1's half-field are points (F/2 coma
+stretches their blur, the region finder calls them elongated); lines stay lines behind focus.
+``method="lightfield"``: the image fit bins rays like the sensor (1–2 px spots behind focus)
+and starts from the lenslet fit (a side basin at the field edge).
 
 Each capture is a small crop of the sensor around the source (``sensor.axis_px`` moves the
 optical axis off the crop), rendered by ``lfcam.sim`` with photon and read noise; distances are
@@ -25,13 +28,14 @@ CROP_PX = 320
 HALF_FIELD_MM = 0.5 * 1024 * 0.08375  # system 1's full sensor
 
 
-def _camera(focus_mm: float, centre_mm: np.ndarray, size: int = CROP_PX) -> tuple[dict, object]:
+def _camera(focus_mm: float, centre_mm: np.ndarray, size: int = CROP_PX,
+            system: str = "system1") -> tuple[dict, object]:
     """Scene overrides for a ``size``² crop centred at ``centre_mm`` (sensor, from the axis)."""
-    pitch = 0.08375
+    pitch = load_profile(system).sensor.pixel_pitch_mm
     axis = (0.5 * (size - 1) - centre_mm[0] / pitch, 0.5 * (size - 1) - centre_mm[1] / pitch)
     cam = {"mla": {"focus_mm": "inf" if math.isinf(focus_mm) else focus_mm},
            "sensor": {"width_px": size, "height_px": size, "axis_px": list(axis)}}
-    used = apply_overrides(load_profile("system1"), cam)
+    used = apply_overrides(load_profile(system), cam)
     return cam, used.with_d_in(used.d_in_mm)
 
 
@@ -42,14 +46,14 @@ def _source_at(prof, distance_mm: float, sensor_mm: np.ndarray) -> list[float]:
     return [float(xy[0]), float(xy[1])]
 
 
-def _measure(cam, prof, objects, seed=3):
+def _measure(cam, prof, objects, seed=3, method="lenslet"):
     scene = {"seed": seed, "rays_per_source": 1_000_000, "camera": cam,
              "exposure": {"peak": 0.8},
              "sensor": {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0},
              "objects": objects}
-    raw, used, _ = simulate(load_profile("system1"), scene_from_dict(scene))
+    raw, used, _ = simulate(load_profile(prof.name), scene_from_dict(scene))
     img = raw.astype(np.float64)
-    return run_distance(img, used, None, model="exact", method="lenslet",
+    return run_distance(img, used, None, model="exact", method=method,
                         geometry=truth_geometry(used, img.shape))
 
 
@@ -82,3 +86,20 @@ def test_line_behind_focus_is_a_line():
     assert best.kind == "line" and best.status == "ok"
     assert abs(best.distance_mm / 2200.0 - 1.0) < 0.02
 
+
+
+@pytest.mark.parametrize(("system", "focus", "distance", "field", "limit"), [
+    ("system1", 1000.0, 2200.0, 0.0, 0.005),  # 1–2 px spots behind focus: was −1.34 %
+    ("system2", math.inf, 3500.0, 0.8, 0.01),  # side basin at the field edge: was −2.4 %
+])
+def test_image_fit_behind_focus_and_at_the_edge(system, focus, distance, field, limit):
+    half = 0.5 * load_profile(system).sensor.width_px * load_profile(system).sensor.pixel_pitch_mm
+    az = math.radians(30.0)
+    at = field * half * np.array([math.cos(az), math.sin(az)])
+    cam, prof = _camera(focus, at, size=CROP_PX, system=system)
+    run = _measure(cam, prof, [{"type": "point", "distance_mm": distance,
+                                "position_mm": _source_at(prof, distance, at)}],
+                   method="lightfield")
+    best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
+    assert best.kind == "spot" and best.status == "ok"
+    assert abs(best.distance_mm / distance - 1.0) < limit
