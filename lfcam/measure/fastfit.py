@@ -26,7 +26,8 @@ quasi-random, no grid aliasing against the pixels) and four ``bincount`` — 0.5
 footprint centroid and size), Broyden matching of that summary from the best starts,
 Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model.
 Lines (:func:`fit_lenslet_line`): ``LINE_POINTS`` equally bright points along a segment, 5
-parameters, started from the point fit.
+parameters, started from the point fit and from a distance scan. Point or line is decided from
+the two misfits (:func:`measure_lenslet`).
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
 LINE_FINE_PER_LENSLET = 10  # ... and fine model
 LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
-# Point or line, decided from the data (docs/distance.md, "Off-axis points taken for lines").
+# Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
 # 0.08 for a far source that gets 2-4 % of the light of the scene's brightest), a line
@@ -642,7 +643,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
     # at 80 000. Polish with a model of POLISH_RAYS and its own Jacobian (docs/distance.md,
-    # "Off-axis points taken for lines").
+    # "The misses fixed").
     polish = LensletModel(profile, geom, mom, POLISH_RAYS)
     fun = fun_of(polish)
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, COARSE_STEPS, FINE_LM_ITERATIONS, 1e-3,
