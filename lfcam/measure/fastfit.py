@@ -683,8 +683,10 @@ def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.n
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None) -> LensletFit:
     """Fit a line source (``LINE_POINTS`` equally bright points, 5 parameters) to the
-    region's lenslet moments. Start: the point fit's distance and centre, the footprint's long
-    axis, and the image length from its second moments (along − across = Lᵢ²/12)."""
+    region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
+    a distance scan (centre from the chief ray through the light's centroid); both with the
+    footprint's long axis and the image length from its second moments (along − across =
+    Lᵢ²/12)."""
     box = _region_box(geom, region, image.shape)
     mom = data_moments(geom, image, box)
     nan3 = np.full(3, np.nan)
