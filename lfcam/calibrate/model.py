@@ -227,11 +227,19 @@ class Calibration:
         q = np.linalg.solve(self.lattice_matrix, np.vstack([xy.T, np.ones(len(xy))]))
         return (q[:2] / q[2]).T
 
-    def lens_centres(self, shape: tuple[int, int]) -> LensCentres:
+    def lens_centres(self, shape: tuple[int, int], margin_px: float = 0.0) -> LensCentres:
         """Every lens whose centre lies on a sensor of ``shape`` (rows, cols), by row/column.
 
         Measured lenses keep their measured centre; every other lens is placed by the
         fitted lattice model (:meth:`predict`: similarity, affine, projective or radial).
+
+        Parameters
+        ----------
+        shape : tuple of int
+            (rows, cols) of the sensor.
+        margin_px : float
+            Also keep the rows / columns of lenses whose centre lies up to this far outside
+            the sensor (their micro-image can still reach it); 0 for centres on the sensor.
 
         Returns
         -------
@@ -247,8 +255,9 @@ class Calibration:
         h, w = int(shape[0]), int(shape[1])
         corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], np.float64)
         ij = self.lattice_coords(corners)
-        i0, i1 = int(math.floor(ij[:, 0].min())) - 2, int(math.ceil(ij[:, 0].max())) + 2
-        j0, j1 = int(math.floor(ij[:, 1].min())) - 2, int(math.ceil(ij[:, 1].max())) + 2
+        pad = 2 + int(math.ceil(max(0.0, margin_px) / self.row_spacing_px))
+        i0, i1 = int(math.floor(ij[:, 0].min())) - pad, int(math.ceil(ij[:, 0].max())) + pad
+        j0, j1 = int(math.floor(ij[:, 1].min())) - pad, int(math.ceil(ij[:, 1].max())) + pad
         t0, t1 = j0, j1
         s0 = i0 + (j0 // 2 if self.grid == "hex" else 0)
         s1 = i1 + (j1 // 2 if self.grid == "hex" else 0)
@@ -262,7 +271,8 @@ class Calibration:
             ok = (r >= 0) & (r < x.shape[0]) & (q >= 0) & (q < x.shape[1])
             x[r[ok], q[ok]] = self.centres_px[ok, 0]
             y[r[ok], q[ok]] = self.centres_px[ok, 1]
-        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+        m = max(0.0, float(margin_px))
+        inside = (x >= -m) & (x <= w - 1 + m) & (y >= -m) & (y <= h - 1 + m)
         rows = np.flatnonzero(inside.any(axis=1))
         cols = np.flatnonzero(inside.any(axis=0))
         if rows.size == 0 or cols.size == 0:

@@ -22,7 +22,7 @@ from lfcam.calibrate.quality import check_profile_pitch
 from lfcam.camera import CameraProfile
 from lfcam.errors import CalibrationError
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map
-from lfcam.optics.mla import lattice_basis, rotation_matrix
+from lfcam.optics.mla import lattice_basis, lattice_index, rotation_matrix, row_column
 from lfcam.optics.trace import trace_backward_fast
 
 if TYPE_CHECKING:  # the calibration stage sits above measure: its type only
@@ -98,7 +98,8 @@ def nominal_indices(centres_mm: np.ndarray, pitch_mm: float, grid: str,
 
 
 def regularise_to_lattice(
-    centres_mm: np.ndarray, indices: np.ndarray, pitch_mm: float
+    centres_mm: np.ndarray, indices: np.ndarray, pitch_mm: float,
+    fit_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """Replace lenslet centres by a least-squares affine lattice through them.
 
@@ -116,6 +117,9 @@ def regularise_to_lattice(
         Their lattice indices (:func:`lfcam.optics.mla.lattice_basis`).
     pitch_mm : float
         Lenslet pitch (scales the acceptance limit).
+    fit_mask : (N,) bool array, optional
+        Centres the lattice is fitted to (default: all); the others only receive its
+        positions (lenses placed by the calibration's lattice model, not measured).
 
     Returns
     -------
@@ -124,15 +128,59 @@ def regularise_to_lattice(
         RMS residual of the lattice fit, in pitches.
     """
     c = np.asarray(centres_mm, dtype=np.float64)
-    if len(c) < 8:
+    use = np.ones(len(c), bool) if fit_mask is None else np.asarray(fit_mask, bool)
+    if use.sum() < 8:
         return c, float("nan")
     a = np.column_stack([np.ones(len(c)), np.asarray(indices, dtype=np.float64)])
-    coef, *_ = np.linalg.lstsq(a, c, rcond=None)
+    coef, *_ = np.linalg.lstsq(a[use], c[use], rcond=None)
     fitted = a @ coef
-    rms = float(np.sqrt(((fitted - c) ** 2).sum(axis=1).mean())) / pitch_mm
+    rms = float(np.sqrt(((fitted[use] - c[use]) ** 2).sum(axis=1).mean())) / pitch_mm
     if not rms <= LATTICE_MAX_RMS_PITCH:
         return c, rms
     return fitted, rms
+
+
+def sensor_lenses(calibration: Calibration, shape: tuple[int, int],
+                  radius_px: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Micro-image centres of every lens whose micro-image reaches the sensor.
+
+    The calibration measures only whole micro-images; lenses cut by the sensor edge are
+    placed by its fitted lattice model (:meth:`Calibration.lens_centres`). A lens is kept
+    when a pixel centre of the sensor lies within ``radius_px`` of its centre (the lenslet
+    map's disc, :func:`lfcam.measure.lenslets.build_lenslet_map`).
+
+    Parameters
+    ----------
+    calibration : Calibration
+    shape : tuple of int
+        (rows, cols) of the sensor.
+    radius_px : float
+        Micro-image radius of the lenslet map.
+
+    Returns
+    -------
+    centres_px : (N, 2) array
+        The measured centres (calibration order) followed by the model-placed ones.
+    indices : (N, 2) int array
+        Their lattice indices.
+    n_measured : int
+        Number of measured centres (the first rows).
+    """
+    h, w = int(shape[0]), int(shape[1])
+    measured = np.asarray(calibration.centres_px, dtype=np.float64).reshape(-1, 2)
+    m_idx = np.asarray(calibration.indices, dtype=np.int64).reshape(-1, 2)
+    lc = calibration.lens_centres(shape, margin_px=radius_px)
+    t, s = np.meshgrid(np.arange(lc.x.shape[0]) + lc.first_t,
+                       np.arange(lc.x.shape[1]) + lc.first_s, indexing="ij")
+    i, j = lattice_index(calibration.grid, t.ravel(), s.ravel())
+    x, y = lc.x.ravel(), lc.y.ravel()
+    gap = np.hypot(x - np.clip(x, 0.0, w - 1.0), y - np.clip(y, 0.0, h - 1.0))
+    mt, ms = row_column(calibration.grid, m_idx[:, 0], m_idx[:, 1])
+    is_measured = np.isin(t.ravel() * 2**31 + s.ravel(), mt * 2**31 + ms)  # |s| ≪ 2**30
+    new = (gap <= radius_px) & ~is_measured
+    centres = np.vstack([measured, np.column_stack([x[new], y[new]])])
+    indices = np.vstack([m_idx, np.column_stack([i[new], j[new]])])
+    return centres, indices, len(measured)
 
 
 @dataclass(frozen=True)
@@ -161,6 +209,11 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
                      shape: tuple[int, int]) -> Geometry:
     """Lenslet map and lenslet centres for one calibration and sensor size.
 
+    Every lens whose micro-image reaches the sensor takes part (:func:`sensor_lenses`): the
+    measured ones first, in the calibration's order, then those cut by the sensor edge, placed
+    by the calibration's lattice model. The MLA-plane lattice is fitted to the measured
+    lenses only.
+
     Parameters
     ----------
     profile : CameraProfile
@@ -183,10 +236,15 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
     calibration.check_image(shape)
     if not calibration.n_lenses:
         raise CalibrationError(f"{calibration.source or 'calibration'}: no measured centres")
-    centres = np.asarray(calibration.centres_px, dtype=np.float64)
     d_in = calibration.d_in_mm if calibration.d_in_mm is not None else profile.d_in_mm
     check_profile_pitch(profile, calibration, d_in)  # a wrong profile, before any heavy work
-    lmap = build_lenslet_map(centres, shape, 0.5 * calibration.pitch_px * 1.08)
-    lens_mm = lenslet_centres_mm(profile, d_in, centres)
-    lens_mm, _ = regularise_to_lattice(lens_mm, calibration.indices, profile.mla.pitch_mm)
+    radius_px = 0.5 * calibration.pitch_px * 1.08
+    centres, indices, n_measured = sensor_lenses(calibration, shape, radius_px)
+    lmap = build_lenslet_map(centres, shape, radius_px)
+    # measured and model-placed lenses separately: the measured centres map exactly as before
+    # (the white-offset table spans the radii of its input)
+    lens_mm = np.vstack([lenslet_centres_mm(profile, d_in, part)
+                         for part in (centres[:n_measured], centres[n_measured:]) if len(part)])
+    lens_mm, _ = regularise_to_lattice(lens_mm, indices, profile.mla.pitch_mm,
+                                       fit_mask=np.arange(len(centres)) < n_measured)
     return Geometry(lmap, lens_mm, float(calibration.pitch_px), d_in)
