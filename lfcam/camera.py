@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from lfcam.errors import OpticsError, ProfileError
+from lfcam.errors import MetadataError, OpticsError, ProfileError
 from lfcam.optics.lens import Prescription, ideal_lens
 from lfcam.validate import Fields
 
@@ -716,7 +716,8 @@ def load_profile(name_or_path: str | Path) -> CameraProfile:
 
 def profile_for_capture(capture: str | Path, profile: str | Path | None) -> CameraProfile:
     """``profile`` (a name or path) if given, else the ``<stem>.profile.toml`` beside the
-    capture (what ``lfcam simulate`` writes).
+    capture (what ``lfcam simulate`` writes), else, for a Lytro container or packed raw, the
+    profile its metadata implies (:func:`profile_from_lytro`).
 
     Raises
     ------
@@ -729,4 +730,50 @@ def profile_for_capture(capture: str | Path, profile: str | Path | None) -> Came
     sidecar = capture.with_name(capture.stem + ".profile.toml")
     if sidecar.is_file():
         return load_profile(sidecar)
+    from lfcam.io.capture import sniff_kind
+
+    if capture.is_file() and sniff_kind(capture) in ("lfp", "lytro-raw"):
+        return profile_from_lytro(capture)
     raise ProfileError(f"no --profile given and no {sidecar.name} beside the capture")
+
+
+def profile_from_lytro(capture: str | Path) -> CameraProfile:
+    """The camera profile a Lytro capture's own metadata implies (no hand-written profile).
+
+    Sensor and MLA come from the frame metadata, the main lens is the black box seeded from
+    ``devices.lens`` (:func:`lfcam.io.lytro_meta.profile_dict_from_lytro`); the MLA distance
+    comes later from a target calibration (``lfcam calibrate --targets``).
+
+    Parameters
+    ----------
+    capture : str or Path
+        A Lytro ``.lfp``/``.lfr`` container (raw or white frame inside) or a bare packed
+        ``.raw`` with its JSON/TXT sidecar.
+
+    Returns
+    -------
+    CameraProfile
+
+    Raises
+    ------
+    MetadataError
+        Missing or mistyped metadata keys, or no sidecar beside a bare raw.
+    ProfileError
+        Metadata values that make no valid profile.
+    """
+    # io sits above camera in the stage order; import it only when a Lytro file asks for it
+    from lfcam.io import lytro_meta as lm
+    from lfcam.io.capture import find_sidecar, read_json_file, sniff_kind
+    from lfcam.io.lfp import merged_metadata, read_lfp
+
+    path = Path(capture)
+    if sniff_kind(path) == "lfp":
+        merged = merged_metadata(read_lfp(path))
+        meta, private = merged["frame"], merged["privateMetadata"]
+    else:
+        side = find_sidecar(path)
+        if side is None:
+            raise MetadataError(f"{path}: bare raw without metadata sidecar")
+        meta, private = lm.sidecar_frame(read_json_file(side))
+    camera = lm.lytro_camera(meta, private, where=f"{path}: frame metadata")
+    return profile_from_dict(lm.profile_dict_from_lytro(camera), source=str(path))

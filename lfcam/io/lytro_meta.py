@@ -375,3 +375,63 @@ def lytro_camera(meta: Any, private: Any = None, where: str = "frame metadata") 
     )
     return LytroCamera(mla=mla, sensor=sensor, optics=optics, mla_scale_factor=(sx, sy),
                        mla_separation_mm=sep_mm)
+
+
+# ----------------------------------------------------------------------------- profile
+
+
+def profile_dict_from_lytro(camera: LytroCamera, name: str | None = None) -> dict:
+    """The camera-profile mapping (docs/profiles.md) that a Lytro capture's metadata implies.
+
+    The main lens is the black-box form of ``[main_lens]`` (focal length, f-number and, when
+    the camera reports a finite one, the exit pupil → MLA distance ``exitPupilOffset.z``): a
+    zoom lens's prescription is never in the file, and the distance stage learns what it
+    needs from target captures (``lfcam calibrate --targets``). The MLA is
+    ``devices.mla`` (``mla.focal_length_mm`` = the MLA → sensor separation
+    ``sensorOffset.z``, the sensor lying in the lenslets' focal plane), the sensor is the raw
+    frame's format. ``[mla]`` carries no distance: the calibration supplies it.
+
+    Not mapped: ``devices.mla.scaleFactor`` (a ≤ 0.05 % lattice anisotropy that the white
+    image's lattice fit measures anyway) and ``devices.lens.opticalCenterOffset`` (its sign
+    convention is undocumented; the optical axis stays at the sensor centre).
+
+    Parameters
+    ----------
+    camera : LytroCamera
+        From :func:`lytro_camera`.
+    name : str, optional
+        Profile name; default ``lytro-<model>-zoom<step>-focus<step>`` (a learned lens is
+        valid for one zoom and focus state).
+
+    Returns
+    -------
+    dict
+        ``{"name", "main_lens", "mla", "sensor"}``, ready for
+        :func:`lfcam.camera.profile_from_dict`.
+    """
+    o, mla, s = camera.optics, camera.mla, camera.sensor
+    lens: dict[str, Any] = {"focal_length_mm": o.focal_length_mm, "f_number": o.f_number}
+    if math.isfinite(o.exit_pupil_offset_mm) and o.exit_pupil_offset_mm > 0.0:
+        lens["exit_pupil_mm"] = o.exit_pupil_offset_mm
+    if name is None:
+        name = (f"lytro-{o.camera_model.lower()}-zoom{o.zoom_step}-focus{o.focus_step}")
+    return {
+        "name": name,
+        "main_lens": lens,
+        "mla": {
+            "focal_length_mm": mla.focal_length_mm,
+            "pitch_mm": mla.pitch_mm,
+            "grid": mla.grid,
+            "rotation_rad": mla.rotation_rad,
+            "offset_mm": [float(mla.offset_mm[0]), float(mla.offset_mm[1])],
+        },
+        "sensor": {
+            "pixel_pitch_mm": s.pixel_pitch_mm,
+            "width_px": s.width_px,
+            "height_px": s.height_px,
+            "bit_depth": s.bit_depth,
+            "bayer": s.bayer,
+            "black_level": s.black_level,
+            "white_level": s.white_level,
+        },
+    }

@@ -6,8 +6,9 @@ Outputs of ``simulate(..., out="NAME.png")`` (or ``.tif``/``.tiff``):
 * ``NAME.profile.toml`` — the camera profile used (scene overrides applied, d_in explicit);
 * ``NAME.truth.json`` — ground truth (see docs/simulate.md).
 
-Lytro ``.lfp`` output is a hook: :data:`WRITERS` maps a suffix to a writer; another module
-may register ``".lfp"`` there.
+``NAME.lfr`` / ``NAME.lfp`` write a Lytro container instead of the raster (10-bit sensors in the
+Illum layout, 12-bit in the F01 layout, with Lytro-style metadata: :mod:`lfcam.sim.lytro`).
+:data:`WRITERS` maps a suffix to a writer.
 """
 
 from __future__ import annotations
@@ -254,8 +255,15 @@ def _write_tiff(path: Path, raw: np.ndarray, profile: CameraProfile) -> None:
     atomic_write(path, lambda p: tifffile.imwrite(p, raw, compression="zlib"))
 
 
+def _write_lytro(path: Path, raw: np.ndarray, profile: CameraProfile) -> None:
+    from lfcam.sim.lytro import write_lytro_capture
+
+    write_lytro_capture(path, raw, profile)
+
+
 WRITERS: dict[str, Callable[[Path, np.ndarray, CameraProfile], None]] = {
     ".png": _write_png, ".tif": _write_tiff, ".tiff": _write_tiff,
+    ".lfr": _write_lytro, ".lfp": _write_lytro,
 }
 
 
@@ -263,9 +271,6 @@ def capture_paths(out: str | Path, fmt: str | None = None) -> tuple[Path, Path, 
     """(raster, profile, truth) paths for an output name; no suffix → ``fmt`` or PNG."""
     out = Path(out)
     if out.suffix.lower() not in WRITERS:
-        if out.suffix.lower() in (".lfp", ".lfr"):
-            raise SceneError(f"{out}: Lytro container output is not available yet "
-                             "(register a writer in lfcam.sim.capture.WRITERS)")
         out = out.with_name(out.name + "." + (fmt or "png"))
     stem = out.with_suffix("")
     return out, Path(f"{stem}.profile.toml"), Path(f"{stem}.truth.json")
