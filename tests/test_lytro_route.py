@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lfcam.camera import load_profile, profile_from_dict
+from lfcam.camera import load_profile, profile_for_capture, profile_from_dict
 from lfcam.io import load_capture
 from lfcam.io import lytro_meta as lm
 from lfcam.io.lfp import merged_metadata, read_lfp
@@ -142,6 +142,15 @@ def test_rendered_lfr_round_trip(tmp_path):
     assert cam.optics.focal_length_mm == pytest.approx(used.main_lens.focal_length_mm, rel=1e-12)
     assert cam.optics.exit_pupil_offset_mm == pytest.approx(
         used.mla_z_mm - used.main_lens.exit_pupil_z_mm, rel=1e-12)
+    # no --profile and no sidecar: the camera comes from the metadata, the lens as a black box
+    got = profile_for_capture(path, None)
+    assert got.main_lens.focal_length_mm == pytest.approx(used.main_lens.focal_length_mm,
+                                                          rel=1e-9)
+    assert got.main_lens.f_number == pytest.approx(used.main_lens.f_number, rel=1e-9)
+    assert got.mla.distance_mm is None and got.mla.focus_mm is None  # the calibration's job
+    assert (got.mla.grid, got.mla.pitch_mm, got.mla.focal_length_mm) == (
+        "hex", pytest.approx(0.02), pytest.approx(0.037))
+    assert got.sensor == used.sensor
 
 
 def test_lytro_writer_refuses_what_lytro_cannot_hold(tmp_path):
