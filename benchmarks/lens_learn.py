@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT / "data" / "synthetic"))
 from lenses_e2e import double_gauss_f28  # noqa: E402
 
 from lfcam.camera import CameraProfile, load_profile  # noqa: E402
+from lfcam.optics.trace import forward  # noqa: E402
 from lfcam.sim.capture import simulate, write_capture  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
@@ -63,7 +64,7 @@ N_POOL = 8
 HEADLINE = (0, 2, 4, 5, 7)  # 5 of the 8 planes, spread over the range
 SOURCES_PER_PLANE = 4
 HIDDEN_PER_CAPTURE = 3
-MAX_BLUR_FRACTION = 0.35  # of the sensor width: four sources still fit without touching
+MAX_BLUR_FRACTION = 0.3  # of the sensor width: four sources still fit without touching
 
 
 @dataclass(frozen=True)
@@ -92,11 +93,9 @@ def configs(quick: bool) -> list[Config]:
 
 
 def blur_mm(profile: CameraProfile, distance_mm: float) -> float:
-    """Paraxial blur diameter on the MLA for a source at ``distance_mm`` (layout only)."""
-    lens = profile.main_lens
-    v_focus = profile.d_in_mm - lens.back_principal_z_mm
-    v = lens.image_distance_mm(distance_mm)
-    return abs(v - v_focus) / lens.f_number * (v_focus / v)
+    """Blur diameter on the sensor of an on-axis source (the two stop-edge rays, exact trace)."""
+    r = forward(profile, None, distance_mm, 0.0)
+    return float(abs(r.y1_mm - r.y2_mm))
 
 
 def plane_pool(profile: CameraProfile) -> list[float]:
@@ -115,24 +114,33 @@ def hidden_distances(pool: list[float]) -> list[float]:
     return [float(round(d)) for d in sorted(out)]
 
 
+def hidden_groups(distances: list[float]) -> list[list[float]]:
+    """Hidden distances dealt into captures of 3, near, middle and far mixed."""
+    n = max(1, math.ceil(len(distances) / HIDDEN_PER_CAPTURE))
+    return [distances[k::n] for k in range(n)]
+
+
 def object_xy_mm(profile: CameraProfile, distance_mm: float, r_frac: float,
                  azimuth_rad: float) -> list[float]:
-    """Object-side position putting the blur at ``r_frac`` of the half sensor width."""
+    """Object-side position putting the blur centre at ``r_frac`` of the half sensor width
+    (the stop-edge rays' mid-point, exact trace, scaled linearly from a 1 % field point)."""
     half_mm = 0.5 * profile.sensor.width_px * profile.sensor.pixel_pitch_mm
-    r_obj = r_frac * half_mm * distance_mm / profile.d_in_mm
+    h0 = 0.01 * distance_mm
+    r = forward(profile, None, distance_mm, h0)
+    r_obj = r_frac * half_mm * h0 / abs(0.5 * float(r.y1_mm + r.y2_mm))
     return [r_obj * math.cos(azimuth_rad), r_obj * math.sin(azimuth_rad)]
 
 
 def plane_scene(profile: CameraProfile, distance_mm: float, seed: int) -> dict:
-    """4 sources on one plane at seeded field positions (radius 0.45–0.65, four quadrants)."""
+    """4 sources on one plane at seeded field positions (radius 0.55–0.65, four quadrants)."""
     rng = np.random.default_rng(seed)
     az0 = rng.uniform(0.0, 2.0 * math.pi)
     objs = []
     for k in range(SOURCES_PER_PLANE):
-        az = az0 + k * 2.0 * math.pi / SOURCES_PER_PLANE + rng.uniform(-0.25, 0.25)
+        az = az0 + k * 2.0 * math.pi / SOURCES_PER_PLANE + rng.uniform(-0.1, 0.1)
         objs.append({"type": "point", "distance_mm": distance_mm,
                      "position_mm": object_xy_mm(profile, distance_mm,
-                                                 rng.uniform(0.45, 0.65), az)})
+                                                 rng.uniform(0.55, 0.65), az)})
     return {"seed": seed, "rays_per_source": RAYS, "sensor": NOISE, "objects": objs}
 
 
@@ -280,10 +288,8 @@ def prepare(cfg: Config, cache: Path, exit_pupil: bool, quick: bool):
                       rc, "white")
     planes = [render(prof, plane_scene(prof, d, base + 10 + k), rc, f"plane_{int(d)}")[0]
               for k, d in enumerate(pool)]
-    hidden = []
-    for k in range(0, len(hid), HIDDEN_PER_CAPTURE):
-        ds = hid[k:k + HIDDEN_PER_CAPTURE]
-        hidden.append(render(prof, hidden_scene(prof, ds, base + 100 + k), rc, f"hidden_{k}"))
+    hidden = [render(prof, hidden_scene(prof, ds, base + 100 + k), rc, f"hidden_{k}")
+              for k, ds in enumerate(hidden_groups(hid))]
     # the user's folder holds rasters only: no profile sidecar, no truth
     for src in [white, *planes, *(h[0] for h in hidden)]:
         dst = user / src.name
@@ -302,7 +308,10 @@ def describe_rig(cfg: Config, user: Path, hidden: list[tuple[Path, dict]]) -> No
         tru = user.parent / f"{name}.truth.json"
         if not tru.is_file():
             continue
-        srcs = json.loads(tru.read_text(encoding="utf-8"))["sources"]
+        srcs = [s for s in json.loads(tru.read_text(encoding="utf-8"))["sources"]
+                if "distance_mm" in s]
+        if not srcs:
+            continue
         print(f"  {name:>12}: " + "  ".join(
             f"{s['distance_mm']:g}@({s['centroid_px'][0]:.0f},{s['centroid_px'][1]:.0f})"
             f"⌀{(s['diameter_mm'] or 0) / pp:.0f}px" for s in srcs))
