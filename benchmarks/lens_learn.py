@@ -185,9 +185,15 @@ def black_box_toml(profile: CameraProfile, exit_pupil: bool) -> str:
 # ----------------------------------------------------------------------------- the user's commands
 
 
+LFCAM_ROOT = os.environ.get("LFCAM_ROOT", str(ROOT))  # the checkout whose lfcam the commands run
+
+
 def lfcam(*args: str) -> tuple[int, str, float]:
-    """Run ``python -m lfcam ARGS``; (exit code, last stderr line, CPU seconds of the child)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    """Run ``python -m lfcam ARGS``; (exit code, last stderr line, CPU seconds of the child).
+
+    The commands run this checkout's lfcam, or ``$LFCAM_ROOT``'s (another branch, same renders).
+    """
+    env = dict(os.environ, PYTHONPATH=LFCAM_ROOT)
     t0 = os.times()
     p = subprocess.run([sys.executable, "-m", "lfcam", *args], capture_output=True, text=True,
                        env=env, cwd=ROOT)
