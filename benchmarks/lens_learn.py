@@ -64,7 +64,7 @@ N_POOL = 8
 HEADLINE = (0, 2, 4, 5, 7)  # 5 of the 8 planes, spread over the range
 SOURCES_PER_PLANE = 4
 HIDDEN_PER_CAPTURE = 3
-MAX_BLUR_FRACTION = 0.3  # of the sensor width: four sources still fit without touching
+MAX_BLUR_FRACTION = 0.3  # of the sensor's shorter side: four sources still fit without touching
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,12 @@ def configs(quick: bool) -> list[Config]:
 # ----------------------------------------------------------------------------- the target rig
 
 
+def sensor_side_mm(profile: CameraProfile) -> float:
+    """The sensor's shorter side, mm (the rig is laid out in a centred square)."""
+    s = profile.sensor
+    return min(s.width_px, s.height_px) * s.pixel_pitch_mm
+
+
 def blur_mm(profile: CameraProfile, distance_mm: float) -> float:
     """Blur diameter on the sensor of an on-axis source (the two stop-edge rays, exact trace)."""
     r = forward(profile, None, distance_mm, 0.0)
@@ -100,9 +106,8 @@ def blur_mm(profile: CameraProfile, distance_mm: float) -> float:
 
 def plane_pool(profile: CameraProfile) -> list[float]:
     """8 plane distances (mm, rounded to 10 mm), geometric from the nearest usable one."""
-    width_mm = profile.sensor.width_px * profile.sensor.pixel_pitch_mm
     near = NEAR_MIN_MM
-    while blur_mm(profile, near) > MAX_BLUR_FRACTION * width_mm:
+    while blur_mm(profile, near) > MAX_BLUR_FRACTION * sensor_side_mm(profile):
         near *= 1.05
     return [float(round(d / 10.0) * 10.0) for d in np.geomspace(near, FAR_MM, N_POOL)]
 
@@ -122,9 +127,9 @@ def hidden_groups(distances: list[float]) -> list[list[float]]:
 
 def object_xy_mm(profile: CameraProfile, distance_mm: float, r_frac: float,
                  azimuth_rad: float) -> list[float]:
-    """Object-side position putting the blur centre at ``r_frac`` of the half sensor width
+    """Object-side position putting the blur centre at ``r_frac`` of the half shorter side
     (the stop-edge rays' mid-point, exact trace, scaled linearly from a 1 % field point)."""
-    half_mm = 0.5 * profile.sensor.width_px * profile.sensor.pixel_pitch_mm
+    half_mm = 0.5 * sensor_side_mm(profile)
     h0 = 0.01 * distance_mm
     r = forward(profile, None, distance_mm, h0)
     r_obj = r_frac * half_mm * h0 / abs(0.5 * float(r.y1_mm + r.y2_mm))

@@ -71,10 +71,19 @@ def run(args: argparse.Namespace) -> int:
     if ref is not None and args.profile is None:
         raise CalibrationError("--reference needs --profile (main lens, MLA and sensor)")
     targets_csv = getattr(args, "targets", None)
+    target_profile = None
     if targets_csv is not None:
-        if args.profile is None:
-            raise CalibrationError("--targets needs --profile (the black-box main lens, MLA "
-                                   "and sensor)")
+        # --profile, else the white's .profile.toml sidecar, else a Lytro file's own metadata
+        from lfcam.camera import profile_for_capture
+        from lfcam.errors import ProfileError
+
+        try:
+            target_profile = profile_for_capture(args.white, args.profile)
+        except ProfileError as exc:
+            if args.profile is not None:
+                raise
+            raise CalibrationError(f"--targets needs --profile (the black-box main lens, MLA "
+                                   f"and sensor): {exc}") from None
         if ref is not None:
             raise CalibrationError("--targets learns d_in with the lens: leave out --reference")
     refuse_overwrite([*capture_files(args.white), *capture_files(args.dark),
@@ -90,9 +99,8 @@ def run(args: argparse.Namespace) -> int:
 
             from lfcam.calibrate import save_calibration
             from lfcam.calibrate.lensfit import fit_lens, read_targets
-            from lfcam.camera import load_profile
 
-            prof = load_profile(args.profile)
+            prof = target_profile
             fit = fit_lens(prof, cal, read_targets(targets_csv, prof), progress=bar,
                            search_spherical=args.lens_model == "ideal+spherical")
             cal = replace(cal, learned_lens=fit.to_dict(), d_in_mm=fit.d_in_mm,
