@@ -201,7 +201,7 @@ def lfcam(*args: str) -> tuple[int, str, float]:
     env = dict(os.environ, PYTHONPATH=LFCAM_ROOT)
     t0 = os.times()
     p = subprocess.run([sys.executable, "-m", "lfcam", *args], capture_output=True, text=True,
-                       env=env, cwd=ROOT)
+                       env=env, cwd=LFCAM_ROOT)  # python -m puts the cwd first on sys.path
     t1 = os.times()
     cpu = (t1.children_user - t0.children_user) + (t1.children_system - t0.children_system)
     msg = (p.stderr.strip().splitlines() or [""])[-1]
