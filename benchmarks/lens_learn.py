@@ -397,7 +397,8 @@ def main() -> None:
             signs = rng.choice([-1.0, 1.0], size=len(HEADLINE))
             trial(HEADLINE, "perturbed", f"±{e:g} mm random", list(signs * e))
             trial(HEADLINE, "perturbed", f"+{e:g} mm all", [e] * len(HEADLINE))
-    write_results(trials, chosen, Path(args.out), args, time.process_time() - t_start)
+    if not args.render_only:
+        write_results(trials, chosen, Path(args.out), args, time.process_time() - t_start)
 
 
 def write_results(trials: list[Trial], chosen: list[Config], out: Path, args,
