@@ -136,7 +136,8 @@ def object_xy_mm(profile: CameraProfile, distance_mm: float, r_frac: float,
     return [r_obj * math.cos(azimuth_rad), r_obj * math.sin(azimuth_rad)]
 
 
-def plane_scene(profile: CameraProfile, distance_mm: float, seed: int) -> dict:
+def plane_scene(profile: CameraProfile, distance_mm: float, seed: int,
+                noise: dict | None = None) -> dict:
     """4 sources on one plane at seeded field positions (radius 0.55–0.65, four quadrants)."""
     rng = np.random.default_rng(seed)
     az0 = rng.uniform(0.0, 2.0 * math.pi)
@@ -146,10 +147,11 @@ def plane_scene(profile: CameraProfile, distance_mm: float, seed: int) -> dict:
         objs.append({"type": "point", "distance_mm": distance_mm,
                      "position_mm": object_xy_mm(profile, distance_mm,
                                                  rng.uniform(0.55, 0.65), az)})
-    return {"seed": seed, "rays_per_source": RAYS, "sensor": NOISE, "objects": objs}
+    return {"seed": seed, "rays_per_source": RAYS, "sensor": noise or NOISE, "objects": objs}
 
 
-def hidden_scene(profile: CameraProfile, distances: list[float], seed: int) -> dict:
+def hidden_scene(profile: CameraProfile, distances: list[float], seed: int,
+                 noise: dict | None = None) -> dict:
     """Sources at several distances in one capture, 120° apart, radius 0.15–0.6."""
     rng = np.random.default_rng(seed)
     az0 = rng.uniform(0.0, 2.0 * math.pi)
@@ -158,7 +160,7 @@ def hidden_scene(profile: CameraProfile, distances: list[float], seed: int) -> d
         az = az0 + k * 2.0 * math.pi / len(distances)
         objs.append({"type": "point", "distance_mm": d,
                      "position_mm": object_xy_mm(profile, d, rng.uniform(0.15, 0.6), az)})
-    return {"seed": seed, "rays_per_source": RAYS, "sensor": NOISE, "objects": objs}
+    return {"seed": seed, "rays_per_source": RAYS, "sensor": noise or NOISE, "objects": objs}
 
 
 def render(profile: CameraProfile, body: dict, cache: Path, name: str) -> tuple[Path, dict]:

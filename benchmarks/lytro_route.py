@@ -128,9 +128,9 @@ def main() -> None:
           flush=True)
     white, _ = render_lfr(prof, {"seed": SEED, "objects": [{"type": "white"}],
                                  "sensor": NOISE}, cache, user, "white")
-    files = [render_lfr(prof, plane_scene(prof, d, SEED + 10 + k), cache, user,
+    files = [render_lfr(prof, plane_scene(prof, d, SEED + 10 + k, NOISE), cache, user,
                         f"plane_{int(d)}")[0] for k, d in enumerate(planes)]
-    scenes = [render_lfr(prof, hidden_scene(prof, ds, SEED + 100 + k), cache, user,
+    scenes = [render_lfr(prof, hidden_scene(prof, ds, SEED + 100 + k, NOISE), cache, user,
                          f"scene_{k}") for k, ds in enumerate(hidden_groups(hid))]
     render_cpu = time.process_time() - t0
     (user / "targets.csv").write_text(
