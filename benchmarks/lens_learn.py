@@ -38,7 +38,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -242,6 +242,7 @@ class Trial:
     missed: int
     failure: str
     calib_cpu_s: float
+    sources: list = field(default_factory=list)  # (true mm, estimate mm or NaN) per hidden source
 
     def summary(self) -> tuple[float, float]:
         e = np.array(self.errors_pct)
@@ -277,6 +278,7 @@ def run_trial(cfg: Config, user: Path, white: Path, profile_toml: Path, plane_fi
             continue
         for m in match_regions(out / "regions.csv", truth, pitch_px,
                                cfg.profile.sensor.pixel_pitch_mm):
+            trial.sources.append((m["distance_mm"], m["estimate_mm"]))
             if math.isnan(m["estimate_mm"]):
                 trial.missed += 1
             else:
@@ -416,6 +418,13 @@ def write_results(trials: list[Trial], chosen: list[Config], out: Path, args,
             w.writerow([t.config, t.table, t.variant, " ".join(f"{d:g}" for d in t.planes_mm),
                         len(t.errors_pct), t.missed, f"{mean:.4f}", f"{mx:.4f}",
                         f"{t.calib_cpu_s:.1f}", t.failure])
+    with open(out / "lens_learn_sources.csv", "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["config", "table", "variant", "distance_mm", "estimate_mm", "error_pct"])
+        for t in trials:
+            for d, e in t.sources:
+                w.writerow([t.config, t.table, t.variant, f"{d:g}", f"{e:.2f}",
+                            f"{100.0 * (e - d) / d:+.3f}"])
     labels = {c.key: c.label for c in chosen}
 
     def row(t: Trial, first: str) -> str:
