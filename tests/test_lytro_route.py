@@ -163,3 +163,17 @@ def test_lytro_writer_refuses_what_lytro_cannot_hold(tmp_path):
     d["mla"]["grid"] = "rect"
     with pytest.raises(SceneError, match="hexagonal"):
         lytro_metadata(profile_from_dict(d))
+
+
+def test_calibrate_targets_without_profile_needs_one_unless_lytro(tmp_path, capsys):
+    import cv2
+
+    from lfcam.cli.main import main
+
+    cv2.imwrite(str(tmp_path / "white.png"), np.full((32, 32), 1000, np.uint16))
+    (tmp_path / "targets.csv").write_text("capture,distance_mm\nwhite.png,500\n")
+    code = main(["calibrate", str(tmp_path / "white.png"), "--targets",
+                 str(tmp_path / "targets.csv"), "-o", str(tmp_path / "c.json")])
+    assert code == 1
+    assert "--targets needs --profile" in capsys.readouterr().err
+    assert not (tmp_path / "c.json").exists()
