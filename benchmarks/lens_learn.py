@@ -253,7 +253,8 @@ def run_trial(cfg: Config, user: Path, white: Path, profile_toml: Path, plane_fi
               csv_distances: list[float], hidden: list[tuple[Path, dict]], tag: str,
               table: str, variant: str, true_planes: list[float]) -> Trial:
     """Write targets.csv, calibrate, measure every hidden capture, compare with truth."""
-    folder = user / tag
+    # one folder per trial and per lfcam checkout, so two checkouts can run side by side
+    folder = user / (tag if LFCAM_ROOT == str(ROOT) else f"{tag}@{Path(LFCAM_ROOT).name}")
     folder.mkdir(parents=True, exist_ok=True)
     lines = ["capture,distance_mm"] + [f"../{p.name},{d:.1f}"
                                        for p, d in zip(plane_files, csv_distances, strict=True)]
