@@ -111,6 +111,10 @@ def main() -> None:
     ap.add_argument("--cache", default=str(Path(os.environ.get("TMPDIR", "/tmp"))
                                            / "lfcam_lytro_route"))
     ap.add_argument("--out", default=str(ROOT / "docs" / "results"))
+    ap.add_argument("--method", default=None,
+                    help="pass --method to lfcam distance (default: lfcam's own choice)")
+    ap.add_argument("--reuse-calibration", action="store_true",
+                    help="keep an existing calib.json from an earlier run (skip the lens fit)")
     args = ap.parse_args()
     w, h = (1000, 700) if args.quick else (2000, 1400)
     prof = illum_like(w, h)
@@ -140,9 +144,12 @@ def main() -> None:
     code, msg, _ = lfcam("info", str(white))
     print(f"lfcam info white.LFR: exit {code} {msg}", flush=True)
     calib = user / "calib.json"
-    calib.unlink(missing_ok=True)
-    code, msg, cal_cpu = lfcam("calibrate", str(white), "--targets", str(user / "targets.csv"),
-                               "-o", str(calib), "--quiet")
+    if args.reuse_calibration and calib.is_file():
+        code, msg, cal_cpu = 0, "reused", 0.0
+    else:
+        calib.unlink(missing_ok=True)
+        code, msg, cal_cpu = lfcam("calibrate", str(white), "--targets",
+                                   str(user / "targets.csv"), "-o", str(calib), "--quiet")
     print(f"lfcam calibrate white.LFR --targets targets.csv: exit {code} {msg} "
           f"(CPU {cal_cpu:.0f} s)", flush=True)
     rows, missed, failure = [], 0, "" if code == 0 else f"calibrate exit {code}: {msg}"
@@ -151,8 +158,9 @@ def main() -> None:
         for k, (lfr, truth) in enumerate(scenes):
             out = user / f"out_{k}"
             shutil.rmtree(out, ignore_errors=True)
+            extra = ["--method", args.method] if args.method else []
             code, msg, cpu = lfcam("distance", str(lfr), "--calibration", str(calib), "-o",
-                                   str(out), "--quiet")
+                                   str(out), "--quiet", *extra)
             if code != 0:
                 failure = f"distance exit {code}: {msg}"
                 missed += len(truth["sources"])
