@@ -356,6 +356,12 @@ def main() -> None:
                     help="configurations (comma list, or 'all') that also get the plane-count "
                     "and perturbation tables")
     ap.add_argument("--configs", default="", help="only these configurations (comma list)")
+    ap.add_argument("--planes", default="",
+                    help="plane counts for the plane table (comma list; default 1-8, quick 2,5,8)")
+    ap.add_argument("--perturb", default="1,5",
+                    help="plane-distance errors (mm, comma list) for the perturbation table")
+    ap.add_argument("--no-headline", action="store_true",
+                    help="skip the headline trial (tables only)")
     ap.add_argument("--render-only", action="store_true",
                     help="render and lay out the folders, print the rig, run no command")
     args = ap.parse_args()
@@ -391,14 +397,17 @@ def main() -> None:
                   f"{t.calib_cpu_s:.0f} s) {t.failure}", flush=True)
             trials.append(t)
 
-        trial(HEADLINE, "headline", "5 planes")
+        if not args.no_headline:
+            trial(HEADLINE, "headline", "5 planes")
         if not (args.tables == "all" or cfg.key in args.tables.split(",")):
             continue
-        for n in ([2, 5, 8] if args.quick else range(1, N_POOL + 1)):
+        counts = ([int(n) for n in args.planes.split(",")] if args.planes
+                  else [2, 5, 8] if args.quick else range(1, N_POOL + 1))
+        for n in counts:
             if n != 5:
                 trial(spread(n), "planes", f"{n} planes")
         rng = np.random.default_rng(SEED)
-        for e in (1.0, 5.0):
+        for e in (float(x) for x in args.perturb.split(",") if x):
             signs = rng.choice([-1.0, 1.0], size=len(HEADLINE))
             trial(HEADLINE, "perturbed", f"±{e:g} mm random", list(signs * e))
             trial(HEADLINE, "perturbed", f"+{e:g} mm all", [e] * len(HEADLINE))
