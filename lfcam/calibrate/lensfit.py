@@ -42,8 +42,8 @@ from lfcam.progress import Progress
 
 PARAMS = ("focal_length_mm", "principal_mm", "d_in_mm")
 FOCAL_PRIOR_REL = 0.05  # a barrel's focal length is good to a few %
-MAX_ITERATIONS = 8
-TOL_DISTANCE_REL = 2e-4  # rounds stop when no target distance moves by more
+MAX_ITERATIONS = 12
+TOL_DISTANCE_REL = 1e-3  # rounds stop when no target distance moves by more
 MIN_PLANES = 3
 MAX_SOURCES = 1000
 MIN_RELATIVE_SPREAD = 0.25  # planes must span ≥ 25 % in 1/distance (vergence) of the nearest

@@ -440,6 +440,20 @@ class LensletFit:
     noise_floor: float = float("nan")  # misfit the model's own ray sampling explains
 
 
+LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
+
+
+def _log_distance(q: np.ndarray) -> float:
+    """The log-distance parameter ``q[0]`` clipped to :data:`LOG_DISTANCE_RANGE` (a wild
+    optimiser step on a flat misfit must not overflow ``exp``)."""
+    return float(np.clip(q[0], *LOG_DISTANCE_RANGE))
+
+
+def _at_far_bound(q: np.ndarray) -> bool:
+    """True when the fit ran into the far end of the distance range (no finite answer)."""
+    return bool(q[0] >= LOG_DISTANCE_RANGE[1] - 1e-6)
+
+
 class _Frame:
     """Parameters ``q = (log distance, x/L, y/L)``, L the distance to the stop: changing the
     distance keeps the line of sight through the stop centre, which decouples the three."""
@@ -451,7 +465,7 @@ class _Frame:
 
     def source(self, q: np.ndarray) -> np.ndarray:
         # a wild optimiser step stays a finite source (1 mm … 10⁷ mm, within ±45°)
-        z = self.z_front - math.exp(float(np.clip(q[0], 0.0, 16.0)))
+        z = self.z_front - math.exp(_log_distance(q))
         along = self.z_rim - z
         return np.array([float(np.clip(q[1], -1.0, 1.0)) * along,
                          float(np.clip(q[2], -1.0, 1.0)) * along, z])
@@ -652,7 +666,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
-    dist = math.exp(q[0])
+    dist = math.exp(_log_distance(q))
     # the model's own sampling noise: the same source through a turned pupil sample
     other = LensletModel(profile, geom, mom, POLISH_RAYS, phase=1.0)
     key = np.asarray(source, dtype=np.float64).tobytes()
@@ -665,14 +679,14 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     except np.linalg.LinAlgError:
         sigma_d = np.inf
     evals = scan.evaluations + coarse.evaluations + fine.evaluations + polish.evaluations
-    if not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
+    if _at_far_bound(q) or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
     return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
 
 
 def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
     """``count`` equally bright points along the segment of ``q = (log d, a/L, b/L)``."""
-    z = frame.z_front - math.exp(q[0])
+    z = frame.z_front - math.exp(_log_distance(q))
     along = frame.z_rim - z
     t = (np.arange(count) + 0.5) / count
     a, b = q[1:3] * along, q[3:5] * along
@@ -762,7 +776,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     z = pts[0, 2]
     along = frame.z_rim - z
     ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
-    dist = math.exp(q[0])
+    dist = math.exp(_log_distance(q))
     try:
         cov_q = f / max(len(r) - 5, 1) * np.linalg.inv(_gram(jac))
         sigma_d = dist * math.sqrt(max(cov_q[0, 0], 0.0))
@@ -771,6 +785,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     total = (point.evaluations + scan_model.evaluations + coarse.evaluations
              + fine.evaluations)
     mid = 0.5 * (ends[0] + ends[1])
+    if _at_far_bound(q):
+        return LensletFit(mid, math.sqrt(f), sigma_d, total, False, RegionStatus.NO_SOLUTION,
+                          ends_mm=ends)
     return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
 
 
