@@ -186,13 +186,29 @@ def _lattice_nodes(shape, idx, pts, grid, hmat=None) -> np.ndarray:
     return nodes[keep]
 
 
-def score(centres: np.ndarray, truth: np.ndarray, lit: np.ndarray, pitch: float) -> dict:
-    """Match returned centres to truth one-to-one (nearest neighbour within pitch/4)."""
-    lim = 0.25 * pitch
+def match_one_to_one(centres: np.ndarray, truth: np.ndarray, lim: float):
+    """Pair centres with truth points that are each other's nearest neighbour within ``lim``.
+
+    Returns
+    -------
+    matched : (N,) bool
+        Per centre: paired.
+    index : (N,) int
+        Per centre: its nearest truth point.
+    err : (M,) float
+        Distance of every pair (px).
+    """
     dc, ic = cKDTree(truth).query(centres)
     _, it = cKDTree(centres).query(truth)
     matched = (dc < lim) & (it[ic] == np.arange(len(centres)))
     err = np.hypot(*(centres[matched] - truth[ic[matched]]).T)
+    return matched, ic, err
+
+
+def score(centres: np.ndarray, truth: np.ndarray, lit: np.ndarray, pitch: float) -> dict:
+    """Match returned centres to truth one-to-one (nearest neighbour within pitch/4)."""
+    lim = 0.25 * pitch
+    matched, _, err = match_one_to_one(centres, truth, lim)
     d_lit, _ = cKDTree(lit).query(centres)
     return {"found": int(matched.sum()), "truth": len(truth), "pitch": pitch,
             "missed": int(len(truth) - matched.sum()),

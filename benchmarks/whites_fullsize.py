@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from calibrate_touching import match_one_to_one  # noqa: E402
 from whites_analytic import analytic_white_truth  # noqa: E402
 
 from lfcam.calibrate import calibrate_white  # noqa: E402
@@ -92,10 +93,7 @@ def score(cal, truth_c: np.ndarray, complete: np.ndarray, pitch: float) -> dict:
     vis = truth_c[complete & np.isfinite(truth_c).all(axis=1)]
     c = np.asarray(cal.centres_px)
     lim = 0.25 * pitch
-    dc, ic = cKDTree(vis).query(c)
-    _, it = cKDTree(c).query(vis)
-    matched = (dc < lim) & (it[ic] == np.arange(len(c)))
-    err = np.hypot(*(c[matched] - vis[ic[matched]]).T)
+    matched, ic, err = match_one_to_one(c, vis, lim)
     d_lit, j_lit = cKDTree(lit).query(c)
     # the lattice model of the calibration, applied to the truth centroids of its lenses
     idx = np.asarray(cal.indices)[d_lit < lim]
