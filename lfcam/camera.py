@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from lfcam.errors import MetadataError, OpticsError, ProfileError
+from lfcam.errors import OpticsError, ProfileError
 from lfcam.optics.lens import Prescription, ideal_lens
 from lfcam.validate import Fields
 
@@ -466,7 +466,7 @@ def _black_box_from_table(ml: dict, mt: dict) -> MainLens:
     else:
         focus = mt.get("focus_mm", math.inf) if isinstance(mt, dict) else math.inf
         if isinstance(focus, (int, float)) and not isinstance(focus, bool) and focus > f:
-            d_in = f + (1.0 / (1.0 / f - 1.0 / focus) - f if math.isfinite(focus) else 0.0)
+            d_in = 1.0 / (1.0 / f - 1.0 / focus)  # thin lens; an infinite focus gives f
         else:
             d_in = f
     seed = ideal_lens(f, n_f, 0.0, None if xp is None else d_in - xp, name=name)
@@ -763,7 +763,7 @@ def profile_from_lytro(capture: str | Path) -> CameraProfile:
     """
     # io sits above camera in the stage order; import it only when a Lytro file asks for it
     from lfcam.io import lytro_meta as lm
-    from lfcam.io.capture import find_sidecar, read_json_file, sniff_kind
+    from lfcam.io.capture import read_sidecar_metadata, sniff_kind
     from lfcam.io.lfp import merged_metadata, read_lfp
 
     path = Path(capture)
@@ -771,9 +771,6 @@ def profile_from_lytro(capture: str | Path) -> CameraProfile:
         merged = merged_metadata(read_lfp(path))
         meta, private = merged["frame"], merged["privateMetadata"]
     else:
-        side = find_sidecar(path)
-        if side is None:
-            raise MetadataError(f"{path}: bare raw without metadata sidecar")
-        meta, private = lm.sidecar_frame(read_json_file(side))
+        meta, private, _ = read_sidecar_metadata(path)
     camera = lm.lytro_camera(meta, private, where=f"{path}: frame metadata")
     return profile_from_dict(lm.profile_dict_from_lytro(camera), source=str(path))

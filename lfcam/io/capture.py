@@ -213,7 +213,20 @@ def read_json_file(path: Path, max_bytes: int = 64 * 1024 * 1024) -> Any:
     return _parse_json(path.read_bytes(), str(path))
 
 
-def _from_bare_raw(p: Path, profile: CameraProfile | None) -> Capture:
+def read_sidecar_metadata(raw_path: str | Path) -> tuple[dict, dict, Path]:
+    """Frame and private metadata of a bare Lytro ``.raw`` from its sidecar.
+
+    Returns
+    -------
+    frame, private : dict
+    sidecar : Path
+
+    Raises
+    ------
+    MetadataError
+        No sidecar next to the raw, or one that is not valid metadata.
+    """
+    p = Path(raw_path)
     side = find_sidecar(p)
     if side is None:
         raise MetadataError(
@@ -221,6 +234,11 @@ def _from_bare_raw(p: Path, profile: CameraProfile | None) -> Capture:
             f"{p.with_suffix('.txt').name} next to it"
         )
     meta, priv = lm.sidecar_frame(read_json_file(side))
+    return meta, priv, side
+
+
+def _from_bare_raw(p: Path, profile: CameraProfile | None) -> Capture:
+    meta, priv, side = read_sidecar_metadata(p)
     fmt = lm.raw_format(meta, f"{side}")
     size = p.stat().st_size
     need = packed_size(fmt.width_px, fmt.height_px, fmt.bits_per_pixel)
