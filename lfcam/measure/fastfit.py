@@ -33,7 +33,7 @@ the two misfits (:func:`measure_lenslet`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -41,8 +41,10 @@ import numpy as np
 from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.geometry import Geometry
+from lfcam.measure.noise import capture_noise, moments_misfit
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
+from lfcam.measure.verify import poor_fit_limit
 from lfcam.optics.trace import forward, trace_sources_fast
 from lfcam.status import RegionStatus
 
@@ -812,16 +814,21 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return Measurement.failed(fit.reason, geom.d_in_mm)
     # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
     # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
+    # the poor-fit gate is relative to the region's own noise (lfcam.measure.noise)
+    box = _region_box(geom, region, image.shape)
+    nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
+                        geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
+    limit = poor_fit_limit(nm, POOR_FIT)
     if region.kind == "line" or fit.misfit > LINE_TRIGGER:
         line = fit_lenslet_line(profile, geom, image, region, fit)
         if line.ok and line.misfit < LINE_GAIN * fit.misfit:
-            if not line.misfit <= POOR_FIT:
+            if not line.misfit <= limit:
                 return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
-            return _line_measurement(profile, geom, line)
-    if not fit.misfit <= POOR_FIT:
+            return replace(_line_measurement(profile, geom, line), noise_misfit=nm)
+    if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
-                             misfit=fit.misfit)
+                             misfit=fit.misfit, noise_misfit=nm)
 
 
 def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:

@@ -10,6 +10,7 @@ would only re-render a huge patch a hundred times.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -24,6 +25,7 @@ from lfcam.measure.base import (
 from lfcam.measure.fastfit import fit_lenslet_point
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
+from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import (
     DATA_BLUR_PX,
     SpotExtraction,
@@ -33,14 +35,15 @@ from lfcam.measure.pointfit import (
     fit_point_image,
 )
 from lfcam.measure.regions import Region
-from lfcam.measure.verify import noise_misfit
+from lfcam.measure.verify import poor_fit_limit
 from lfcam.optics.trace import forward
 from lfcam.status import RegionStatus
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
-POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit")
+POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit"),
+#                         unless the region's own noise leaves more (verify.poor_fit_limit)
 
 
 def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -110,29 +113,33 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         if not fi.ok:
             return Measurement.failed(fi.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm)
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
+    noise_mf = float("nan") if fast else _noise_misfit(image, box, geom)
     if not fast:
+        # the gate is relative to the noise: a dim far source leaves mostly photon noise
+        limit = poor_fit_limit(noise_mf, POOR_FIT_MISFIT)
         # point or line is decided from the pixels, on both sides of focus: the region's
         # elongation only forces the line fit to be tried
         if misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
             line = measure_line(profile, geom, image, box, near)
             if line.status == RegionStatus.OK and line.misfit < LINE_GAIN * misfit:
-                if line.misfit > POOR_FIT_MISFIT:
+                if line.misfit > limit:
                     return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
-                return line
-        if not misfit <= POOR_FIT_MISFIT:
+                return replace(line, noise_misfit=noise_mf)
+        if not misfit <= limit:
             return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
-    noise_mf = float("nan") if fast else _noise_misfit(image, box, noise)
     return point_measurement(profile, geom.d_in_mm, source, sigma_d, misfit=misfit,
                              noise_misfit=noise_mf,
                              source_xy_mm=(float(source[0]), float(source[1])))
 
 
-def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], noise: float) -> float:
-    """The relative misfit pixel noise alone gives on the fitted patch (same blur as the fit)."""
+def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], geom: Geometry) -> float:
+    """The relative misfit the capture's read and photon noise alone give on the fitted patch
+    (same blur as the fit; :mod:`lfcam.measure.noise`)."""
     x0, y0, x1, y1 = box
-    blur = DATA_BLUR_PX
-    data = cv2.GaussianBlur(np.asarray(image[y0:y1, x0:x1], np.float64), (0, 0), blur)
-    return noise_misfit(noise, blur, int(data.size), float(np.sqrt((data * data).sum())))
+    sub = np.asarray(image[y0:y1, x0:x1], np.float64)
+    data = cv2.GaussianBlur(sub, (0, 0), DATA_BLUR_PX)
+    model = capture_noise(image, geom.lmap, geom.pitch_px)
+    return model.misfit(sub, DATA_BLUR_PX, float(np.sqrt((data * data).sum())))
 
 
 def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,

@@ -24,6 +24,15 @@ cluster's radius of its centroid — is merged into it: one region per source. T
 comparable size are never merged, so two sources whose blurs do not touch stay two regions.
 Blurs that touch form one connected cluster: ``multiple`` when a waist shows it, otherwise
 one region. ``parts`` counts the clusters merged into a region.
+
+A dim source far from focus spreads little light over hundreds of lenslets, each below the
+threshold (the exposure is set by the scene's brightest source). :func:`faint_lit` finds such
+blurs on the lenslet energies averaged over discs of ``FAINT_RADII_PITCH`` pitches (the
+already lit lenslets left out), thresholded at ``NOISE_SIGMAS`` robust σ of the averaged map.
+A faint cluster of at least ``FAINT_MIN_LENSLETS`` lenslets that touches no lit cluster of that
+size becomes a region, taking in the smaller lit clusters it holds; one that touches a bigger
+lit cluster (that region's halo, or a faint blur overlapping it) is left out, so the regions
+of sources that pass the threshold do not change.
 """
 
 from __future__ import annotations
@@ -47,6 +56,8 @@ WAIST_RATIO = 0.6
 WAIST_SIDE_SHARE = 0.25
 WAIST_MIN_LENSLETS = 40
 HALO_REACH = 1.6
+FAINT_RADII_PITCH = (2.0, 4.0, 8.0, 12.0)  # scales of the faint-blur search (lenslet pitches)
+FAINT_MIN_LENSLETS = 12  # a faint blur found by smoothing covers at least this many lenslets
 
 
 @dataclass(frozen=True)
@@ -99,6 +110,8 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
                        shape=(lit.size, lit.size))
     n, comp = connected_components(graph, directed=False)
     groups, parts = _merge_fragments(lit, comp, n, energy, centres)
+    groups, parts = _add_faint(groups, parts, faint_lit(energy, lit, centres, pitch_px),
+                               centres, pitch_px)
     h, w = lmap.labels.shape
     r = lmap.radius_px
     regions = []
@@ -135,6 +148,88 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
             parts=n_parts,
         ))
     return regions
+
+
+def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
+              pitch_px: float) -> np.ndarray:
+    """Lenslets inside faint blurs: the energy over its median, lit lenslets set to 0, averaged
+    over discs of each of ``FAINT_RADII_PITCH`` pitches, above ``NOISE_SIGMAS`` robust σ of the
+    averaged map (module docstring). A connected patch found at a coarser scale is added only
+    where no finer scale found one (the coarse average dilates a blur by its radius).
+
+    Parameters
+    ----------
+    energy : (N,) array
+        Per-lenslet energies.
+    lit : (K,) int array
+        Lenslets above :func:`lit_threshold` (left out of the averages).
+    centres_px : (N, 2) array
+    pitch_px : float
+
+    Returns
+    -------
+    (N,) bool array
+        Lenslets of faint blurs that are not in ``lit``.
+    """
+    n = energy.size
+    sig = np.asarray(energy, dtype=np.float64) - float(np.median(energy))
+    sig[lit] = 0.0
+    tree = cKDTree(centres_px)
+    found = np.zeros(n, dtype=bool)
+    for radius in FAINT_RADII_PITCH:  # fine to coarse: a blur keeps the finest scale that sees it
+        pairs = tree.query_pairs(radius * pitch_px, output_type="ndarray")
+        rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
+        cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
+        disc = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
+        mean = (disc @ sig) / np.asarray(disc.sum(axis=1)).ravel()
+        spread = float(median_abs_deviation(mean, scale="normal"))
+        if not spread > 0:
+            continue
+        above = np.flatnonzero(mean > float(np.median(mean)) + NOISE_SIGMAS * spread)
+        above = above[~np.isin(above, lit)]
+        if above.size == 0:
+            continue
+        close = cKDTree(centres_px[above]).query_pairs(1.6 * pitch_px, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])),
+                           shape=(above.size, above.size))
+        _, comp = connected_components(graph, directed=False)
+        seen = np.bincount(comp, weights=found[above].astype(np.float64))
+        found[above[seen[comp] == 0]] = True
+    return found
+
+
+def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
+               centres: np.ndarray, pitch_px: float) -> tuple[list[np.ndarray], list[int]]:
+    """The lit clusters with the faint blurs added (module docstring)."""
+    idx = np.flatnonzero(faint)
+    if idx.size < FAINT_MIN_LENSLETS:
+        return groups, parts
+    pairs = cKDTree(centres[idx]).query_pairs(1.6 * pitch_px, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(idx.size, idx.size))
+    n, comp = connected_components(graph, directed=False)
+    owner = np.full(centres.shape[0], -1)
+    for g, members in enumerate(groups):
+        owner[members] = g
+    lit_tree = cKDTree(centres[owner >= 0]) if (owner >= 0).any() else None
+    lit_ids = np.flatnonzero(owner >= 0)
+    taken: set[int] = set()
+    new_groups, new_parts = [], []
+    for c in range(n):
+        members = idx[comp == c]
+        if members.size < FAINT_MIN_LENSLETS:
+            continue
+        touched: set[int] = set()
+        if lit_tree is not None:
+            for near in lit_tree.query_ball_point(centres[members], 1.6 * pitch_px):
+                touched.update(int(owner[lit_ids[j]]) for j in near)
+        if any(groups[g].size >= FAINT_MIN_LENSLETS for g in touched):
+            continue  # the halo of a blur that passed the threshold, or blurs that overlap
+        taken.update(touched)
+        new_groups.append(np.sort(np.concatenate([members, *(groups[g] for g in touched)])))
+        new_parts.append(1 + sum(parts[g] for g in touched))
+    keep = [g for g in range(len(groups)) if g not in taken]
+    return ([groups[g] for g in keep] + new_groups, [parts[g] for g in keep] + new_parts)
 
 
 def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarray,

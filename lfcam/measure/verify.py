@@ -5,8 +5,8 @@ After every region has been measured, :func:`verify_regions` checks each ``ok`` 
 
 (a) **poor-fit** — the per-pixel fit's relative misfit exceeds what noise and the renderer's
     own model floor allow: ``misfit > max(MISFIT_FLOOR, NOISE_FACTOR · noise_misfit)``, where
-    ``noise_misfit`` is the misfit white pixel noise alone would give (σ of the blurred patch ×
-    √pixels / ‖patch‖).
+    ``noise_misfit`` is the misfit the region's own read and photon noise alone would give
+    (:class:`lfcam.measure.noise.NoiseModel`, measured from the capture).
 (b) **unexplained-footprint** — less than ``MIN_EXPLAINED`` of the region's energy falls on
     lenslets within ``MARGIN_PITCH`` lenslet pitch of those the fitted source lights in the
     exact forward model (traced through the main lens: aberrations, coma and vignetting
@@ -47,13 +47,12 @@ class RegionCheck:
     status: str
 
 
-def noise_misfit(noise: float, blur_px: float, npix: int, norm: float) -> float:
-    """Relative misfit that white pixel noise ``noise`` alone gives on a patch blurred by a
-    Gaussian of σ ``blur_px`` (per-pixel σ shrinks by 2√π·σ_b), of ``npix`` pixels and norm
-    ``norm``."""
-    if not (norm > 0 and npix > 0 and blur_px > 0):
-        return float("nan")
-    return noise / (2.0 * math.sqrt(math.pi) * blur_px) * math.sqrt(npix) / norm
+def poor_fit_limit(noise_misfit_: float, floor: float = MISFIT_FLOOR) -> float:
+    """The largest relative misfit a region may leave and stay ``ok``: ``floor`` (the forward
+    model's own mismatch on bright regions) or ``NOISE_FACTOR`` times the misfit the region's
+    own noise leaves (:class:`lfcam.measure.noise.NoiseModel`), whichever is larger."""
+    nm = noise_misfit_ if math.isfinite(noise_misfit_) else 0.0
+    return max(floor, NOISE_FACTOR * nm)
 
 
 def predicted_lit(profile, d_in_mm: float, distance_mm: float, source_xy_mm, tree: cKDTree,
@@ -110,7 +109,7 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
         else:
             dist, _ = lit[k].query(lens[reg.lenslets])
             explained = float(e[dist <= reach].sum() / e.sum())
-        limit = max(MISFIT_FLOOR, NOISE_FACTOR * (nm if math.isfinite(nm) else 0.0))
+        limit = poor_fit_limit(nm)
         if math.isfinite(mf) and mf > limit:
             status = RegionStatus.POOR_FIT
         elif explained < MIN_EXPLAINED:

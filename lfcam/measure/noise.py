@@ -1,0 +1,184 @@
+"""The capture's own noise model: read noise and photon gain, measured from the capture.
+
+The poor-fit gates compare a fit's relative misfit with the misfit the region's own noise
+would leave (docs/distance.md, "Noise-relative gates"). A pixel of signal ``I`` (image units,
+pedestal removed) has variance ``σ_r² + g·I``:
+
+* ``σ_r`` (:func:`dark_sigma`): the σ of the pixels that see no source. Taken from the upper
+  quartile over the median: an unsigned raw with a black level of 0 clips the noise below zero,
+  so that most dark pixels read exactly 0 and a median absolute deviation reads 0 too.
+* ``g`` (:func:`photon_gain`, image units per photo-electron): from the lenslet sums inside
+  the capture's blurs. A defocused blur lights its interior lenslets smoothly (the pupil's
+  image on the MLA), so a lenslet differs from the mean of its ``n`` lit neighbours by its
+  noise, ``Var ≈ (1 + 1/n)·g·E`` for a sum ``E``. The median over the interior lenslets of the
+  whole capture gives ``g`` without any source model, so a wrong model cannot raise its own
+  noise allowance. Read noise and other per-lenslet scatter are counted in ``g``: an upper
+  bound (measured 3.4× the true gain on the 12-source scene of docs/distance.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.stats import median_abs_deviation
+
+from lfcam.measure.lenslets import LensletMap, LensletStats, lenslet_stats
+
+NEIGHBOUR_PITCH = 1.6  # lenslets closer than this many pitches are neighbours (as regions.py)
+INTERIOR_SHARE = 0.5  # an interior lenslet's neighbours all carry ≥ this × its energy ...
+INTERIOR_SIGMAS = 5.0  # ... and it lies ≥ this many read-noise σ of its sum above the dark
+MIN_INTERIOR = 20  # fewer interior lenslets: no gain estimate (photon noise not counted)
+CHI2_MEDIAN = 0.4549364231195724  # median of χ² with one degree of freedom
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Pixel noise of one capture: variance ``read_sigma² + gain·I`` (image units)."""
+
+    read_sigma: float
+    gain: float  # image units per photo-electron (0 when not measurable)
+
+    def misfit(self, patch: np.ndarray, blur_px: float, norm: float) -> float:
+        """Relative misfit the noise alone leaves on ``patch`` once blurred by a Gaussian of σ
+        ``blur_px``, relative to the blurred patch's norm ``norm``.
+
+        A white-noise field of per-pixel variance v, blurred by a unit-sum Gaussian of σ_b,
+        keeps v/(4π σ_b²) per pixel, so the expected squared residual is
+        ``Σ (σ_r² + g·max(I, 0)) / (4π σ_b²)``.
+        """
+        if not (norm > 0 and blur_px > 0 and patch.size):
+            return float("nan")
+        var = patch.size * self.read_sigma**2 + self.gain * float(np.clip(patch, 0.0, None).sum())
+        return math.sqrt(var / (4.0 * math.pi * blur_px**2)) / norm
+
+
+def moments_misfit(noise: NoiseModel, image: np.ndarray, lmap: LensletMap, pitch_px: float,
+                   box: tuple[int, int, int, int], pedestal: float, norm: float) -> float:
+    """Relative misfit the noise alone leaves on the four lenslet moments of a region
+    (:func:`lfcam.measure.fastfit.data_moments`: per lenslet Σv, Σv·dx, Σv·dy, Σv·(dx² + dy²),
+    offsets from the lenslet's centre in pitches).
+
+    Each moment is a weighted pixel sum, so its variance is ``Σ var·f²`` with ``var = σ_r² +
+    g·max(v, 0)``; the misfit is the square root of their total over ``norm`` (the data
+    moments' norm).
+
+    Parameters
+    ----------
+    noise : NoiseModel
+    image : (H, W) array
+    lmap : LensletMap
+    pitch_px : float
+    box : tuple of int
+        (x0, y0, x1, y1) of the moments.
+    pedestal : float
+        Dark level removed from the data before the moments.
+    norm : float
+
+    Returns
+    -------
+    float
+    """
+    x0, y0, x1, y1 = box
+    lab = lmap.labels[y0:y1, x0:x1]
+    keep = lab >= 0
+    if not (norm > 0 and keep.any()):
+        return float("nan")
+    yy, xx = np.nonzero(keep)
+    cen = lmap.centres_px[lab[keep]]
+    dx = (xx + x0 - cen[:, 0]) / pitch_px
+    dy = (yy + y0 - cen[:, 1]) / pitch_px
+    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - pedestal
+    var = noise.read_sigma**2 + noise.gain * np.clip(v, 0.0, None)
+    r2 = dx * dx + dy * dy
+    return math.sqrt(float((var * (1.0 + dx * dx + dy * dy + r2 * r2)).sum())) / norm
+
+
+def dark_sigma(image: np.ndarray) -> float:
+    """σ of the pixels that see no source, safe against noise clipped at zero.
+
+    Parameters
+    ----------
+    image : (H, W) array
+
+    Returns
+    -------
+    float
+        (upper quartile − median) / 0.6745 of a subsample of the frame: most pixels see no
+        source, and clipping below zero moves neither the median (0) nor the upper quartile.
+    """
+    sample = np.asarray(image[:: max(1, image.shape[0] // 256),
+                              :: max(1, image.shape[1] // 256)], dtype=np.float64)
+    med, upper = np.percentile(sample, [50.0, 75.0])
+    return float(upper - med) / 0.6745
+
+
+def photon_gain(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> float:
+    """Image units per photo-electron (an upper bound), from the lenslet sums inside blurs.
+
+    Parameters
+    ----------
+    stats : LensletStats
+    lmap : LensletMap
+    pitch_px : float
+        Micro-image pitch.
+
+    Returns
+    -------
+    float
+        The median over interior lenslets (module docstring) of ``d² / ((1 + 1/n)·Ē)``,
+        divided by the median of χ²₁, where ``d`` is the lenslet's sum minus its neighbours'
+        mean and ``Ē`` that mean over the median sum. The read noise of the lenslet's pixels
+        and any other per-lenslet scatter (a renderer's ray sampling) are counted as photon
+        noise, so this bounds the gain from above: the gates stay on the safe side. 0 when
+        fewer than ``MIN_INTERIOR`` lenslets are interior (sharp spots only).
+    """
+    e = np.asarray(stats.energy, dtype=np.float64)
+    if e.size < MIN_INTERIOR:
+        return 0.0
+    sig = e - float(np.median(e))
+    spread = float(median_abs_deviation(e, scale="normal"))
+    cand = np.flatnonzero(sig > INTERIOR_SIGMAS * spread)
+    if cand.size < MIN_INTERIOR:
+        return 0.0
+    tree = cKDTree(lmap.centres_px)
+    lists = tree.query_ball_point(lmap.centres_px[cand], NEIGHBOUR_PITCH * pitch_px)
+    vals = []
+    for k, nb in zip(cand, lists, strict=True):
+        nb = [j for j in nb if j != k]
+        if len(nb) < 4:
+            continue
+        sn = sig[nb]
+        if sn.min() < INTERIOR_SHARE * sig[k] or sn.max() * INTERIOR_SHARE > sig[k]:
+            continue
+        mean = float(sn.mean())
+        vals.append((sig[k] - mean) ** 2 / ((1.0 + 1.0 / len(nb)) * mean))
+    if len(vals) < MIN_INTERIOR:
+        return 0.0
+    return float(np.median(vals)) / CHI2_MEDIAN
+
+
+_CACHE: dict = {}
+
+
+def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float) -> NoiseModel:
+    """The noise model of one capture (read σ and photon gain), computed once per image.
+
+    Parameters
+    ----------
+    image : (H, W) array
+    lmap : LensletMap
+    pitch_px : float
+
+    Returns
+    -------
+    NoiseModel
+    """
+    key = (id(image), image.shape, id(lmap))
+    if _CACHE.get("key") != key:
+        stats = lenslet_stats(image, lmap)
+        _CACHE.update(key=key, value=NoiseModel(dark_sigma(image),
+                                                photon_gain(stats, lmap, pitch_px)))
+    return _CACHE["value"]
