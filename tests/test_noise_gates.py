@@ -10,6 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
@@ -19,6 +20,7 @@ from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import NoiseModel, dark_sigma, moments_misfit, photon_gain
 from lfcam.measure.pointfit import DATA_BLUR_PX, chief_ray_offset
 from lfcam.measure.regions import find_regions
+from lfcam.measure.verify import predicted_lit, side_contradicted, slope_divergence
 from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
@@ -26,6 +28,8 @@ from lfcam.sim.scene import scene_from_dict
 SIZE = 1024
 CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
+NEAR_MM = 650.0  # 21 lenslets lit; system 2's singlet (F/2.5, strong spherical aberration)
+#                  lights the fewest lenslets (10) at 680 mm with its 1 m focus, 21 again at 710
 
 
 def test_dark_sigma_of_noise_clipped_at_zero():
@@ -155,3 +159,45 @@ def test_two_merged_sources_are_still_poor_fit():
     run = run_distance(img, prof, None, model="exact", method="lightfield", geometry=geom,
                        jobs=1)
     assert [r.status for r in run.regions] == ["poor-fit"]
+
+
+def test_slope_divergence_of_converging_and_diverging_spots():
+    """Offsets k·(position − centre) give the trace 2k, with either sign."""
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(-50, 50, (40, 2))
+    for k in (-0.3, 0.2):
+        off = k * pos + 3.0 + rng.normal(0, 0.01, pos.shape)
+        div, sigma = slope_divergence(pos, off, np.ones(len(pos)))
+        assert div == pytest.approx(2 * k, abs=5 * sigma) and sigma < 0.01
+
+
+def test_wrong_side_of_focus_is_refused():
+    """A small blur just in front of the best focus (NEAR_MM): the source at the truth agrees with
+    the spots' slope field; the source behind focus that lights as many lenslets (the exact
+    forward model) is contradicted by it (gate (d))."""
+    prof = apply_overrides(load_profile("system2"), CAMERA)
+    img, prof, geom, truth = _render([_point(prof, NEAR_MM, 1.0)])
+    stats = lenslet_stats(img, geom.lmap)
+    (region,) = find_regions(stats, geom.lmap, geom.pitch_px)
+    src = truth["sources"][0]
+
+    tree = cKDTree(geom.lens_centres_mm)
+    xy = np.asarray(src["position_mm"])
+
+    def footprint(d):
+        lit, _, _ = predicted_lit(prof, geom.d_in_mm, d, xy * d / NEAR_MM, tree,
+                                  geom.lens_centres_mm)
+        return len(lit)
+
+    near = footprint(NEAR_MM)
+    grid = np.arange(NEAR_MM + 10.0, 6000.0, 10.0)
+    sizes = np.array([footprint(d) for d in grid])
+    small = int(np.argmin(sizes))  # the footprint shrinks to the focus, then grows again
+    mirror = float(grid[small + int(np.argmax(sizes[small:] >= near))])
+    assert abs(footprint(mirror) - near) <= 0.1 * near and mirror > grid[small]
+    verdicts = []
+    for d in (NEAR_MM, mirror):
+        _, energy, landing = predicted_lit(prof, geom.d_in_mm, d, xy * d / NEAR_MM, tree,
+                                           geom.lens_centres_mm)
+        verdicts.append(side_contradicted(prof, geom, stats, region, energy, landing))
+    assert verdicts == [False, True]

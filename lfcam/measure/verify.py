@@ -11,6 +11,11 @@ After every region has been measured, :func:`verify_regions` checks each ``ok`` 
     lenslets within ``MARGIN_PITCH`` lenslet pitch of those the fitted source lights in the
     exact forward model (traced through the main lens: aberrations, coma and vignetting
     included).
+(d) **poor-fit**, wrong side of focus — near focus a blur has the same diameter on both sides;
+    what tells them apart is the slope field: how the spots move in their micro-images across
+    the footprint (:func:`slope_divergence`). When the data's slope and the fitted source's
+    (exact forward model) have opposite signs, both beyond ``SIDE_SIGMAS`` standard errors of
+    the data's, the fit sits on the wrong side of focus.
 (c) **fragment-of-N** — two ``ok`` regions of which one's predicted footprint reaches the
     other's light centroid, or whose sources coincide within their uncertainties, are one blur
     cut in two: the one with less energy is marked a fragment of the other.
@@ -34,6 +39,7 @@ MARGIN_PITCH = 1.0
 COINCIDE_SIGMAS = 3.0
 PUPIL_SAMPLES = 48  # pupil grid of the footprint prediction (about 1 800 rays)
 LIT_FRACTION = 1e-3
+SIDE_SIGMAS = 5.0
 
 
 @dataclass(frozen=True)
@@ -56,17 +62,75 @@ def poor_fit_limit(noise_misfit_: float, floor: float = MISFIT_FLOOR) -> float:
 
 
 def predicted_lit(profile, d_in_mm: float, distance_mm: float, source_xy_mm, tree: cKDTree,
-                  centres_mm: np.ndarray) -> np.ndarray:
-    """Centres (mm) of the lenslets the fitted source lights, by the exact forward model
-    (:func:`lfcam.measure.pointfit.simulate_lenslets`, ``PUPIL_SAMPLES``² pupil points):
-    every lenslet receiving more than ``LIT_FRACTION`` of the brightest one's energy."""
+                  centres_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lenslets the fitted source lights, by the exact forward model
+    (:func:`lfcam.measure.pointfit.simulate_lenslets`, ``PUPIL_SAMPLES``² pupil points).
+
+    Returns
+    -------
+    lit_mm : (L, 2) array
+        Centres (mm) of every lenslet receiving more than ``LIT_FRACTION`` of the brightest
+        one's energy.
+    energy : (N,) array
+        Predicted energy of every lenslet (empty when the source sends no light).
+    landing_mm : (N, 2) array
+        Predicted mean landing point on the sensor (mm from the axis) under each lenslet.
+    """
     z = profile.main_lens.front_vertex_z_mm - float(distance_mm)
     source = np.array([float(source_xy_mm[0]), float(source_xy_mm[1]), z])
-    e, _ = simulate_lenslets(profile, d_in_mm, source, tree, centres_mm,
-                             pupil_pattern(PUPIL_SAMPLES))
+    e, landing = simulate_lenslets(profile, d_in_mm, source, tree, centres_mm,
+                                   pupil_pattern(PUPIL_SAMPLES))
     if not (e.size and np.isfinite(e).all() and e.max() > 0):
-        return np.zeros((0, 2))
-    return centres_mm[e > LIT_FRACTION * e.max()]
+        return np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2))
+    return centres_mm[e > LIT_FRACTION * e.max()], e, landing
+
+
+def slope_divergence(positions_px: np.ndarray, offsets_px: np.ndarray,
+                     weights: np.ndarray) -> tuple[float, float]:
+    """How the spots' offsets in their micro-images grow across a footprint: the trace of the
+    weighted least-squares slope d(offset)/d(position), and its standard error.
+
+    Negative for a converging bundle (source nearer than the focused plane), positive for a
+    diverging one, for an ideal lens; aberrations can change that near focus, so the gate
+    compares the data with the exact forward model, not with a sign. NaN with fewer than four
+    spots.
+    """
+    ok = np.isfinite(offsets_px).all(axis=1) & np.isfinite(positions_px).all(axis=1) & (
+        weights > 0)
+    if ok.sum() < 4:
+        return float("nan"), float("nan")
+    pos = positions_px[ok] - positions_px[ok].mean(axis=0)
+    a = np.column_stack([np.ones(ok.sum()), pos]) * np.sqrt(weights[ok])[:, None]
+    b = offsets_px[ok] * np.sqrt(weights[ok])[:, None]
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    resid = b - a @ sol
+    try:
+        cov = np.linalg.inv(a.T @ a)
+    except np.linalg.LinAlgError:
+        return float(sol[1, 0] + sol[2, 1]), float("nan")
+    s2 = (resid * resid).sum(axis=0) / max(ok.sum() - 3, 1)
+    return float(sol[1, 0] + sol[2, 1]), float(math.sqrt(s2[0] * cov[1, 1] + s2[1] * cov[2, 2]))
+
+
+def side_contradicted(profile, geom, stats, reg, energy: np.ndarray,
+                      landing_mm: np.ndarray) -> bool:
+    """Gate (d): do the region's spots diverge where the fitted source's converge (or the
+    reverse), both by more than ``SIDE_SIGMAS`` standard errors of the data's slope?"""
+    if energy.size == 0:
+        return False
+    idx = reg.lenslets
+    w = np.clip(stats.energy[idx], 0.0, None)
+    centres = geom.lmap.centres_px[idx]
+    measured, sigma = slope_divergence(centres, stats.centroid_px[idx] - centres, w)
+    pp = profile.sensor.pixel_pitch_mm
+    ax, ay = profile.sensor.axis_xy_px
+    pred_px = np.column_stack([landing_mm[idx, 0] / pp + ax, landing_mm[idx, 1] / pp + ay])
+    predicted, _ = slope_divergence(centres, pred_px - centres,
+                                    np.where(energy[idx] > 0, w, 0.0))
+    if not (math.isfinite(measured) and math.isfinite(sigma) and math.isfinite(predicted)):
+        return False
+    limit = SIDE_SIGMAS * sigma
+    return measured * predicted < 0 and abs(measured) > limit and abs(predicted) > limit
 
 
 def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]:
@@ -101,7 +165,8 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
             tree = cKDTree(lens)
         mf = float(meas.misfit)
         nm = float(getattr(meas, "noise_misfit", nan))
-        pred = predicted_lit(profile, geom.d_in_mm, meas.distance_mm, xy, tree, lens)
+        pred, pred_e, landing = predicted_lit(profile, geom.d_in_mm, meas.distance_mm, xy,
+                                              tree, lens)
         lit[k] = cKDTree(pred) if len(pred) else None
         e = np.clip(stats.energy[reg.lenslets], 0.0, None)
         if lit[k] is None or e.sum() <= 0:
@@ -114,6 +179,9 @@ def verify_regions(profile, geom, stats, regions, measured) -> list[RegionCheck]
             status = RegionStatus.POOR_FIT
         elif explained < MIN_EXPLAINED:
             status = RegionStatus.UNEXPLAINED_FOOTPRINT
+        elif meas.kind != "line" and side_contradicted(profile, geom, stats, reg, pred_e,
+                                                       landing):
+            status = RegionStatus.POOR_FIT
         checks.append(RegionCheck(mf, nm, explained, len(pred), status))
     # (c) fragments: among the regions still ok, the weaker of two that are one blur
     ok = [k for k, c in enumerate(checks) if c.status == RegionStatus.OK]
