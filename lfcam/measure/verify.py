@@ -11,14 +11,14 @@ After every region has been measured, :func:`verify_regions` checks each ``ok`` 
     lenslets within ``MARGIN_PITCH`` lenslet pitch of those the fitted source lights in the
     exact forward model (traced through the main lens: aberrations, coma and vignetting
     included).
+(c) **fragment-of-N** — two ``ok`` regions of which one's predicted footprint reaches the
+    other's light centroid, or whose sources coincide within their uncertainties, are one blur
+    cut in two: the one with less energy is marked a fragment of the other.
 (d) **poor-fit**, wrong side of focus — near focus a blur has the same diameter on both sides;
     what tells them apart is the slope field: how the spots move in their micro-images across
     the footprint (:func:`slope_divergence`). When the data's slope and the fitted source's
     (exact forward model) have opposite signs, both beyond ``SIDE_SIGMAS`` standard errors of
     the data's, the fit sits on the wrong side of focus.
-(c) **fragment-of-N** — two ``ok`` regions of which one's predicted footprint reaches the
-    other's light centroid, or whose sources coincide within their uncertainties, are one blur
-    cut in two: the one with less energy is marked a fragment of the other.
 """
 
 from __future__ import annotations
