@@ -60,8 +60,12 @@ def noise_sigma(image: np.ndarray) -> float:
     float
         σ of one pixel, in the image's units.
     """
-    sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
-    return float(median_abs_deviation(sample, axis=None, scale="normal"))
+    return float(median_abs_deviation(frame_sample(image), axis=None, scale="normal"))
+
+
+def frame_sample(image: np.ndarray) -> np.ndarray:
+    """About 256 × 256 pixels spread over the whole frame (every k-th row and column)."""
+    return image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
 
 
 def neighbours(geom: Geometry, region: Region) -> np.ndarray:

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import median_abs_deviation
 
+from lfcam.measure.base import frame_sample
 from lfcam.measure.lenslets import LensletMap, LensletStats, lenslet_stats
 
 NEIGHBOUR_PITCH = 1.6  # lenslets closer than this many pitches are neighbours (as regions.py)
@@ -97,21 +98,11 @@ def moments_misfit(noise: NoiseModel, image: np.ndarray, lmap: LensletMap, pitch
 
 
 def dark_sigma(image: np.ndarray) -> float:
-    """σ of the pixels that see no source, safe against noise clipped at zero.
-
-    Parameters
-    ----------
-    image : (H, W) array
-
-    Returns
-    -------
-    float
-        (upper quartile − median) / 0.6745 of a subsample of the frame: most pixels see no
-        source, and clipping below zero moves neither the median (0) nor the upper quartile.
-    """
-    sample = np.asarray(image[:: max(1, image.shape[0] // 256),
-                              :: max(1, image.shape[1] // 256)], dtype=np.float64)
-    med, upper = np.percentile(sample, [50.0, 75.0])
+    """σ of the pixels of ``image`` that see no source, in its units, safe against noise
+    clipped at zero: (upper quartile − median) / 0.6745 of :func:`frame_sample`. Most pixels
+    see no source, and clipping below zero moves neither the median (0) nor the upper
+    quartile."""
+    med, upper = np.percentile(np.asarray(frame_sample(image), dtype=np.float64), [50.0, 75.0])
     return float(upper - med) / 0.6745
 
 
