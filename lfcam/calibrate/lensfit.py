@@ -39,6 +39,7 @@ from lfcam.camera import CameraProfile, MainLens
 from lfcam.errors import CalibrationError, LfcamError, OpticsError
 from lfcam.optics.lens import Prescription, ideal_lens
 from lfcam.progress import Progress
+from lfcam.status import RegionStatus
 
 PARAMS = ("focal_length_mm", "principal_mm", "d_in_mm")
 FOCAL_PRIOR_REL = 0.05  # a barrel's focal length is good to a few %
@@ -356,12 +357,14 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
                 f"target {t.name} ({t.distance_mm:g} mm): the light near ({x:.0f}, {y:.0f}) px "
                 "is elongated: sources merge (space them farther apart) or one is not a point")
         found = []
+        unresolved = 0
         for reg in regions:
             try:
                 fit = fit_lenslet_point(profile, geom, img, reg)
             except (LfcamError, ArithmeticError, ValueError, np.linalg.LinAlgError):
                 continue  # this lens cannot place the source: the region counts as unfitted
             if not fit.ok:
+                unresolved += fit.reason == RegionStatus.NEAR_FOCUS
                 continue
             src = fit.source_mm
             found.append(_Source(t.name, float(t.distance_mm),
@@ -369,6 +372,8 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
                                  float(np.hypot(src[0], src[1])), float(reg.centroid_px[0]),
                                  float(reg.centroid_px[1]), float(fit.sigma_distance_mm),
                                  float(fit.misfit)))
+        if not found and unresolved == len(regions):
+            continue  # every blur too small to fix a distance (a plane near focus): no data
         if not found:
             raise CalibrationError(
                 f"target {t.name} ({t.distance_mm:g} mm): none of its {len(regions)} light "
@@ -614,6 +619,13 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
             q, sources, _ = converge(q, lsa, MAX_ITERATIONS, zone)
     # final: measured with the learned lens; keep terms by BIC, σ from the Jacobian
     _check_merged(sources)
+    used = sorted({s_.distance_mm for s_ in sources})
+    idle = sorted({float(t.distance_mm) for t in targets} - set(used))
+    if len(used) < MIN_PLANES:
+        raise CalibrationError(
+            f"only {len(used)} target plane(s) have blurs that fix a distance; the sources at "
+            f"{', '.join(f'{d:g}' for d in idle)} mm light too few lenslets (a plane near the "
+            "focused distance): add planes nearer the camera")
     d = np.array([s.distance_mm for s in sources])
     a, sa = _apexes(q, sources)
     w = 1.0 / sa
@@ -665,6 +677,10 @@ def fit_lens(profile: CameraProfile, calibration, targets: list[Target], *,
         for s, fd, ai in zip(sources, fitted, a, strict=True)
     ]
     kept = tuple(n_ for n_, k in zip(PARAMS, (keep_f, True, True), strict=True) if k)
+    if idle:
+        why["planes_without_distance"] = (
+            f"{', '.join(f'{d:g}' for d in idle)} mm: every source there lights too few "
+            "lenslets to fix its distance (blur within 2×2 lenslets); not used")
     why["spherical_lsa_mm"] = why_sa
     why["spherical_zone_lsa_mm"] = why_zone
     why["exit_pupil_diameter_mm"] = (

@@ -147,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
             for name, v, sg in zip(fit.names, fit.values, fit.sigma, strict=True):
                 print(f"  {name:18s} {v:12.4f} ± {sg:.4f}   {fit.why[name]}")
             print(f"  kept terms: {', '.join(fit.kept)}")
+            if "planes_without_distance" in fit.why:
+                print(f"  planes not used: {fit.why['planes_without_distance']}")
             print("  target  plane_mm  fitted_mm  error_%  x_px  y_px")
             for r in fit.residuals:
                 print(f"  {r.target}  {r.distance_mm:9.2f}  {r.fitted_mm:9.2f}  "

@@ -35,12 +35,13 @@ from lfcam.measure.pointfit import (
     fit_point_image,
 )
 from lfcam.measure.regions import Region
-from lfcam.measure.verify import poor_fit_limit
+from lfcam.measure.verify import line_trigger, poor_fit_limit, too_faint
 from lfcam.optics.trace import forward
 from lfcam.status import RegionStatus
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
-LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this is also tried as a line
+LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this and than twice its noise misfit is also
+#                             tried as a line (verify.line_trigger)
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
 POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit"),
 #                         unless the region's own noise leaves more (verify.poor_fit_limit)
@@ -108,6 +109,10 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         moments = fit_lenslet_point(profile, geom, image, region)
         if moments.ok:
             start = moments.source_mm
+        elif moments.reason == RegionStatus.NEAR_FOCUS:
+            # the distance profile is flat (a blur within 2×2 lenslets): the pixels of the
+            # same lenslets carry no more of it (docs/distance.md, "Blurs of a few lenslets")
+            return Measurement.failed(RegionStatus.NEAR_FOCUS, geom.d_in_mm)
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
                              start)
         if not fi.ok:
@@ -115,11 +120,13 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
     noise_mf = float("nan") if fast else _noise_misfit(image, box, geom)
     if not fast:
+        if too_faint(noise_mf):
+            return Measurement.failed(RegionStatus.EMPTY, geom.d_in_mm)
         # the gate is relative to the noise: a dim far source leaves mostly photon noise
         limit = poor_fit_limit(noise_mf, POOR_FIT_MISFIT)
         # point or line is decided from the pixels, on both sides of focus: the region's
         # elongation only forces the line fit to be tried
-        if misfit > LINE_TRIGGER_MISFIT or region.kind == "line":
+        if misfit > line_trigger(noise_mf, LINE_TRIGGER_MISFIT) or region.kind == "line":
             line = measure_line(profile, geom, image, box, near)
             if line.status == RegionStatus.OK and line.misfit < LINE_GAIN * misfit:
                 if line.misfit > limit:
