@@ -40,6 +40,7 @@ import numpy as np
 
 from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement, point_measurement
+from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moments_misfit
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
@@ -90,8 +91,8 @@ PROFILE_RIDGE_LOG = 0.1  # a 10 % step costing less than PROFILE_RIDGE_RISE × t
 PROFILE_RIDGE_RISE = 5.0  # systematic misfit² (≤ PROFILE_FLOOR²): a ridge, no distance
 PROFILE_FLOOR = 0.001  # relative misfit of the exact model on bright far sources (0.0006-7)
 PROFILE_LM_ITERATIONS = 3  # lateral refit at each trial distance
-_LATTICES: dict[int, LocalLattice | None] = {}
-_PEDESTAL: dict = {}
+_LATTICES = ObjectCache(8)
+_PEDESTAL = ObjectCache(1)
 
 
 @lru_cache(maxsize=64)
@@ -110,12 +111,7 @@ def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
 
 def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
     """The exact lenslet-cell lookup of a geometry (cached per geometry object)."""
-    key = id(geom)
-    if key not in _LATTICES:
-        if len(_LATTICES) > 8:
-            _LATTICES.clear()
-        _LATTICES[key] = LocalLattice.fit(geom.lens_centres_mm, pitch_mm)
-    return _LATTICES[key]
+    return _LATTICES.get(geom, lambda: LocalLattice.fit(geom.lens_centres_mm, pitch_mm))
 
 
 @dataclass
@@ -151,15 +147,15 @@ def pedestal(image: np.ndarray) -> float:
     (unsigned raws) leaves a positive mean of ~0.4 σ in the dark, which the moments would read
     as light. A sample of the frame, values above median + 5 σ left out (σ from the upper
     quartile, which clipping does not move)."""
-    key = (id(image), image.shape)
-    if _PEDESTAL.get("key") != key:
+    def level() -> float:
         sample = image[:: max(1, image.shape[0] // 256), :: max(1, image.shape[1] // 256)]
         med, upper = np.percentile(sample, [50.0, 75.0])
         # the upper quartile keeps its place when the noise below zero is clipped
         sig = max(float(upper - med) / 0.6745, 1e-12)
         dark = sample[sample <= med + 5.0 * sig]
-        _PEDESTAL.update(key=key, value=float(dark.mean()) if dark.size else 0.0)
-    return _PEDESTAL["value"]
+        return float(dark.mean()) if dark.size else 0.0
+
+    return _PEDESTAL.get(image, level)
 
 
 def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int]) -> _Moments:

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import median_abs_deviation
 
 from lfcam.measure.base import frame_sample
+from lfcam.measure.cache import ObjectCache
 from lfcam.measure.lenslets import LensletMap, LensletStats, lenslet_stats
 
 NEIGHBOUR_PITCH = 1.6  # lenslets closer than this many pitches are neighbours (as regions.py)
@@ -151,7 +152,7 @@ def photon_gain(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> float
     return float(np.median(vals)) / CHI2_MEDIAN
 
 
-_CACHE: dict = {}
+_CACHE = ObjectCache(1)
 
 
 def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float) -> NoiseModel:
@@ -167,9 +168,9 @@ def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float) -> Noise
     -------
     NoiseModel
     """
-    key = (id(image), image.shape, id(lmap))
-    if _CACHE.get("key") != key:
+    def model() -> NoiseModel:
         stats = lenslet_stats(image, lmap)
-        _CACHE.update(key=key, value=NoiseModel(dark_sigma(image),
-                                                photon_gain(stats, lmap, pitch_px)))
-    return _CACHE["value"]
+        return NoiseModel(dark_sigma(image), photon_gain(stats, lmap, pitch_px))
+
+    # per image, then per lenslet map (one capture measured on two geometries: two models)
+    return _CACHE.get(image, ObjectCache).get(lmap, model)
