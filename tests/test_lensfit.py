@@ -19,6 +19,7 @@ from lfcam.calibrate.lensfit import (
     PARAMS,
     Target,
     calibration_sigma_mm,
+    default_method,
     fit_lens,
     read_targets,
     resolve_profile,
@@ -28,7 +29,7 @@ from lfcam.calibrate.model import (
     calibration_from_dict,
     load_calibration,
 )
-from lfcam.camera import MainLens, profile_from_dict
+from lfcam.camera import MainLens, load_profile, profile_from_dict
 from lfcam.distance import run_distance
 from lfcam.errors import CalibrationError
 from lfcam.optics.lens import ideal_lens
@@ -194,9 +195,21 @@ def test_learned_block_validation(cli_run):
         ({**block, "sigma": {"d_in_mm": 1.0}}, "sigma"),
         ({**block, "surfaces": []}, "surfaces"),
         ({k: v for k, v in block.items() if k != "parameters"}, "parameters"),
+        ({**block, "measured_with": "diameter"}, "measured_with"),
     ]:
         with pytest.raises(CalibrationError, match=match):
             validate_learned(bad, "c.json")
+
+
+def test_distances_default_to_the_method_the_lens_was_learned_with(rig, cli_run):
+    """The learned aberration terms stand in for the real lens's as the lenslet fit sees
+    them: with a learned lens the distance stage measures the same way unless asked."""
+    box = rig[2]
+    loaded = cli_run[1]
+    assert loaded.learned_lens["measured_with"] == "lenslet"
+    assert default_method(box, loaded) == "lenslet"
+    assert default_method(load_profile("system1"), loaded) == "lightfield"  # lens stated
+    assert default_method(box, None) == "lightfield"
 
 
 def test_black_box_without_a_learned_lens_refuses_distances(rig):

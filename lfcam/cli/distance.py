@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from lfcam.atomic import check_output_dir, refuse_overwrite
+from lfcam.calibrate.lensfit import default_method
 from lfcam.camera import profile_for_capture
 from lfcam.cli.common import (
     add_no_verify,
@@ -43,8 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS,
                    help="blur measurement: lightfield (exact fit of the pixels), lenslet (exact "
                    "fit of per-lenslet moments, fast), diameter (the seed's), auto (cheapest "
-                   "meeting --tolerance); default: auto with --model auto --tolerance, else "
-                   "lightfield")
+                   "meeting --tolerance); default: auto with --model auto --tolerance, the "
+                   "method a learned lens was learned with (lenslet), else lightfield")
     p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
     p.add_argument("--fast", action="store_true",
@@ -87,14 +88,14 @@ def run(args: argparse.Namespace) -> int:
         bar("loading", 1, 1)
         t_load = time.perf_counter() - t0
         method = args.method or ("auto" if args.model == "auto" and args.tolerance is not None
-                                 else "lightfield")
+                                 else default_method(profile, calibration))
         result = run_distance(image, profile, calibration, model=args.model,
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
                               progress=bar, jobs=args.jobs)
         bar("writing", 0, 1)
         t1 = time.perf_counter()
         write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "
-                      f"{args.method}{' (fast)' if args.fast else ''}")
+                      f"{method}{' (fast)' if args.fast else ''}")
         bar("writing", 1, 1)
         timings = {"load": t_load, **result.timings_s, "export": time.perf_counter() - t1}
     if args.timings:
