@@ -201,3 +201,30 @@ def test_wrong_side_of_focus_is_refused():
                                            geom.lens_centres_mm)
         verdicts.append(side_contradicted(prof, geom, stats, region, energy, landing))
     assert verdicts == [False, True]
+
+
+def test_detached_halo_arc_is_not_a_source():
+    """A bright disc (radius 12 lenslets) with a faint arc of its halo 1.25–1.65 radii out,
+    apart from it, and a faint blob of its own far away (before: the arc was a third region).
+    On the Illum-size scene such arcs were regions fitted at 10–18 m, `ok`; the arc belongs to
+    the disc, the blob is a source."""
+    rng = np.random.default_rng(7)
+    pitch = 14.0
+    iy, ix = np.mgrid[0:90, 0:90]
+    centres = np.column_stack([ix.ravel(), iy.ravel()]).astype(np.float64) * pitch
+    energy = rng.normal(100.0, 3.0, centres.shape[0])
+    r_disc = np.hypot(ix.ravel() - 30, iy.ravel() - 30)
+    energy[r_disc < 12] += 5000.0
+    ang = np.arctan2(iy.ravel() - 30, ix.ravel() - 30)
+    arc = (np.abs(r_disc - 17.5) < 2.5) & (np.abs(ang) < 0.6)
+    energy[arc] += 8.0  # ~2.7 σ a lenslet: below the lit threshold, found by the faint search
+    blob = np.hypot(ix.ravel() - 72, iy.ravel() - 70) < 4.5
+    energy[blob] += 8.0
+    stats = LensletStats(energy, np.full((energy.size, 2), np.nan),
+                         np.full(energy.size, 196))
+    lmap = LensletMap(centres, np.zeros((1, 1), dtype=np.int32), 7.0)
+    regions = find_regions(stats, lmap, pitch)
+    at = [centres[r.lenslets].mean(axis=0) / pitch for r in regions]
+    assert len(regions) == 2, at
+    assert min(np.hypot(*(a - [30, 30])) for a in at) < 1.0
+    assert min(np.hypot(*(a - [72, 70])) for a in at) < 1.5

@@ -45,7 +45,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moments_misfit
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
-from lfcam.measure.verify import line_trigger, poor_fit_limit, too_faint
+from lfcam.measure.verify import line_trigger, poor_fit_limit
 from lfcam.optics.trace import forward, trace_sources_fast
 from lfcam.status import RegionStatus
 
@@ -869,8 +869,6 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     box = _region_box(geom, region, image.shape)
     nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
                         geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
-    if too_faint(nm):
-        return Measurement.failed(RegionStatus.EMPTY, geom.d_in_mm)
     fit = fit_lenslet_point(profile, geom, image, region)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)

@@ -35,7 +35,7 @@ from lfcam.measure.pointfit import (
     fit_point_image,
 )
 from lfcam.measure.regions import Region
-from lfcam.measure.verify import line_trigger, poor_fit_limit, too_faint
+from lfcam.measure.verify import line_trigger, poor_fit_limit
 from lfcam.optics.trace import forward
 from lfcam.status import RegionStatus
 
@@ -120,8 +120,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
     noise_mf = float("nan") if fast else _noise_misfit(image, box, geom)
     if not fast:
-        if too_faint(noise_mf):
-            return Measurement.failed(RegionStatus.EMPTY, geom.d_in_mm)
         # the gate is relative to the noise: a dim far source leaves mostly photon noise
         limit = poor_fit_limit(noise_mf, POOR_FIT_MISFIT)
         # point or line is decided from the pixels, on both sides of focus: the region's

@@ -31,8 +31,9 @@ blurs on the lenslet energies averaged over discs of ``FAINT_RADII_PITCH`` pitch
 already lit lenslets left out), thresholded at ``NOISE_SIGMAS`` robust σ of the averaged map.
 A faint cluster of at least ``FAINT_MIN_LENSLETS`` lenslets that touches no lit cluster of that
 size becomes a region, taking in the smaller lit clusters it holds; one that touches a bigger
-lit cluster (that region's halo, or a faint blur overlapping it) is left out, so the regions
-of sources that pass the threshold do not change.
+lit cluster (that region's halo, or a faint blur overlapping it), or lies within ``HALO_REACH``
+times the radius of a bigger one's centroid (a detached arc of its halo), is left out, so the
+regions of sources that pass the threshold do not change.
 """
 
 from __future__ import annotations
@@ -213,6 +214,12 @@ def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
         owner[members] = g
     lit_tree = cKDTree(centres[owner >= 0]) if (owner >= 0).any() else None
     lit_ids = np.flatnonzero(owner >= 0)
+    # the blurs that passed the threshold: centroid and reach of their halo
+    big = [g for g, m in enumerate(groups) if m.size >= FAINT_MIN_LENSLETS]
+    big_cen = np.array([centres[groups[g]].mean(axis=0) for g in big]).reshape(-1, 2)
+    big_reach = np.array([HALO_REACH * np.hypot(*(centres[groups[g]] - c).T).max()
+                          for g, c in zip(big, big_cen, strict=True)])
+    big_size = np.array([groups[g].size for g in big])
     taken: set[int] = set()
     new_groups, new_parts = [], []
     for c in range(n):
@@ -225,6 +232,10 @@ def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
                 touched.update(int(owner[lit_ids[j]]) for j in near)
         if any(groups[g].size >= FAINT_MIN_LENSLETS for g in touched):
             continue  # the halo of a blur that passed the threshold, or blurs that overlap
+        centre = centres[members].mean(axis=0)
+        if big and np.any((np.hypot(*(big_cen - centre).T) < big_reach)
+                          & (big_size > members.size)):
+            continue  # a detached arc of a bigger blur's halo (as _merge_fragments' reach)
         taken.update(touched)
         new_groups.append(np.sort(np.concatenate([members, *(groups[g] for g in touched)])))
         new_parts.append(1 + sum(parts[g] for g in touched))

@@ -35,7 +35,6 @@ from lfcam.status import RegionStatus, fragment_of
 MISFIT_FLOOR = 0.12
 NOISE_FACTOR = 3.0
 LINE_NOISE_FACTOR = 2.0  # a point fit within this × its noise misfit: no line is tried
-MAX_NOISE_MISFIT = 0.2  # a region whose noise alone leaves more than this: too faint to measure
 MIN_EXPLAINED = 0.8
 MARGIN_PITCH = 1.0
 COINCIDE_SIGMAS = 3.0
@@ -61,15 +60,6 @@ def poor_fit_limit(noise_misfit_: float, floor: float = MISFIT_FLOOR) -> float:
     own noise leaves (:class:`lfcam.measure.noise.NoiseModel`), whichever is larger."""
     nm = noise_misfit_ if math.isfinite(noise_misfit_) else 0.0
     return max(floor, NOISE_FACTOR * nm)
-
-
-def too_faint(noise_misfit_: float) -> bool:
-    """True when a region's own noise leaves a relative misfit over ``MAX_NOISE_MISFIT``:
-    its light stands less than ~5 noise σ above the dark, any source (or none) explains it
-    within the noise, and the poor-fit gate, relative to that noise, would pass any fit. Four
-    such regions on the Illum-size scene of docs/distance.md (noise misfit 0.34, no source
-    there) were fitted at 10–18 m with status ``ok``; real sources there leave ≤ 0.07."""
-    return math.isfinite(noise_misfit_) and noise_misfit_ > MAX_NOISE_MISFIT
 
 
 def line_trigger(noise_misfit_: float, floor: float) -> float:
