@@ -203,6 +203,7 @@ def test_wrong_side_of_focus_is_refused():
     assert verdicts == [False, True]
 
 
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # no pixel map: no centroid
 def test_detached_halo_arc_is_not_a_source():
     """A bright disc (radius 12 lenslets) with a faint arc of its halo 1.25–1.65 radii out,
     apart from it, and a faint blob of its own far away (before: the arc was a third region).
