@@ -11,7 +11,6 @@ import math
 import numpy as np
 import pytest
 
-from lfcam.calibrate.model import Calibration
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
 from lfcam.measure.fastfit import (
@@ -22,7 +21,7 @@ from lfcam.measure.fastfit import (
 )
 from lfcam.measure.pointfit import chief_ray_offset
 from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.render import Renderer
+from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
 N_CONST = 60  # residual entries that do not depend on the parameters (f0 > 0)
@@ -93,15 +92,8 @@ def far_at_infinity_focus():
     raw, used, truth = simulate(prof, scene_from_dict({
         "seed": 5, "rays_per_source": 300_000, "objects": objects,
         "sensor": {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}}))
-    rend = Renderer(used)
-    ax, ay = used.sensor.axis_xy_px
-    mag = 1.0 + used.mla.focal_length_mm / (used.d_in_mm - used.main_lens.exit_pupil_z_mm)
-    px = np.column_stack([rend.lcx, rend.lcy]) * mag / used.sensor.pixel_pitch_mm + [ax, ay]
-    keep = (px > 2).all(1) & (px < SIZE - 3).all(1)
-    cal = Calibration.from_lattice(used.mla.grid, pitch * mag / used.sensor.pixel_pitch_mm, 0.0,
-                                   (ax, ay), px[keep], image_size_px=(SIZE, SIZE),
-                                   d_in_mm=used.d_in_mm, source="lattice calibration")
-    return raw.astype(np.float64), used, cal, truth["sources"]
+    geom = truth_geometry(used, raw.shape)
+    return raw.astype(np.float64), used, geom, truth["sources"]
 
 
 @pytest.mark.parametrize("method", ["lenslet", "lightfield"])
@@ -109,8 +101,8 @@ def test_far_source_split_over_four_lenslets_has_no_distance(far_at_infinity_foc
     """The lenslet fit put the far source at +5.6 %, `ok`, σ 1.0 % (the image fit then
     starts there); along the ridge its misfit is within the model's own mismatch. It is
     `near-focus` now, or, if answered, within 3 σ; the 1.2 m one is answered within 0.5 %."""
-    img, prof, cal, sources = far_at_infinity_focus
-    run = run_distance(img, prof, cal, model="exact", method=method)
+    img, prof, geom, sources = far_at_infinity_focus
+    run = run_distance(img, prof, None, model="exact", method=method, geometry=geom)
     by_truth = {}
     for s in sources:
         cx, cy = s["centroid_px"]
