@@ -768,7 +768,7 @@ def default_method(profile: CameraProfile, calibration) -> str:
     """The distance stage's measurement method when none is asked for: the one the
     calibration's learned lens was learned with, for a black-box profile; else
     ``lightfield``."""
-    learned = None if calibration is None else getattr(calibration, "learned_lens", None)
+    learned = None if calibration is None else calibration.learned_lens
     if profile.main_lens.is_black_box and learned:
         return str(learned.get("measured_with", LEARNED_METHOD))
     return "lightfield"
@@ -858,5 +858,4 @@ def validate_learned(block: Any, where: str) -> dict:
 
 __all__ = ["LensFit", "SourceResidual", "Target", "apex_mm", "build_lens",
            "calibration_sigma_mm", "default_method", "distance_of_apex", "fit_lens",
-           "learned_profile",
-           "read_targets", "resolve_profile", "validate_learned"]
+           "learned_profile", "read_targets", "resolve_profile", "validate_learned"]

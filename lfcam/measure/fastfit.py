@@ -730,13 +730,15 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
     except np.linalg.LinAlgError:
         sigma_d = np.inf
+    ridge = False
     if n_lit <= PROFILE_LENSLETS and math.isfinite(sigma_d) and not _at_far_bound(q):
         s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist)
-        if not math.isfinite(s_rel):  # the data do not fix the distance
-            evals = scan.evaluations + coarse.evaluations + fine.evaluations + polish.evaluations
-            return LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
-        sigma_d = max(sigma_d, dist * s_rel)
+        ridge = not math.isfinite(s_rel)  # the data do not fix the distance
+        if not ridge:
+            sigma_d = max(sigma_d, dist * s_rel)
     evals = scan.evaluations + coarse.evaluations + fine.evaluations + polish.evaluations
+    if ridge:
+        return LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
     if _at_far_bound(q) or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
     return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
@@ -865,15 +867,16 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     -------
     Measurement
     """
-    # the poor-fit gate is relative to the region's own noise (lfcam.measure.noise)
-    box = _region_box(geom, region, image.shape)
-    nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
-                        geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
     fit = fit_lenslet_point(profile, geom, image, region)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
     # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
     # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
+    # the poor-fit gate and the line trigger are relative to the region's own noise
+    # (lfcam.measure.noise)
+    box = _region_box(geom, region, image.shape)
+    nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
+                        geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
     limit = poor_fit_limit(nm, POOR_FIT)
     if region.kind == "line" or fit.misfit > line_trigger(nm, LINE_TRIGGER):
         line = fit_lenslet_line(profile, geom, image, region, fit)
