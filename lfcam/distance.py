@@ -10,8 +10,9 @@ Methods: ``lightfield`` (default; the exact light-field fit, ``fast=True`` keeps
 triangulation), ``lenslet`` (the exact forward model fitted to per-lenslet moments, ~50 ms a
 region), ``diameter`` (the seed's footprint diameter) and ``auto`` (the cheapest method whose
 measured worst error meets ``tolerance_pct``, :func:`lfcam.models.auto.choose_method`).
-Regions are measured in parallel over ``jobs`` processes (spawned; the image and the
-lenslet map are shared once through shared memory); the results equal the serial run's.
+Regions are measured in parallel over ``jobs`` processes (spawned before the geometry, so
+that their start-up overlaps it; the image and the lenslet map are shared once through shared
+memory); the results equal the serial run's.
 Models: those of
 :data:`lfcam.models.DISTANCE_MODELS`; ``auto`` picks per region the cheapest whose predicted
 error (model error table ⊕ measurement uncertainty) meets ``tolerance_pct`` (default: best
@@ -218,25 +219,30 @@ def run_distance(
         )
     if geometry is None and calibration is None:
         raise ModelError("run_distance needs a calibration or a prepared geometry")
-    geom = geometry or prepare_geometry(profile, calibration, img.shape)
-    t1 = time.perf_counter()
-    stats = lenslet_stats(img, geom.lmap)
-    regions = find_regions(stats, geom.lmap, geom.pitch_px)
-    noise = noise_sigma(img)
-    t2 = time.perf_counter()
-    args = (model, method, tolerance_pct, fast)
     if jobs is None:
         jobs = os.cpu_count() or 1
-    jobs = max(1, min(int(jobs), len(regions)))
-    if jobs > 1:
-        estimates = _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs,
-                                       progress)
-    else:
-        estimates = []
-        for i, reg in enumerate(regions):
-            estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args))
-            if progress:
-                progress("regions", i + 1, len(regions))
+    pool = _RegionPool(int(jobs)) if int(jobs) > 1 else None
+    try:
+        geom = geometry or prepare_geometry(profile, calibration, img.shape)
+        t1 = time.perf_counter()
+        stats = lenslet_stats(img, geom.lmap)
+        regions = find_regions(stats, geom.lmap, geom.pitch_px)
+        noise = noise_sigma(img)
+        t2 = time.perf_counter()
+        args = (model, method, tolerance_pct, fast)
+        jobs = max(1, min(int(jobs), len(regions)))
+        if pool is not None and jobs > 1:
+            estimates = pool.estimate(profile, geom, img, stats, regions, noise, args,
+                                      progress)
+        else:
+            estimates = []
+            for i, reg in enumerate(regions):
+                estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args))
+                if progress:
+                    progress("regions", i + 1, len(regions))
+    finally:
+        if pool is not None:
+            pool.close()
     results = []
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     nan = float("nan")
@@ -290,26 +296,14 @@ _WORKER: dict = {}
 _BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _worker_init(profile, lmap_parts, lens_centres_mm, pitch_px, d_in_mm, shm_names, shapes,
-                 energy, noise, args) -> None:
-    """Attach the shared image and lenslet labels once per worker; rebuild the geometry."""
-    from multiprocessing import shared_memory
-
-    from lfcam.measure.lenslets import LensletMap, LensletStats
-
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+def _worker_boot() -> None:
+    """Start-up of a region worker: one thread for OpenCV, the measurement modules imported
+    (so that the interpreter's start-up overlaps the parent's geometry and region work), and
+    a watch that ends the worker with its parent."""
     cv2.setNumThreads(1)
-    shm_img = shared_memory.SharedMemory(name=shm_names[0])
-    shm_lab = shared_memory.SharedMemory(name=shm_names[1])
-    img = np.ndarray(shapes[0], dtype=np.float64, buffer=shm_img.buf)
-    labels = np.ndarray(shapes[0], dtype=np.int32, buffer=shm_lab.buf)
-    centres_px, radius_px = lmap_parts
-    geom = Geometry(LensletMap(centres_px, labels, radius_px), lens_centres_mm, pitch_px,
-                    d_in_mm)
-    stats = LensletStats(energy[0], energy[1], energy[2])
-    _WORKER.update(profile=profile, geom=geom, img=img, stats=stats, noise=noise, args=args,
-                   shm=(shm_img, shm_lab))
+    import lfcam.measure.fastfit  # noqa: F401
+    import lfcam.measure.lightfield  # noqa: F401
+
     # a worker whose parent was killed would otherwise live on, orphaned: leave with it
     parent = os.getppid()
 
@@ -323,51 +317,105 @@ def _worker_init(profile, lmap_parts, lens_centres_mm, pitch_px, d_in_mm, shm_na
     threading.Thread(target=watch, daemon=True).start()
 
 
-def _worker_region(reg: Region) -> tuple:
-    w = _WORKER
+def _worker_ping() -> int:
+    return os.getpid()
+
+
+def _worker_attach(names: tuple[str, str, str], shape: tuple[int, int]) -> dict:
+    """The capture a task belongs to: the shared image and lenslet labels and the pickled
+    rest (profile, geometry parts, statistics, noise, arguments), attached once a worker."""
+    import pickle
+    from multiprocessing import shared_memory
+
+    from lfcam.measure.lenslets import LensletMap, LensletStats
+
+    if _WORKER.get("names") == names:
+        return _WORKER
+    for shm in _WORKER.pop("shm", ()):
+        shm.close()
+    shm_img, shm_lab, shm_ctx = (shared_memory.SharedMemory(name=n) for n in names)
+    img = np.ndarray(shape, dtype=np.float64, buffer=shm_img.buf)
+    labels = np.ndarray(shape, dtype=np.int32, buffer=shm_lab.buf)
+    ctx = pickle.loads(bytes(shm_ctx.buf))
+    shm_ctx.close()
+    (centres_px, radius_px), lens_centres_mm, pitch_px, d_in_mm = ctx["geom"]
+    geom = Geometry(LensletMap(centres_px, labels, radius_px), lens_centres_mm, pitch_px,
+                    d_in_mm)
+    _WORKER.clear()
+    _WORKER.update(names=names, profile=ctx["profile"], geom=geom, img=img,
+                   stats=LensletStats(*ctx["stats"]), noise=ctx["noise"], args=ctx["args"],
+                   shm=(shm_img, shm_lab))
+    return _WORKER
+
+
+def _worker_region(names: tuple[str, str, str], shape: tuple[int, int], reg: Region) -> tuple:
+    w = _worker_attach(names, shape)
     return _timed_estimate(w["profile"], w["geom"], w["img"], w["stats"], reg, w["noise"],
                            w["args"])
 
 
-def _estimate_parallel(profile, geom, img, stats, regions, noise, args, jobs, progress):
-    """:func:`_timed_estimate` of every region over ``jobs`` spawned worker processes."""
-    import multiprocessing as mp
-    from multiprocessing import shared_memory
+class _RegionPool:
+    """``jobs`` spawned worker processes for the regions of a capture.
 
-    shms = []
-    try:
-        for arr in (img, geom.lmap.labels.astype(np.int32, copy=False)):
-            shm = shared_memory.SharedMemory(create=True, size=max(arr.nbytes, 1))
-            np.ndarray(arr.shape, dtype=arr.dtype, buffer=shm.buf)[...] = arr
-            shms.append(shm)
-        init = (profile, (geom.lmap.centres_px, geom.lmap.radius_px), geom.lens_centres_mm,
-                geom.pitch_px, geom.d_in_mm, [s.name for s in shms], (img.shape,),
-                (stats.energy, stats.centroid_px, stats.pixels), noise, args)
-        # the largest regions first, so that no worker is left with a long tail
-        order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
-        out: list = [None] * len(regions)
+    Started before the geometry: a worker's interpreter start-up and imports (~0.5 s) then
+    overlap the parent's geometry and region detection instead of following them. Each
+    capture's image and lenslet labels are shared once through shared memory; the results
+    equal the serial run's.
+    """
+
+    def __init__(self, jobs: int):
+        import multiprocessing as mp
+
+        self.jobs = jobs
         # one BLAS thread a worker: spawned interpreters read this before importing numpy
-        # (setting it in the initializer is too late); restored once the workers are started
+        # (setting it in the worker is too late); restored once the workers are started
         saved = {v: os.environ.get(v) for v in _BLAS_THREAD_VARS}
         os.environ.update({v: "1" for v in _BLAS_THREAD_VARS})
         try:
-            with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
-                                     initializer=_worker_init, initargs=init) as pool:
-                futures = {pool.submit(_worker_region, regions[i]): i for i in order}
-                _restore_environ(saved)
-                from concurrent.futures import as_completed
-
-                for done, fut in enumerate(as_completed(futures), start=1):
-                    out[futures[fut]] = fut.result()
-                    if progress:
-                        progress("regions", done, len(regions))
+            self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
+                                            initializer=_worker_boot)
+            for _ in range(jobs):  # each submit to a busy pool starts one more worker
+                self.pool.submit(_worker_ping)
         finally:
             _restore_environ(saved)
-        return out
-    finally:
-        for shm in shms:
-            shm.close()
-            shm.unlink()
+
+    def estimate(self, profile, geom, img, stats, regions, noise, args, progress) -> list:
+        """:func:`_timed_estimate` of every region, in region order."""
+        import pickle
+        from concurrent.futures import as_completed
+        from multiprocessing import shared_memory
+
+        ctx = pickle.dumps({
+            "profile": profile, "geom": ((geom.lmap.centres_px, geom.lmap.radius_px),
+                                         geom.lens_centres_mm, geom.pitch_px, geom.d_in_mm),
+            "stats": (stats.energy, stats.centroid_px, stats.pixels), "noise": noise,
+            "args": args}, protocol=pickle.HIGHEST_PROTOCOL)
+        shms = []
+        try:
+            for arr in (img, geom.lmap.labels.astype(np.int32, copy=False),
+                        np.frombuffer(ctx, dtype=np.uint8)):
+                shm = shared_memory.SharedMemory(create=True, size=max(arr.nbytes, 1))
+                np.ndarray(arr.shape, dtype=arr.dtype, buffer=shm.buf)[...] = arr
+                shms.append(shm)
+            names = tuple(s.name for s in shms)
+            # the largest regions first, so that no worker is left with a long tail
+            order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
+            futures = {self.pool.submit(_worker_region, names, img.shape, regions[i]): i
+                       for i in order}
+            out: list = [None] * len(regions)
+            for done, fut in enumerate(as_completed(futures), start=1):
+                out[futures[fut]] = fut.result()
+                if progress:
+                    progress("regions", done, len(regions))
+            return out
+        finally:
+            for shm in shms:
+                shm.close()
+                shm.unlink()
+
+    def close(self) -> None:
+        """Stop the workers (pending tasks are cancelled)."""
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _restore_environ(saved: dict) -> None:

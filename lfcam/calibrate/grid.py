@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy import stats
 from scipy.spatial import cKDTree
 
 from lfcam.calibrate.microimage import (
@@ -549,6 +548,8 @@ def _richer_warranted(
     if dof <= 0 or rss_b <= 0.0:
         return False, 1.0
     f = ((rss_a - rss_b) / (k_b - k_a)) / (rss_b / dof)
+    from scipy import stats  # ~0.3 s to import: only when a richer model is tested
+
     pval = float(stats.f.sf(max(f, 0.0), k_b - k_a, dof))
     return bool(pval < 1e-3 and shift_px > 0.01), pval
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.stats import median_abs_deviation
 
 from lfcam.calibrate.parallel import run_bands
 from lfcam.errors import CalibrationError
+from lfcam.robust import mad_sigma
 
 
 def bayer_to_grey(image: np.ndarray, pattern: str) -> np.ndarray:
@@ -49,7 +49,7 @@ def remove_hot_pixels(image: np.ndarray) -> tuple[np.ndarray, int]:
     h, w = img.shape
     crop = img[h // 2 - min(h, 512) // 2:, w // 2 - min(w, 512) // 2:][:512, :512]
     step = (crop - cv2.medianBlur(np.ascontiguousarray(crop), 3)).ravel()
-    sigma = float(median_abs_deviation(step, scale="normal"))
+    sigma = mad_sigma(step)
 
     def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
         # rows r0 − 1 … r1 (the 3×3 neighbourhood), reflected only at the image border

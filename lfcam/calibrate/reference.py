@@ -38,7 +38,6 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation
 
 from lfcam.camera import CameraProfile
 from lfcam.errors import CalibrationError
@@ -50,6 +49,7 @@ from lfcam.measure.geometry import (
 from lfcam.measure.lenslets import LensletMap, build_lenslet_map, lenslet_stats
 from lfcam.measure.pointfit import LocalLattice, pupil_pattern
 from lfcam.optics.trace import trace_source_fast
+from lfcam.robust import mad_sigma
 
 METHOD = "reference-dots-exact"  # Calibration.d_in_method of this route
 PUPIL_SAMPLES = 260  # per side of the stratified front-rim grid (~53 k rays per dot render)
@@ -204,7 +204,7 @@ def find_dots(capture: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     # relative to the brightest lenslet.
     dim = np.sort(energy)[: max(1, len(energy) // 2)]
     bg = float(np.median(dim))
-    noise = float(median_abs_deviation(dim, scale="normal"))
+    noise = mad_sigma(dim)
     top = float(energy.max())
     thr = bg + max(8.0 * noise, DOT_THRESHOLD * (top - bg))
     lit = np.flatnonzero(energy > thr)

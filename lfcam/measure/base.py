@@ -6,12 +6,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation
 
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletMap
 from lfcam.measure.regions import Region
 from lfcam.optics.trace import forward
+from lfcam.robust import mad_sigma
 from lfcam.status import RegionStatus
 
 
@@ -60,7 +60,7 @@ def noise_sigma(image: np.ndarray) -> float:
     float
         σ of one pixel, in the image's units.
     """
-    return float(median_abs_deviation(frame_sample(image), axis=None, scale="normal"))
+    return mad_sigma(frame_sample(image))
 
 
 def frame_sample(image: np.ndarray) -> np.ndarray:

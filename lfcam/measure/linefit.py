@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from lfcam.camera import CameraProfile
 from lfcam.measure.pointfit import (
@@ -73,6 +72,8 @@ def fit_line_image(
     lens_centres_mm: np.ndarray,
 ) -> LineFit:
     """Fit (distance, endpoint a, endpoint b) of a line source to the pixels in ``box``."""
+    from scipy.optimize import least_squares  # lazily (import cost, as in pointfit)
+
     lens = profile.main_lens
     z_front = lens.front_vertex_z_mm
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)

@@ -23,11 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation
 
 from lfcam.measure.base import frame_sample
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.lenslets import LensletMap, LensletStats, lenslet_stats
+from lfcam.robust import mad_sigma
 
 NEIGHBOUR_PITCH = 1.6  # lenslets closer than this many pitches are neighbours (as regions.py)
 INTERIOR_SHARE = 0.5  # an interior lenslet's neighbours all carry ≥ this × its energy ...
@@ -131,7 +131,7 @@ def photon_gain(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> float
     if e.size < MIN_INTERIOR:
         return 0.0
     sig = e - float(np.median(e))
-    spread = float(median_abs_deviation(e, scale="normal"))
+    spread = mad_sigma(e)
     cand = np.flatnonzero(sig > INTERIOR_SIGMAS * spread)
     if cand.size < MIN_INTERIOR:
         return 0.0

@@ -44,9 +44,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from scipy.stats import median_abs_deviation
 
 from lfcam.measure.lenslets import LensletMap, LensletStats
+from lfcam.robust import mad_sigma
 
 LINE_ELONGATION = 1.6
 EXTENDED_SHARE = 0.25
@@ -79,7 +79,7 @@ class Region:
 def lit_threshold(energy: np.ndarray) -> float:
     """Energy above which a lenslet counts as lit: median + ``NOISE_SIGMAS``·(robust σ)."""
     med = float(np.median(energy))
-    mad = float(median_abs_deviation(energy, scale="normal"))
+    mad = mad_sigma(energy)
     floor = 1e-6 * float(energy.max()) if energy.size else 0.0
     return max(med + NOISE_SIGMAS * mad, med + floor)
 
@@ -183,7 +183,7 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
         cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
         disc = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
         mean = (disc @ sig) / np.asarray(disc.sum(axis=1)).ravel()
-        spread = float(median_abs_deviation(mean, scale="normal"))
+        spread = mad_sigma(mean)
         if not spread > 0:
             continue
         above = np.flatnonzero(mean > float(np.median(mean)) + NOISE_SIGMAS * spread)

@@ -26,7 +26,6 @@ from enum import IntEnum
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import brentq
 
 from lfcam.errors import OpticsError
 from lfcam.optics.lens import Prescription
@@ -843,6 +842,8 @@ def best_focus_object_distance(
     Solved by Brent's method on the object vergence 1/distance. Returns ``inf`` when the
     plane is at or in front of the best focus of an object at infinity.
     """
+    from scipy.optimize import brentq  # lazily: scipy.optimize costs every command ~0.2 s
+
     z = float(image_plane_z_mm)
     z_inf = best_focus_z(prescription, math.inf, n_rings)
     if z <= z_inf:

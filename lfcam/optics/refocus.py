@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import brentq
 
 from lfcam.camera import CameraProfile
 from lfcam.errors import OpticsError
@@ -87,6 +86,8 @@ def exact_distance_for_shift(
     Returns NaN for a shift no object in front of the lens produces (beyond the shift of
     infinity, or of a plane at 1.002 × the front focal distance).
     """
+    from scipy.optimize import brentq  # lazily: scipy.optimize costs every command ~0.2 s
+
     a = np.asarray(shift, dtype=np.float64)
     d_in = profile.d_in_mm if d_in_mm is None else float(d_in_mm)
     lens = profile.main_lens
