@@ -175,14 +175,9 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
     n = energy.size
     sig = np.asarray(energy, dtype=np.float64) - float(np.median(energy))
     sig[lit] = 0.0
-    tree = cKDTree(centres_px)
     found = np.zeros(n, dtype=bool)
-    for radius in FAINT_RADII_PITCH:  # fine to coarse: a blur keeps the finest scale that sees it
-        pairs = tree.query_pairs(radius * pitch_px, output_type="ndarray")
-        rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
-        cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
-        disc = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
-        mean = (disc @ sig) / np.asarray(disc.sum(axis=1)).ravel()
+    for mean in _disc_means(sig, centres_px, pitch_px, FAINT_RADII_PITCH):
+        # fine to coarse: a blur keeps the finest scale that sees it
         spread = mad_sigma(mean)
         if not spread > 0:
             continue
@@ -197,6 +192,42 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
         seen = np.bincount(comp, weights=found[above].astype(np.float64))
         found[above[seen[comp] == 0]] = True
     return found
+
+
+DISC_CELLS_PER_PITCH = 4  # raster of the disc averages: lenslet centres rounded to pitch / 4
+
+
+def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
+                radii_pitch: tuple[float, ...]) -> list[np.ndarray]:
+    """Mean of ``values`` over the lenslets whose centres lie within each radius (pitches) of
+    each lenslet's centre, one array per radius.
+
+    The lenslets are placed on a raster of ``pitch / DISC_CELLS_PER_PITCH`` cells and both
+    the values and the lenslet counts are filtered with a disc (OpenCV, Fourier domain for
+    large discs): a sparse all-pairs matrix of the 12-pitch disc held 1.2·10⁸ entries on an
+    Illum-size sensor (13 s, 2 GB). Rounding the centres moves a disc's border by less than
+    a quarter pitch, so lenslets at almost exactly the radius may fall on either side.
+    """
+    import cv2
+
+    cell = pitch_px / DISC_CELLS_PER_PITCH
+    c = np.asarray(centres_px, dtype=np.float64)
+    ij = np.rint((c - c.min(axis=0)) / cell).astype(np.int64)
+    shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)
+    flat = ij[:, 1] * shape[1] + ij[:, 0]
+    size = shape[0] * shape[1]
+    grid_v = np.bincount(flat, weights=values, minlength=size).reshape(shape)
+    grid_n = np.bincount(flat, minlength=size).astype(np.float64).reshape(shape)
+    out = []
+    for radius in radii_pitch:
+        r = radius * DISC_CELLS_PER_PITCH
+        k = int(np.floor(r))
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+        kernel = (np.hypot(xx, yy) <= r + 1e-9).astype(np.float64)
+        sums = cv2.filter2D(grid_v, cv2.CV_64F, kernel, borderType=cv2.BORDER_CONSTANT)
+        counts = cv2.filter2D(grid_n, cv2.CV_64F, kernel, borderType=cv2.BORDER_CONSTANT)
+        out.append(sums.ravel()[flat] / np.maximum(np.rint(counts.ravel()[flat]), 1.0))
+    return out
 
 
 def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
