@@ -65,6 +65,8 @@ SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
 FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
 POLISH_RAYS = 80000  # rays of the polishing model
+SETTLED_LOG = 2e-4  # the fine fit has settled: two pupil phases agree on the distance to
+# within this (log distance, 0.02 %) and a further step would move it by less than half of it
 LINE_POINTS = 12
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
@@ -446,7 +448,7 @@ class LensletFit:
     ok: bool
     reason: str = ""
     ends_mm: tuple = ()  # lines: (start (3,), end (3,))
-    noise_floor: float = float("nan")  # misfit the model's own ray sampling explains
+    polished: bool = False  # the POLISH_RAYS model was needed (the fine one had not settled)
 
 
 LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
@@ -623,6 +625,22 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations):
     return q, r, f
 
 
+def _settled(fun_b, q_start: np.ndarray, q: np.ndarray, r: np.ndarray, jac: np.ndarray) -> bool:
+    """Has the fine fit ``q`` (residual ``r``) settled? The same Gauss–Newton from ``q_start``
+    through the turned pupil sample ``fun_b`` must land within :data:`SETTLED_LOG` in log
+    distance, and the next Gauss–Newton step from ``q`` must be under half of it (a fit
+    stopped short of its minimum is not settled, however well the two samples agree)."""
+    jtj = _gram(jac)
+    try:
+        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), _jt(jac, r))
+    except np.linalg.LinAlgError:
+        return False
+    if not abs(step[0]) < 0.5 * SETTLED_LOG:
+        return False
+    q_b, _, _ = _gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS)
+    return bool(abs(q_b[0] - q[0]) < SETTLED_LOG)
+
+
 def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -> float:
     """σ of the log distance from the misfit profile (lateral position refitted at each trial
     distance), for blurs of a few lenslets (:data:`PROFILE_LENSLETS`).
@@ -672,7 +690,9 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
     Levenberg–Marquardt with the coarse model, then Gauss–Newton steps with the fine model
-    (``RAYS_PER_LENSLET`` per lit lenslet) and the coarse Jacobian.
+    (``RAYS_PER_LENSLET`` per lit lenslet) and the coarse Jacobian; the same steps through a
+    turned pupil sample check that the fine fit has settled (:func:`_settled`), and only a
+    fit that has not is polished with ``POLISH_RAYS``.
     """
     box = _region_box(geom, region, image.shape)
     mom = data_moments(geom, image, box)
@@ -705,26 +725,26 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse))
     fun = fun_of(fine)
-    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    q_c = q
+    q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
-    # at 80 000. Polish with a model of POLISH_RAYS and its own Jacobian (docs/distance.md,
-    # "The misses fixed").
-    polish = LensletModel(profile, geom, mom, POLISH_RAYS)
-    fun = fun_of(polish)
-    q, r, f, jac_fine = _levenberg_marquardt(fun, q, COARSE_STEPS, FINE_LM_ITERATIONS, 1e-3,
-                                             many_of(polish))
-    if jac_fine is not None:
-        jac = jac_fine
+    # at 80 000. The same fit through a turned pupil sample measures that shift; only when it
+    # (or the step still to go) is over SETTLED_LOG is the fit polished with a model of
+    # POLISH_RAYS and its own Jacobian (docs/distance.md, "The misses fixed", "Speed").
+    turned = LensletModel(profile, geom, mom, n_rays, phase=1.0)
+    polished = not _settled(fun_of(turned), q_c, q, r, jac)
+    polish = None
+    if polished:
+        polish = LensletModel(profile, geom, mom, POLISH_RAYS)
+        fun = fun_of(polish)
+        q, r, f, jac_fine = _levenberg_marquardt(fun, q, COARSE_STEPS, FINE_LM_ITERATIONS,
+                                                 1e-3, many_of(polish))
+        if jac_fine is not None:
+            jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(_log_distance(q))
-    # the model's own sampling noise: the same source through a turned pupil sample
-    other = LensletModel(profile, geom, mom, POLISH_RAYS, phase=1.0)
-    key = np.asarray(source, dtype=np.float64).tobytes()
-    m_a = polish.last[1] if polish.last[0] == key else polish.simulate(source)
-    m_b = other.simulate(source)
-    floor = math.sqrt(_sq((m_a - m_b).ravel()) / _sq(m_a.ravel()) / 2.0)
     try:
         cov = f / max(len(r) - 3, 1) * np.linalg.inv(_gram(jac))
         sigma_d = dist * math.sqrt(max(cov[0, 0], 0.0))
@@ -736,12 +756,13 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         ridge = not math.isfinite(s_rel)  # the data do not fix the distance
         if not ridge:
             sigma_d = max(sigma_d, dist * s_rel)
-    evals = scan.evaluations + coarse.evaluations + fine.evaluations + polish.evaluations
+    evals = (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
+             + (polish.evaluations if polish is not None else 0))
     if ridge:
         return LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
     if _at_far_bound(q) or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
         return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
-    return LensletFit(source, misfit, sigma_d, evals, True, noise_floor=floor)
+    return LensletFit(source, misfit, sigma_d, evals, True, polished=polished)
 
 
 def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
