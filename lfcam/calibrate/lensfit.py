@@ -366,7 +366,7 @@ def _measure(profile: CameraProfile, calibration, targets: list[Target]) -> list
         unresolved = 0
         for reg in regions:
             try:
-                fit = fit_lenslet_point(profile, geom, img, reg)
+                fit = fit_lenslet_point(profile, geom, img, reg, polish_above=0.0)  # always
             except (LfcamError, ArithmeticError, ValueError, np.linalg.LinAlgError):
                 continue  # this lens cannot place the source: the region counts as unfitted
             if not fit.ok:

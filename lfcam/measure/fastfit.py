@@ -65,8 +65,12 @@ SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
 FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
 POLISH_RAYS = 80000  # rays of the polishing model
-SETTLED_LOG = 2e-4  # the fine fit has settled: two pupil phases agree on the distance to
-# within this (log distance, 0.02 %) and a further step would move it by less than half of it
+SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
+# within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
+# move it by less than half of it
+SETTLED_GAIN = 0.05  # ... and lower the misfit² by less than this share
+POLISH_NEAR_GATE = 0.7  # settled point fits are polished all the same when their misfit is
+# over this share of the line trigger or the poor-fit limit (the decision reads the misfit)
 LINE_POINTS = 12
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
@@ -625,20 +629,31 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations):
     return q, r, f
 
 
-def _settled(fun_b, q_start: np.ndarray, q: np.ndarray, r: np.ndarray, jac: np.ndarray) -> bool:
-    """Has the fine fit ``q`` (residual ``r``) settled? The same Gauss–Newton from ``q_start``
-    through the turned pupil sample ``fun_b`` must land within :data:`SETTLED_LOG` in log
-    distance, and the next Gauss–Newton step from ``q`` must be under half of it (a fit
-    stopped short of its minimum is not settled, however well the two samples agree)."""
-    jtj = _gram(jac)
+def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.ndarray,
+             r_check: np.ndarray, jac: np.ndarray, steps: np.ndarray) -> tuple[bool, np.ndarray]:
+    """Has the fine fit ``q`` (residual ``r`` of ``fun``) settled?
+
+    Gauss–Newton with a fixed coarse Jacobian ``jac`` stops where that Jacobian, not the
+    model's own, sees no descent, and the fine model's ray sample moves the minimum. So, with
+    the fine model's own Jacobian at ``q`` (differences ``steps``), the Gauss–Newton step on
+    ``r_check`` (the residual of a model of more rays at ``q``) must be under half of
+    :data:`SETTLED_LOG` in log distance and remove less than :data:`SETTLED_GAIN` of its
+    misfit²; and the same Gauss–Newton from ``q_start`` through the turned pupil sample
+    ``fun_b`` must land within :data:`SETTLED_LOG` of ``q``.
+
+    Returns (settled, the fine model's Jacobian at ``q``).
+    """
+    jac_q = _fd_jacobian(fun, fun_many, q, r, steps)
+    jtj = _gram(jac_q)
     try:
-        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), _jt(jac, r))
+        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), _jt(jac_q, r_check))
     except np.linalg.LinAlgError:
-        return False
-    if not abs(step[0]) < 0.5 * SETTLED_LOG:
-        return False
+        return False, jac_q
+    gain = float(_jt(jac_q, r_check) @ step)  # the misfit² the step would remove (linear)
+    if not (abs(step[0]) < 0.5 * SETTLED_LOG and gain < SETTLED_GAIN * _sq(r_check)):
+        return False, jac_q
     q_b, _, _ = _gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS)
-    return bool(abs(q_b[0] - q[0]) < SETTLED_LOG)
+    return bool(abs(q_b[0] - q[0]) < SETTLED_LOG), jac_q
 
 
 def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -> float:
@@ -685,14 +700,16 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
 
 
 def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                      region: Region) -> LensletFit:
+                      region: Region, polish_above: float = math.inf) -> LensletFit:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
     Levenberg–Marquardt with the coarse model, then Gauss–Newton steps with the fine model
     (``RAYS_PER_LENSLET`` per lit lenslet) and the coarse Jacobian; the same steps through a
     turned pupil sample check that the fine fit has settled (:func:`_settled`), and only a
-    fit that has not is polished with ``POLISH_RAYS``.
+    fit that has not is polished with ``POLISH_RAYS``, or one whose misfit is over
+    ``polish_above`` (a misfit a gate will read: the polish lowers it by up to ~15 %;
+    ``0`` always polishes, as the lens calibration does).
     """
     box = _region_box(geom, region, image.shape)
     mom = data_moments(geom, image, box)
@@ -733,12 +750,16 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # (or the step still to go) is over SETTLED_LOG is the fit polished with a model of
     # POLISH_RAYS and its own Jacobian (docs/distance.md, "The misses fixed", "Speed").
     turned = LensletModel(profile, geom, mom, n_rays, phase=1.0)
-    polished = not _settled(fun_of(turned), q_c, q, r, jac)
-    polish = None
-    if polished:
-        polish = LensletModel(profile, geom, mom, POLISH_RAYS)
-        fun = fun_of(polish)
-        q, r, f, jac_fine = _levenberg_marquardt(fun, q, COARSE_STEPS, FINE_LM_ITERATIONS,
+    polish = LensletModel(profile, geom, mom, POLISH_RAYS)
+    fun_p = fun_of(polish)
+    r_p = fun_p(q)
+    settled, jac_q = _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac,
+                              COARSE_STEPS)
+    polished = not (settled and math.sqrt(_sq(r_p)) <= polish_above)
+    if not polished:  # the misfit as the polishing model sees it (the fine one adds its own noise)
+        jac, r, f = jac_q, r_p, _sq(r_p)
+    else:
+        q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, COARSE_STEPS, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(polish))
         if jac_fine is not None:
             jac = jac_fine
@@ -757,7 +778,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if not ridge:
             sigma_d = max(sigma_d, dist * s_rel)
     evals = (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
-             + (polish.evaluations if polish is not None else 0))
+             + polish.evaluations)
     if ridge:
         return LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
     if _at_far_bound(q) or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
@@ -888,18 +909,20 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     -------
     Measurement
     """
-    fit = fit_lenslet_point(profile, geom, image, region)
-    if not fit.ok:
-        return Measurement.failed(fit.reason, geom.d_in_mm)
-    # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
-    # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
     # the poor-fit gate and the line trigger are relative to the region's own noise
-    # (lfcam.measure.noise)
+    # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
     nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
                         geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
     limit = poor_fit_limit(nm, POOR_FIT)
-    if region.kind == "line" or fit.misfit > line_trigger(nm, LINE_TRIGGER):
+    trigger = line_trigger(nm, LINE_TRIGGER)
+    fit = fit_lenslet_point(profile, geom, image, region,
+                            polish_above=POLISH_NEAR_GATE * min(limit, trigger))
+    if not fit.ok:
+        return Measurement.failed(fit.reason, geom.d_in_mm)
+    # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
+    # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
+    if region.kind == "line" or fit.misfit > trigger:
         line = fit_lenslet_line(profile, geom, image, region, fit)
         if line.ok and line.misfit < LINE_GAIN * fit.misfit:
             if not line.misfit <= limit:
