@@ -24,7 +24,8 @@ Cost: a model evaluation is one trace of 1 k–20 k rays (Vogel-spiral pupil sam
 quasi-random, no grid aliasing against the pixels) and four ``bincount`` — 0.5–3 ms. Fit
 (:func:`fit_lenslet_point`): a batched distance scan of a smooth summary (slope-field gain,
 footprint centroid and size), Broyden matching of that summary from the best starts,
-Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model.
+Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model,
+and a polish with ``POLISH_RAYS`` only where the fine fit has not settled (:func:`_settled`).
 Lines (:func:`fit_lenslet_line`): ``LINE_POINTS`` equally bright points along a segment, 5
 parameters, started from the point fit and from a distance scan. Point or line is decided from
 the two misfits (:func:`measure_lenslet`).
