@@ -194,7 +194,7 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
     return found
 
 
-DISC_CELLS_PER_PITCH = 4  # raster of the disc averages: lenslet centres rounded to pitch / 4
+DISC_CELLS_PER_PITCH = 8  # raster of the disc averages: lenslet centres rounded to pitch / 8
 
 
 def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
@@ -205,8 +205,8 @@ def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     The lenslets are placed on a raster of ``pitch / DISC_CELLS_PER_PITCH`` cells and both
     the values and the lenslet counts are filtered with a disc (OpenCV, Fourier domain for
     large discs): a sparse all-pairs matrix of the 12-pitch disc held 1.2·10⁸ entries on an
-    Illum-size sensor (13 s, 2 GB). Rounding the centres moves a disc's border by less than
-    a quarter pitch, so lenslets at almost exactly the radius may fall on either side.
+    Illum-size sensor (17-22 s, ~2 GB). Rounding the centres changes a pair's distance by at
+    most √2 cells (0.18 pitch): lenslets that close to a disc's border may fall on either side.
     """
     import cv2
 
