@@ -161,7 +161,9 @@ def render_preview(
     -------
     (h, w, 3) uint8 array
     """
-    d = np.asarray(distance_mm, dtype=np.float64)
+    d = np.asarray(distance_mm)
+    if d.dtype not in (np.float32, np.float64):
+        d = d.astype(np.float64)
     h, w = d.shape
     scale = min(1.0, max_side_px / max(h, w))
     finite = np.isfinite(d)
@@ -169,10 +171,15 @@ def render_preview(
     mid = 0.5 * (lo + hi)
     if hi - lo < 0.1 * abs(mid):  # one distance (or nearly): show it mid-scale, ±5 %
         lo, hi = mid - 0.05 * abs(mid) - 0.5, mid + 0.05 * abs(mid) + 0.5
-    norm = np.zeros_like(d)
-    norm[finite] = (d[finite] - lo) / (hi - lo)
-    img = cv2.applyColorMap((np.clip(norm, 0, 1) * 255).astype(np.uint8), colormap)
-    img[~finite] = (40, 40, 40)
+    # colour index in the map's own precision, in place (an Illum-size map is 41 Mpx: float64
+    # temporaries of it cost seconds)
+    with np.errstate(invalid="ignore"):
+        idx = np.subtract(d, d.dtype.type(lo))
+        idx *= d.dtype.type(255.0 / (hi - lo))
+        np.clip(idx, 0, 255, out=idx)
+    idx[~finite] = 0
+    img = cv2.applyColorMap(idx.astype(np.uint8), colormap)
+    img = np.where(finite[..., None], img, np.uint8(40))  # NaN: dark grey (a 2-D mask is slow)
     if scale < 1.0:
         img = cv2.resize(img, (max(1, int(w * scale)), max(1, int(h * scale))),
                          interpolation=cv2.INTER_AREA)
