@@ -366,7 +366,6 @@ class _RegionPool:
     def __init__(self, jobs: int):
         import multiprocessing as mp
 
-        self.jobs = jobs
         # one BLAS thread a worker: spawned interpreters read this before importing numpy
         # (setting it in the worker is too late); restored once the workers are started
         saved = {v: os.environ.get(v) for v in _BLAS_THREAD_VARS}

@@ -2,7 +2,8 @@
 
 ``scipy.stats.median_abs_deviation(x, scale="normal")`` computes the same number; importing
 ``scipy.stats`` costs ~0.3 s, paid by every ``lfcam`` command and by every worker process of
-``lfcam distance --jobs`` (docs/distance.md, "Parallel regions"), for a two-line formula.
+``lfcam distance --jobs`` (docs/distance.md, "Start-up overlap, the faint search on a
+raster, a polish only where it moves the answer"), for a two-line formula.
 """
 
 from __future__ import annotations

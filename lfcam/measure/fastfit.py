@@ -389,16 +389,18 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.einsum("ki,k->i", jac, r)
 
 
-def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None):
+def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
+                         r0=None):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
-    one by one (the difference Jacobian's columns in one model pass).
+    one by one (the difference Jacobian's columns in one model pass). ``r0`` (optional) is
+    ``fun(q0)`` when the caller already has it.
 
     Returns (q, residual, cost, Jacobian at the last linearisation).
     """
     q = np.asarray(q0, dtype=np.float64)
-    r = fun(q)
+    r = fun(q) if r0 is None else r0
     f = _sq(r)
     lam = 1e-4
     jac = None
@@ -765,14 +767,15 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     polish = LensletModel(profile, geom, mom, POLISH_RAYS)
     fun_p = fun_of(polish)
     r_p = fun_p(q)
-    settled, jac_q = _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac,
-                              COARSE_STEPS)
-    polished = not (settled and math.sqrt(_sq(r_p)) <= polish_above)
+    # a misfit near a gate is polished whatever the settled test says: do not run it then
+    settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else _settled(
+        fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, COARSE_STEPS)
+    polished = not settled
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its own noise)
         jac, r, f = jac_q, r_p, _sq(r_p)
     else:
         q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, COARSE_STEPS, FINE_LM_ITERATIONS,
-                                                 1e-3, many_of(polish))
+                                                 1e-3, many_of(polish), r0=r_p)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -883,7 +886,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fun = fun_of(fine, LINE_POINTS)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, FINE_LM_ITERATIONS, 1e-3,
-                                             many_of(fine, LINE_POINTS))
+                                             many_of(fine, LINE_POINTS), r0=r)
     if jac_fine is not None:
         jac = jac_fine
     pts = _line_points(frame, q, 2)

@@ -68,24 +68,15 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
 
 
 def lenslet_centres_mm(
-    profile: CameraProfile, d_in_mm: float, centroids_px: np.ndarray,
-    table_radius_mm: float | None = None,
+    profile: CameraProfile, d_in_mm: float, centroids_px: np.ndarray
 ) -> np.ndarray:
-    """Lenslet centres (mm, MLA plane, from the axis) of calibrated white centroids (px).
-
-    ``table_radius_mm``: the white-offset table's reach (default: 5 % beyond the farthest
-    centroid); callers mapping several sets of centroids pass one reach so that a single
-    (cached) table serves them all.
-    """
+    """Lenslet centres (mm, MLA plane, from the axis) of calibrated white centroids (px)."""
     c = np.asarray(centroids_px, dtype=np.float64).reshape(-1, 2)
     pp = profile.sensor.pixel_pitch_mm
     ax, ay = profile.sensor.axis_xy_px
     m = np.column_stack([(c[:, 0] - ax) * pp, (c[:, 1] - ay) * pp])
     r_white = np.hypot(m[:, 0], m[:, 1])
-    reach = table_radius_mm if table_radius_mm is not None else r_white.max() * 1.05 + 1e-6
-    if not reach > r_white.max():
-        raise ValueError(f"white-offset table reach {reach} mm short of {r_white.max()} mm")
-    radii, r_w = white_offset_table(profile, float(d_in_mm), float(reach))
+    radii, r_w = white_offset_table(profile, float(d_in_mm), float(r_white.max() * 1.05 + 1e-6))
     r = np.interp(r_white, r_w, radii)
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = np.where(r_white > 0, r / r_white, 1.0 / (r_w[1] / radii[1]))
@@ -250,11 +241,8 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
     radius_px = 0.5 * calibration.pitch_px * 1.08
     centres, indices, n_measured = sensor_lenses(calibration, shape, radius_px)
     lmap = build_lenslet_map(centres, shape, radius_px)
-    # one white-offset table (one trace) for every lens of the sensor
-    pp = profile.sensor.pixel_pitch_mm
-    reach = float(np.hypot(*(centres - np.asarray(profile.sensor.axis_xy_px)).T).max()
-                  * pp * 1.05 + 1e-6)
-    lens_mm = lenslet_centres_mm(profile, d_in, centres, table_radius_mm=reach)
+    # measured and edge-placed lenses in one call: one white-offset table (one trace)
+    lens_mm = lenslet_centres_mm(profile, d_in, centres)
     lens_mm, _ = regularise_to_lattice(lens_mm, indices, profile.mla.pitch_mm,
                                        fit_mask=np.arange(len(centres)) < n_measured)
     return Geometry(lmap, lens_mm, float(calibration.pitch_px), d_in)
