@@ -303,6 +303,9 @@ def _worker_boot() -> None:
     cv2.setNumThreads(1)
     import lfcam.measure.fastfit  # noqa: F401
     import lfcam.measure.lightfield  # noqa: F401
+    from lfcam.measure.deposit import warm_up
+
+    warm_up()  # the lenslet model's compiled kernel (every method's fits may use it)
 
     # a worker whose parent was killed would otherwise live on, orphaned: leave with it
     parent = os.getppid()
