@@ -57,6 +57,7 @@ from lfcam.measure import (
     noise_sigma,
     prepare_geometry,
 )
+from lfcam.measure.noise import capture_noise
 from lfcam.measure.verify import verify_regions
 from lfcam.models import auto, check_distance_model
 from lfcam.models import line as line_model
@@ -228,12 +229,15 @@ def run_distance(
         stats = lenslet_stats(img, geom.lmap)
         regions = find_regions(stats, geom.lmap, geom.pitch_px)
         noise = noise_sigma(img)
+        # the capture's noise model, which the fits' gates read: once, from these statistics
+        noise_model = (capture_noise(img, geom.lmap, geom.pitch_px, stats)
+                       if method != "diameter" and regions else None)
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)
         jobs = max(1, min(int(jobs), len(regions)))
         if pool is not None and jobs > 1:
             estimates = pool.estimate(profile, geom, img, stats, regions, noise, args,
-                                      progress)
+                                      progress, noise_model)
         else:
             estimates = []
             for i, reg in enumerate(regions):
@@ -344,6 +348,8 @@ def _worker_attach(names: tuple[str, str, str], shape: tuple[int, int]) -> dict:
     (centres_px, radius_px), lens_centres_mm, pitch_px, d_in_mm = ctx["geom"]
     geom = Geometry(LensletMap(centres_px, labels, radius_px), lens_centres_mm, pitch_px,
                     d_in_mm)
+    if ctx["noise_model"] is not None:  # the parent's, remembered for this image
+        capture_noise(img, geom.lmap, pitch_px, known=ctx["noise_model"])
     _WORKER.clear()
     _WORKER.update(names=names, profile=ctx["profile"], geom=geom, img=img,
                    stats=LensletStats(*ctx["stats"]), noise=ctx["noise"], args=ctx["args"],
@@ -381,7 +387,8 @@ class _RegionPool:
         finally:
             _restore_environ(saved)
 
-    def estimate(self, profile, geom, img, stats, regions, noise, args, progress) -> list:
+    def estimate(self, profile, geom, img, stats, regions, noise, args, progress,
+                 noise_model=None) -> list:
         """:func:`_timed_estimate` of every region, in region order."""
         import pickle
         from concurrent.futures import as_completed
@@ -391,6 +398,7 @@ class _RegionPool:
             "profile": profile, "geom": ((geom.lmap.centres_px, geom.lmap.radius_px),
                                          geom.lens_centres_mm, geom.pitch_px, geom.d_in_mm),
             "stats": (stats.energy, stats.centroid_px, stats.pixels), "noise": noise,
+            "noise_model": noise_model,
             "args": args}, protocol=pickle.HIGHEST_PROTOCOL)
         shms = []
         try:
