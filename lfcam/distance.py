@@ -307,7 +307,7 @@ def _worker_boot() -> None:
     cv2.setNumThreads(1)
     import lfcam.measure.fastfit  # noqa: F401
     import lfcam.measure.lightfield  # noqa: F401
-    from lfcam.measure.deposit import warm_up
+    from lfcam.measure.kernels import warm_up
 
     warm_up()  # the lenslet model's compiled kernel (every method's fits may use it)
 

@@ -105,7 +105,7 @@ def _model_pair(profile, geom, shape, rays):
 
 @pytest.mark.parametrize("grid", ["rect", "hex"])
 def test_compiled_moments_equal_the_numpy_chain(grid):
-    # lfcam.measure.deposit against the numpy chain it replaces (cells, border shares, pixel
+    # lfcam.measure.kernels against the numpy chain it replaces (cells, border shares, pixel
     # boxes, label look-up, bincount): the same sums up to their order, for point sources on
     # both sides of the focused plane (1 m), on and off the lattice's symmetry lines, one at a
     # time and as stacked sets and lines (groups); a rotated hex MLA takes the hex branch
@@ -135,3 +135,26 @@ def test_compiled_moments_equal_the_numpy_chain(grid):
     a, b = fast.simulate_sets(sources + [line]), ref.simulate_sets(sources + [line])
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
     assert total > 0
+
+
+def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
+    # the compiled per-lenslet sums (frames ≥ COMPILED_SUMS_PX) against numpy's bincount chain:
+    # the same sums in the same order, so equal to the last bit; unassigned pixels (−1) and
+    # lenslets with no pixels included
+    import lfcam.measure.lenslets as lenslets
+    from lfcam.measure.lenslets import LensletMap
+
+    rng = np.random.default_rng(4)
+    labels = rng.integers(-1, 500, (300, 410)).astype(np.int32)
+    labels[labels == 7] = -1  # lenslet 7 has no pixel: NaN centroid either way
+    lmap = LensletMap(rng.uniform(0, 400, (600, 2)), labels, 5.0)
+    image = rng.normal(0.1, 1.0, labels.shape).astype(np.float32)
+    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 0)
+    fast = lenslets.lenslet_stats(image, lmap)
+    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 10**12)
+    ref = lenslets.lenslet_stats(image, lmap)
+    assert np.array_equal(fast.energy, ref.energy)
+    assert np.array_equal(fast.pixels, ref.pixels)
+    assert np.array_equal(fast.centroid_px, ref.centroid_px, equal_nan=True)
+    assert np.isnan(ref.centroid_px[7]).all() and ref.pixels[7] == 0
+    assert ref.pixels.sum() == int((labels >= 0).sum())

@@ -102,7 +102,7 @@ PROFILE_RIDGE_LOG = 0.1  # a 10 % step costing less than PROFILE_RIDGE_RISE × t
 PROFILE_RIDGE_RISE = 5.0  # systematic misfit² (≤ PROFILE_FLOOR²): a ridge, no distance
 PROFILE_FLOOR = 0.001  # relative misfit of the exact model on bright far sources (0.0006-7)
 PROFILE_LM_ITERATIONS = 3  # lateral refit at each trial distance
-KERNEL = "compiled"  # rays → moments: lfcam.measure.deposit; "numpy" = the reference chain
+KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
 
@@ -195,7 +195,7 @@ class LensletModel:
     def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
                  phase: float = 0.0, kernel: str | None = None):
         self.profile, self.geom, self.mom = profile, geom, mom
-        # "compiled" (lfcam.measure.deposit) or "numpy" (the reference it is tested against)
+        # "compiled" (lfcam.measure.kernels) or "numpy" (the reference it is tested against)
         self.kernel = KERNEL if kernel is None else kernel
         lens = profile.main_lens
         half = 0.5 * lens.pupil_diameter_mm
@@ -280,7 +280,7 @@ class LensletModel:
         gaps = spacing[rows_ok]
         tag = group[rows_ok] if group is not None else np.zeros(rows_ok.size, dtype=np.int64)
         if self.kernel == "compiled":
-            from lfcam.measure.deposit import deposit_moments  # numba: imported on first use
+            from lfcam.measure.kernels import deposit_moments  # numba: imported on first use
 
             lat = self.lattice
             b = lat.basis

@@ -20,6 +20,10 @@ from lfcam.errors import CalibrationError
 BAND_PIXELS = 2_000_000  # pixels of one band of sensor rows (bounds the stencil's memory)
 
 
+COMPILED_SUMS_PX = 8_000_000  # frames this large sum per lenslet in lfcam.measure.kernels (its
+#                               import costs ~0.5 s; numpy's bincount chain takes ~40 ms/Mpx)
+
+
 @dataclass(frozen=True)
 class LensletMap:
     """Pixel → lenslet assignment for one sensor size and one set of micro-image centres."""
@@ -125,17 +129,24 @@ def lenslet_stats(image: np.ndarray, lmap: LensletMap) -> LensletStats:
             f"capture is {img.shape[1]}×{img.shape[0]} px but the calibration is for "
             f"{lmap.labels.shape[1]}×{lmap.labels.shape[0]} px"
         )
-    # bin 0 collects the unassigned pixels (label −1); no masks or index arrays of the frame
-    lab = lmap.labels.ravel().astype(np.intp) + 1
-    n = lmap.count + 1
-    h, w = img.shape
-    val = img.ravel()
-    energy = np.bincount(lab, weights=val, minlength=n)[1:]
-    mx = np.bincount(lab, weights=(img * np.arange(w, dtype=np.float64)).ravel(),
-                     minlength=n)[1:]
-    my = np.bincount(lab, weights=(img * np.arange(h, dtype=np.float64)[:, None]).ravel(),
-                     minlength=n)[1:]
-    pixels = np.bincount(lab, minlength=n)[1:]
+    if img.size >= COMPILED_SUMS_PX:  # one compiled pass (the same sums in the same order)
+        from lfcam.measure.kernels import lenslet_sums
+
+        pixels, energy, mx, my = lenslet_sums(
+            np.ascontiguousarray(lmap.labels, dtype=np.int32), np.ascontiguousarray(img),
+            int(lmap.count))
+    else:
+        # bin 0 collects the unassigned pixels (label −1); no masks or index arrays of the frame
+        lab = lmap.labels.ravel().astype(np.intp) + 1
+        n = lmap.count + 1
+        h, w = img.shape
+        val = img.ravel()
+        energy = np.bincount(lab, weights=val, minlength=n)[1:]
+        mx = np.bincount(lab, weights=(img * np.arange(w, dtype=np.float64)).ravel(),
+                         minlength=n)[1:]
+        my = np.bincount(lab, weights=(img * np.arange(h, dtype=np.float64)[:, None]).ravel(),
+                         minlength=n)[1:]
+        pixels = np.bincount(lab, minlength=n)[1:]
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.column_stack([mx / energy, my / energy])
     centroid[~(energy > 0)] = np.nan

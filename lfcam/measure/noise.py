@@ -32,6 +32,7 @@ from lfcam.robust import mad_sigma
 NEIGHBOUR_PITCH = 1.6  # lenslets closer than this many pitches are neighbours (as regions.py)
 INTERIOR_SHARE = 0.5  # an interior lenslet's neighbours all carry ≥ this × its energy ...
 INTERIOR_SIGMAS = 5.0  # ... and it lies ≥ this many read-noise σ of its sum above the dark
+NEIGHBOUR_SLOTS = 13  # nearest centres looked up per lenslet (itself + up to 12 neighbours)
 MIN_INTERIOR = 20  # fewer interior lenslets: no gain estimate (photon noise not counted)
 CHI2_MEDIAN = 0.4549364231195724  # median of χ² with one degree of freedom
 
@@ -136,19 +137,28 @@ def photon_gain(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> float
     if cand.size < MIN_INTERIOR:
         return 0.0
     tree = cKDTree(lmap.centres_px)
-    lists = tree.query_ball_point(lmap.centres_px[cand], NEIGHBOUR_PITCH * pitch_px)
-    vals = []
-    for k, nb in zip(cand, lists, strict=True):
-        nb = [j for j in nb if j != k]
-        if len(nb) < 4:
-            continue
-        sn = sig[nb]
-        if sn.min() < INTERIOR_SHARE * sig[k] or sn.max() * INTERIOR_SHARE > sig[k]:
-            continue
-        mean = float(sn.mean())
-        vals.append((sig[k] - mean) ** 2 / ((1.0 + 1.0 / len(nb)) * mean))
-    if len(vals) < MIN_INTERIOR:
+    # neighbours within NEIGHBOUR_PITCH, nearest first: a lattice has at most 8 (rect: 4 at 1
+    # pitch, 4 at 1.41); NEIGHBOUR_SLOTS − 1 leaves room for irregular centres
+    slots = NEIGHBOUR_SLOTS
+    while True:
+        dist, idx = tree.query(lmap.centres_px[cand], k=min(slots, len(sig)),
+                               distance_upper_bound=NEIGHBOUR_PITCH * pitch_px)
+        if slots >= len(sig) or not np.isfinite(dist[:, -1]).any():
+            break
+        slots *= 2  # some lenslet has more neighbours than slots (irregular centres)
+    near = np.isfinite(dist) & (idx != cand[:, None])
+    count = near.sum(axis=1)
+    sn = np.where(near, sig[np.minimum(idx, len(sig) - 1)], np.nan)
+    sk = sig[cand]
+    with np.errstate(invalid="ignore"):
+        interior = ((count >= 4) & ~(np.nanmin(sn, axis=1, initial=np.inf, where=near)
+                                     < INTERIOR_SHARE * sk)
+                    & ~(np.nanmax(sn, axis=1, initial=-np.inf, where=near) * INTERIOR_SHARE > sk))
+    if int(interior.sum()) < MIN_INTERIOR:
         return 0.0
+    n = count[interior]
+    mean = np.nansum(sn[interior], axis=1) / n
+    vals = (sk[interior] - mean) ** 2 / ((1.0 + 1.0 / n) * mean)
     return float(np.median(vals)) / CHI2_MEDIAN
 
 
