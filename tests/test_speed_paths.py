@@ -158,3 +158,25 @@ def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
     assert np.array_equal(fast.centroid_px, ref.centroid_px, equal_nan=True)
     assert np.isnan(ref.centroid_px[7]).all() and ref.pixels[7] == 0
     assert ref.pixels.sum() == int((labels >= 0).sum())
+
+
+def test_compiled_lenslet_map_equals_the_numpy_stamping(monkeypatch):
+    # a jittered hex lattice whose discs overlap (radius 0.6 pitch), with exact ties (two
+    # centres at the same point) and centres off the frame: the compiled stamping gives the
+    # numpy path's labels pixel for pixel (nearest centre; a tie to the later one)
+    import lfcam.measure.lenslets as lenslets
+
+    pitch = 9.3
+    i, j = np.meshgrid(np.arange(-2, 42), np.arange(-2, 30))
+    x = pitch * (i + 0.5 * (j % 2)).ravel()
+    y = pitch * (math.sqrt(3) / 2) * j.ravel()
+    rng = np.random.default_rng(6)
+    centres = np.column_stack([x, y]) + rng.uniform(-0.3, 0.3, (x.size, 2))
+    centres = np.vstack([centres, centres[100:110]])  # duplicates: ties everywhere in them
+    shape = (240, 370)
+    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 0)
+    fast = lenslets.build_lenslet_map(centres, shape, 0.6 * pitch)
+    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 10**12)
+    ref = lenslets.build_lenslet_map(centres, shape, 0.6 * pitch)
+    assert np.array_equal(fast.labels, ref.labels)
+    assert (ref.labels >= len(x)).any() and (ref.labels == -1).any()  # ties and gaps occur

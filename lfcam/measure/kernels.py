@@ -179,3 +179,44 @@ def lenslet_sums(labels, image, n):
             mx[k] += v * col
             my[k] += v * row
     return pixels, energy, mx, my
+
+
+@njit(cache=True, nogil=True)
+def stamp_labels(labels, centres, ids, ox, oy, r2, band):
+    """:func:`lfcam.measure.lenslets.build_lenslet_map`'s stamping in one compiled pass: every
+    centre ``ids[i]`` (in that order) claims the pixels of its disc (stencil offsets ``ox, oy``
+    from its rounded position, squared radius ``r2``) that no earlier centre holds nearer; a tie
+    goes to the later centre. Bands of ``band`` rows bound the distance buffer."""
+    h, w = labels.shape
+    cy_sorted = centres[ids, 1]
+    reach = 0
+    for j in range(ox.size):
+        reach = max(reach, abs(ox[j]), abs(oy[j]))
+    best = np.empty(band * w)
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        lo = np.searchsorted(cy_sorted, r0 - reach, side="left")
+        hi = np.searchsorted(cy_sorted, r1 - 1 + reach, side="right")
+        best[:] = np.inf
+        for i in range(lo, hi):
+            k = ids[i]
+            cx = centres[k, 0]
+            cy = centres[k, 1]
+            bx = np.rint(cx)
+            by = np.rint(cy)
+            fx = bx - cx
+            fy = by - cy
+            ibx = int(bx)
+            iby = int(by)
+            for j in range(ox.size):
+                py = iby + oy[j]
+                px = ibx + ox[j]
+                if py < r0 or py >= r1 or px < 0 or px >= w:
+                    continue
+                d2 = (ox[j] + fx) ** 2 + (oy[j] + fy) ** 2
+                if d2 > r2:
+                    continue
+                at = (py - r0) * w + px
+                if d2 <= best[at]:
+                    best[at] = d2
+                    labels[py, px] = k
