@@ -83,14 +83,17 @@ LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
 # 0.08 for a far source that gets 2-4 % of the light of the scene's brightest), a line
 # fitted as a point 0.15-0.69, a line fitted as a line 0.001-0.04.
-LINE_TRIGGER = 0.02  # a point misfit over this and over twice its noise misfit (or an
+LINE_TRIGGER = 0.0015  # a point misfit over this and over twice its noise misfit (or an
 #                      elongated region): also fit a line (lfcam.measure.verify.line_trigger)
 LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
 #                  parameters cannot halve a misfit that is noise; a coma-stretched point's
 #                  line fit does not lower it at all)
 LINE_STOP_COARSE = 4.0  # a line fit stops after its coarse stage when the misfit is over this
 LINE_STOP_FINE = 3.0  # ... or after the fine Gauss–Newton steps over this × the misfit it must
-#                       reach to matter (coarse → final measured ≤ 2.7×, fine GN → final ≤ 2.0×)
+#                       reach to matter (coarse → final measured ≤ 2.7×, fine GN → final ≤ 2.0×
+#                       on noisy captures) ...
+LINE_STOP_FLOOR = 0.02  # ... or this, if larger: on noise-free data the coarse model's own ray
+#                         noise dominates its misfit (0.01-0.03), not the data's
 POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 # The distance profile (docs/distance.md, "Blurs of a few lenslets"). A blur over a 2×2 block
 # of lenslets splits the pupil into four parts whose shapes fix only the ratio of the image
@@ -875,15 +878,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
     n_lit = int(lit.sum())
-    n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     # Every point of a line lights most of the blur: each needs about as many rays per lit
     # lenslet as a point source does, or the model's own sampling noise (misfit 0.10 at the
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
+    # The fine model has at least the point polish's rays in all: on small noise-free blurs a
+    # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
     scan_model = LensletModel(profile, geom, mom, max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
     coarse = LensletModel(profile, geom, mom, int(np.clip(
         LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE, LINE_MAX_RAYS // 4)))
     fine = LensletModel(profile, geom, mom, int(np.clip(
-        LINE_FINE_PER_LENSLET * n_lit, max(n_rays // LINE_POINTS, 400), LINE_MAX_RAYS)))
+        LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS, LINE_MAX_RAYS)))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
     def fun_of(model, count):
@@ -916,6 +920,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                  + fine.evaluations)
         return LensletFit(nan3, stage_misfit, np.nan, total, False, RegionStatus.POOR_FIT)
 
+    # the stages' own ray noise lowers the misfit too: stops only well above it
+    useful_below = max(useful_below, LINE_STOP_FLOOR)
     if math.sqrt(f) > LINE_STOP_COARSE * useful_below:
         return stopped(math.sqrt(f))
     fun = fun_of(fine, LINE_POINTS)

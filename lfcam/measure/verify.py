@@ -34,7 +34,9 @@ from lfcam.status import RegionStatus, fragment_of
 
 MISFIT_FLOOR = 0.12
 NOISE_FACTOR = 3.0
-LINE_NOISE_FACTOR = 2.0  # a point fit within this × its noise misfit: no line is tried
+LINE_NOISE_FACTOR = 2.0  # a point fit within this × its noise misfit: no line is tried ...
+LINE_TRIGGER_CAP = 0.1  # ... unless its misfit is over this (a point fit that poor is tried as a
+#                         line whatever the noise bound says; lines fitted as points: 0.11-0.69)
 MIN_EXPLAINED = 0.8
 MARGIN_PITCH = 1.0
 COINCIDE_SIGMAS = 3.0
@@ -65,12 +67,15 @@ def poor_fit_limit(noise_misfit_: float, floor: float = MISFIT_FLOOR) -> float:
 def line_trigger(noise_misfit_: float, floor: float) -> float:
     """The point misfit above which a region is also fitted as a line: ``floor`` (the point
     model's own sampling noise) or ``LINE_NOISE_FACTOR`` times the misfit the region's noise
-    alone leaves, whichever is larger. A point fit that already explains the data to within
-    its noise leaves nothing for the line's two extra parameters to explain (on the Illum-size
-    scene of docs/distance.md point fits leave 0.3–1.5× and lines fitted as points 15–18×
-    their noise misfit), and the line fit costs 2–5× the point fit."""
+    alone leaves, whichever is larger — but never above ``LINE_TRIGGER_CAP``. A point fit that
+    already explains the data to within its noise leaves nothing for the line's two extra
+    parameters to explain (on the Illum-size scene of docs/distance.md point fits leave
+    0.3–1.5× and lines fitted as points 15–18× their noise misfit), and the line fit costs 2–5×
+    the point fit. The cap: the noise misfit is an upper bound (scatter between neighbouring
+    lenslets counts as photon noise), and inside a large blur with structure it reaches
+    0.1–0.15 on noise-free data, above the misfit a line leaves as a point."""
     nm = noise_misfit_ if math.isfinite(noise_misfit_) else 0.0
-    return max(floor, LINE_NOISE_FACTOR * nm)
+    return max(floor, min(LINE_NOISE_FACTOR * nm, LINE_TRIGGER_CAP))
 
 
 def predicted_lit(profile, d_in_mm: float, distance_mm: float, source_xy_mm, tree: cKDTree,
