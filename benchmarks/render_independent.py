@@ -26,8 +26,13 @@ the sensor that provably holds the lenslet's micro-image (the grid points' image
 1.5 × their sensor spacing). Each box is integrated by the midpoint rule on a sub-pixel grid
 aligned with the pixels: at least ``n_sub`` × ``n_sub`` points a pixel, more for micro-images
 that are small (a defocused point lights each lenslet with a spot of a fraction of a pixel):
-at least ``min_across`` points across the box's narrow side (at most ``max_samples`` points a
-lenslet). Pixel value = mean of E over its points × pixel area; overlapping micro-images add.
+at least ``min_across`` points across the lenslet's spot (the narrow side of its box, or the
+square root of its lit area when that is smaller; at most ``max_samples`` points a lenslet).
+The boundaries of the light (pupil rim, the lens's clear apertures, the sides of the lenslet's
+aperture) are level sets of smooth functions of q; carried to the sensor by the inverse Jacobian
+each is a straight edge across a sub-pixel cell, which is weighted by its share on the lit side
+(:func:`_square_share`, exact for a straight edge). Pixel value = mean of E × share over its
+points × pixel area; overlapping micro-images add.
 
 Sensor (as the project's benchmarks): brightest pixel at ``peak`` of full scale, Poisson photon
 noise at ``full_well_e``, Gaussian read noise ``read_noise_e``, rounded to ``bit_depth`` bits
