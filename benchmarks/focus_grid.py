@@ -19,11 +19,19 @@ source with no region, counts as a miss. ``--truth-centres`` uses the renderer's
 centres instead of the calibration (separates calibration from fit). Writes one row a case
 to ``--csv`` and prints the table by side of focus × field bin.
 
+``--renderer independent`` takes the point-source captures (default mode and ``--scene12``)
+from ``benchmarks/render_independent.py`` instead of ``lfcam.sim`` (per-pixel irradiance by
+the Jacobian of the exact ray map: no ray binning, docs/simulate.md); ``--white analytic``
+calibrates on ``benchmarks/whites_analytic.py``'s per-pixel white instead of ``lfcam.sim``'s.
+The CSV's ``renderer`` and ``white`` columns tell the rows apart.
+
 Run::
 
     python benchmarks/focus_grid.py --systems system1,system2 --foci 1000,1500,inf
     python benchmarks/focus_grid.py --scene12 --foci 1000
     python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000
+    python benchmarks/focus_grid.py --quick --method lenslet --renderer independent \
+        --white analytic --foci 1000 --csv /tmp/fg_indep.csv
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
 
 Measured CPU per region: 1–4 s a point (up to ~11 s near the field edge), 6–9 s a line;
@@ -46,6 +54,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))  # render_independent, whites_analytic
 
 import lfcam.measure.lightfield as LF  # noqa: E402
 from lfcam.calibrate import calibrate_white, load_calibration, save_calibration  # noqa: E402
@@ -70,7 +79,9 @@ LINE_DISTANCES = "380,560,720,1500,2200,2900,3400"
 BINS = (("0", 0.0, 0.0), ("<=40%", 0.0, 0.4), ("<=80%", 0.4, 0.8))
 COLUMNS = ("mode", "system", "focus_mm", "size_px", "centres", "ad_mm", "field", "r_sensor_mm",
            "angle_deg", "side", "kind", "status", "ed_mm", "signed_pct", "error_pct",
-           "lenslets", "path", "render_s", "fit_s", "fit_cpu_s")
+           "lenslets", "path", "render_s", "fit_s", "fit_cpu_s", "renderer", "white")
+RENDERERS = ("sim", "independent")
+WHITES = ("sim", "analytic")
 
 
 def parse_focus(text: str) -> float:
@@ -95,11 +106,24 @@ def magnification(profile: CameraProfile) -> float:
 
 
 def calibrated_geometry(base: CameraProfile, cam: dict, used: CameraProfile,
-                        shape: tuple[int, int], cache: Path, key: str) -> Geometry:
-    """Geometry from ``calibrate_white`` on a rendered white image (cached per camera)."""
-    path = cache / f"calib_{key}.json"
+                        shape: tuple[int, int], cache: Path, key: str,
+                        white_source: str = "sim") -> Geometry:
+    """Geometry from ``calibrate_white`` on a rendered white image (cached per camera).
+
+    ``white_source``: ``"sim"`` renders the white with ``lfcam.sim`` (noise-free);
+    ``"analytic"`` computes it per pixel with ``benchmarks/whites_analytic.py`` (noise-free),
+    a path that shares no rendering code with ``lfcam.sim``. The two are cached apart.
+    """
+    path = cache / (f"calib_{key}.json" if white_source == "sim"
+                    else f"calib_{key}_{white_source}.json")
     if path.exists():
         cal = load_calibration(path)
+    elif white_source == "analytic":
+        from whites_analytic import analytic_white
+
+        white = analytic_white(used, noise=False)
+        cal = calibrate_white(white.astype(np.float32))
+        save_calibration(cal, path)
     else:
         white, _, _ = simulate(base, scene_from_dict(
             {"seed": 5, "objects": [{"type": "white"}], "camera": cam}))
@@ -112,8 +136,10 @@ class Camera:
     """One system at one focus and sensor size: profile, geometry, placement helpers."""
 
     def __init__(self, system: str, focus_mm: float, size: int | None, cache: Path,
-                 truth_centres: bool, rotation_rad: float = 0.0):
+                 truth_centres: bool, rotation_rad: float = 0.0, renderer: str = "sim",
+                 white: str = "sim"):
         self.system, self.focus_mm, self.size = system, focus_mm, size
+        self.renderer, self.white = renderer, white
         self.base = load_profile(ROOT / "calibration" / f"{system}.toml")
         self.cam = overrides(focus_mm, size, rotation_rad)
         used = apply_overrides(self.base, self.cam)
@@ -126,10 +152,12 @@ class Camera:
                                                             else "")
         t0 = time.perf_counter()
         self.geom = (truth_geometry(self.used, self.shape) if truth_centres else
-                     calibrated_geometry(self.base, self.cam, self.used, self.shape, cache, key))
+                     calibrated_geometry(self.base, self.cam, self.used, self.shape, cache, key,
+                                         white))
         print(f"# {system}, focus {focus_mm:g} mm, {self.shape[1]}² sensor, half-field "
               f"{self.half_field_mm:.2f} mm, d_in {self.used.d_in_mm:.3f} mm, {self.centres} "
-              f"centres ({time.perf_counter() - t0:.0f} s)", flush=True)
+              f"centres ({'' if truth_centres else white + ' white, '}"
+              f"{time.perf_counter() - t0:.0f} s), {renderer} renderer", flush=True)
 
     def position(self, distance_mm: float, sensor_xy_mm) -> list[float]:
         """Lateral source position whose chief ray lands at ``sensor_xy_mm`` on the sensor."""
@@ -151,8 +179,22 @@ class Camera:
         return 100.0 * (ed / ad - 1.0), 100.0 * abs(ad - ed) / (ad + self.half_t)
 
     def render(self, objects: list[dict], seed: int, rays: int):
-        """Noisy capture (float64), truth mapping, render seconds."""
+        """Noisy capture (float64), truth mapping, render seconds.
+
+        With the ``independent`` renderer (point sources only) the capture comes from
+        ``benchmarks/render_independent.py`` with the same peak and noise, in the same digital
+        units (``lfcam.sim``'s white level); ``rays`` is not used.
+        """
         t0 = time.perf_counter()
+        if self.renderer == "independent":
+            from render_independent import render_capture
+
+            img, truth = render_capture(self.used, objects, seed=seed, peak=0.8,
+                                        full_well_e=NOISE["full_well_e"],
+                                        read_noise_e=NOISE["read_noise_e"],
+                                        bit_depth=self.used.sensor.bit_depth)
+            top = min(2 ** self.used.sensor.bit_depth - 1, self.used.sensor.white_level)
+            return img * top, truth, time.perf_counter() - t0
         raw, _, truth = simulate(self.base, scene_from_dict(
             {"seed": seed, "rays_per_source": rays, "sensor": NOISE, "exposure": {"peak": 0.8},
              "camera": self.cam, "objects": objects}))
@@ -188,7 +230,9 @@ class Camera:
                 "side": self.side(ad), "kind": kind or "none", "status": status or "no-region",
                 "ed_mm": round(ed, 3), "signed_pct": round(signed, 4), "error_pct": round(err, 4),
                 "lenslets": n, "path": path, "render_s": round(render_s, 2),
-                "fit_s": round(fit_s, 2), "fit_cpu_s": round(cpu_s, 2)}
+                "fit_s": round(fit_s, 2), "fit_cpu_s": round(cpu_s, 2),
+                "renderer": self.renderer,
+                "white": "truth" if self.centres == "truth" else self.white}
 
 
 def nearest(results, xy_px) -> object | None:
@@ -283,10 +327,23 @@ def cell(rows) -> str:
     return f"{e[ok].mean():.3f} / {e[ok].max():.3f} ({ok.sum()}/{len(rows)})"
 
 
+def _source_tag(row: dict) -> str:
+    """``centres`` of a row, with its renderer and white when they are not lfcam.sim's."""
+    tag = row["centres"]
+    ren, white = row.get("renderer") or "sim", row.get("white") or "sim"
+    if ren != "sim":
+        tag += f", {ren} captures"
+    if white not in ("sim", "truth"):
+        tag += f", {white} white"
+    return tag
+
+
 def print_table(rows: list[dict]) -> None:
     """Markdown tables: per camera and overall, side of focus × field bin."""
     if not rows:
         return
+    # rows from different renderers or whites never share a line (older CSVs: lfcam.sim)
+    rows = [dict(r, centres=_source_tag(r)) for r in rows]
     for mode in sorted({r["mode"] for r in rows}):
         sel = [r for r in rows if r["mode"] == mode]
         print(f"\n### {mode}: ERROR % mean / max (answered/cases)\n")
@@ -349,6 +406,11 @@ def main() -> None:
                     help="measurement method (docs/distance.md)")
     ap.add_argument("--scene12", action="store_true", help="12 point sources in one capture")
     ap.add_argument("--lines", action="store_true", help="lines at 0°, 60°, 135°")
+    ap.add_argument("--renderer", default="sim", choices=RENDERERS,
+                    help="captures from lfcam.sim or from benchmarks/render_independent.py "
+                         "(point sources only)")
+    ap.add_argument("--white", default="sim", choices=WHITES,
+                    help="calibration white from lfcam.sim or benchmarks/whites_analytic.py")
     ap.add_argument("--truth-centres", action="store_true",
                     help="renderer's lenslet centres instead of the white calibration")
     ap.add_argument("--cache", type=Path,
@@ -363,6 +425,9 @@ def main() -> None:
     if args.table:
         print_table(read_rows(args.table))
         return
+    if args.lines and args.renderer == "independent":
+        ap.error("--lines: the independent renderer draws point sources only (use "
+                 "--renderer sim for lines)")
     args.cache.mkdir(parents=True, exist_ok=True)
     fields = [float(v) for v in args.fields.split(",")]
     if args.quick:
@@ -385,7 +450,7 @@ def main() -> None:
         for system in args.systems.split(","):
             for focus in [parse_focus(v) for v in args.foci.split(",")]:
                 cam = Camera(system, focus, args.size or None, args.cache, args.truth_centres,
-                             args.rotation)
+                             args.rotation, args.renderer, args.white)
                 if args.lines:
                     dists = args.distances or LINE_DISTANCES
                     run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit)
