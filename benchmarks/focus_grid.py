@@ -79,7 +79,8 @@ LINE_DISTANCES = "380,560,720,1500,2200,2900,3400"
 BINS = (("0", 0.0, 0.0), ("<=40%", 0.0, 0.4), ("<=80%", 0.4, 0.8))
 COLUMNS = ("mode", "system", "focus_mm", "size_px", "centres", "ad_mm", "field", "r_sensor_mm",
            "angle_deg", "side", "kind", "status", "ed_mm", "signed_pct", "error_pct",
-           "lenslets", "path", "render_s", "fit_s", "fit_cpu_s", "renderer", "white")
+           "lenslets", "path", "render_s", "fit_s", "fit_cpu_s", "renderer", "white",
+           "sigma_mm")
 RENDERERS = ("sim", "independent")
 WHITES = ("sim", "analytic")
 
@@ -214,7 +215,7 @@ class Camera:
     def row(self, mode, ad, field, r_mm, angle, result, counts, render_s, fit_s, cpu_s):
         """One CSV row; ``result`` is the matched RegionResult or None."""
         kind = status = path = ""
-        ed = signed = err = math.nan
+        ed = signed = err = sigma = math.nan
         n = 0
         if result is not None:
             kind, status = result.kind, result.status
@@ -223,6 +224,7 @@ class Camera:
                     "tri" if n >= LF.TRIANGULATION_ENOUGH else "pix")
             if status == "ok":
                 ed = result.distance_mm
+                sigma = result.uncertainty_mm
                 signed, err = self.error_pct(ad, ed)
         return {"mode": mode, "system": self.system, "focus_mm": self.focus_mm,
                 "size_px": self.shape[1], "centres": self.centres, "ad_mm": ad,
@@ -232,7 +234,8 @@ class Camera:
                 "lenslets": n, "path": path, "render_s": round(render_s, 2),
                 "fit_s": round(fit_s, 2), "fit_cpu_s": round(cpu_s, 2),
                 "renderer": self.renderer,
-                "white": "truth" if self.centres == "truth" else self.white}
+                "white": "truth" if self.centres == "truth" else self.white,
+                "sigma_mm": round(sigma, 3)}
 
 
 def nearest(results, xy_px) -> object | None:
@@ -375,6 +378,15 @@ def print_table(rows: list[dict]) -> None:
         bad = [f"{r['system']} F{float(r['focus_mm']):g} Ad {float(r['ad_mm']):g} "
                f"field {r['field']}: {r['status']}" for r in sel if r["status"] != "ok"]
         print(f"\n{mode}: all {cell(sel)}; kinds {kinds}; not ok: {bad or 'none'}")
+        # does the stated uncertainty cover the error? (CSVs with the sigma_mm column)
+        z = [abs(float(r["ed_mm"]) - float(r["ad_mm"])) / float(r["sigma_mm"]) for r in sel
+             if r["status"] == "ok" and r.get("sigma_mm") not in (None, "", "nan")
+             and float(r["sigma_mm"]) > 0]
+        if z:
+            z = np.array(z)
+            print(f"{mode}: |Ed − Ad| within 1σ {int((z <= 1).sum())}, within 2σ "
+                  f"{int((z <= 2).sum())}, within 3σ {int((z <= 3).sum())} of {z.size}; "
+                  f"largest {z.max():.1f}σ")
 
 
 def read_rows(paths) -> list[dict]:
