@@ -84,7 +84,9 @@ LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
 # 0.08 for a far source that gets 2-4 % of the light of the scene's brightest), a line
 # fitted as a point 0.15-0.69, a line fitted as a line 0.001-0.04.
 LINE_TRIGGER = 0.0015  # a point misfit over this and over twice its noise misfit (or an
-#                      elongated region): also fit a line (lfcam.measure.verify.line_trigger)
+#                        elongated region): also fit a line (lfcam.measure.verify.line_trigger;
+#                        noise-free seed captures: points leave 0.0001-0.0039, 10 mm lines as
+#                        points 0.0018-0.29)
 LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
 #                  parameters cannot halve a misfit that is noise; a coma-stretched point's
 #                  line fit does not lower it at all)
@@ -638,8 +640,8 @@ def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
     (JᵀJ)⁻¹``, ``g_k = Σ J·r`` over the four moments of lenslet ``k``. The moments are not
     equally noisy — a bright lenslet's carry more photon noise, the model's mismatch gathers
     on a few — and on the 12-source scene the classical σ left far, dim sources 3–7σ off while
-    the sandwich covers them within 3.2σ (docs/distance.md, "Uncertainty that covers the
-    error"). ``inf`` when the Jacobian is singular."""
+    the sandwich covers every answer within 3.4σ (docs/distance.md, "Uncertainty that covers
+    the error"). ``inf`` when the Jacobian is singular."""
     n, p = jac.shape
     try:
         inv = np.linalg.inv(_gram(jac))
@@ -863,9 +865,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     ``useful_below``: the misfit a line must reach to change the caller's answer. A fit whose
     coarse misfit is over ``LINE_STOP_COARSE`` × that, or whose fine Gauss–Newton misfit is
-    over ``LINE_STOP_FINE`` × that, stops there (``ok=False``, status ``poor-fit``): the later
-    stages lower the misfit by at most 2.7× and 2.0× on the measured regions (docs/distance.md,
-    "A compiled inner loop, lines that stop when they cannot win").
+    over ``LINE_STOP_FINE`` × that (either at least ``LINE_STOP_FLOOR``), stops there
+    (``ok=False``, status ``poor-fit``): the later stages lower the misfit by at most 2.7× and
+    2.0× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
+    when they cannot win").
     """
     box = _region_box(geom, region, image.shape)
     mom = data_moments(geom, image, box)
