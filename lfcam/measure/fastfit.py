@@ -799,9 +799,9 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         r = coarse.residual(frame.source(q))
         f = _sq(r)
         if best is None or f < best[1]:
-            best = (q, f)
+            best = (q, f, r)
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
-                                        COARSE_ITERATIONS, 1e-3, many_of(coarse))
+                                        COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
     q_c = q
     q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
