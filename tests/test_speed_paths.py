@@ -138,7 +138,7 @@ def test_compiled_moments_equal_the_numpy_chain(grid):
 
 
 def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
-    # the compiled per-lenslet sums (frames ≥ COMPILED_SUMS_PX) against numpy's bincount chain:
+    # the compiled per-lenslet sums (frames ≥ COMPILED_FRAME_PX) against numpy's bincount chain:
     # the same sums in the same order, so equal to the last bit; unassigned pixels (−1) and
     # lenslets with no pixels included
     import lfcam.measure.lenslets as lenslets
@@ -149,9 +149,9 @@ def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
     labels[labels == 7] = -1  # lenslet 7 has no pixel: NaN centroid either way
     lmap = LensletMap(rng.uniform(0, 400, (600, 2)), labels, 5.0)
     image = rng.normal(0.1, 1.0, labels.shape).astype(np.float32)
-    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 0)
+    monkeypatch.setattr(lenslets, "COMPILED_FRAME_PX", 0)
     fast = lenslets.lenslet_stats(image, lmap)
-    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 10**12)
+    monkeypatch.setattr(lenslets, "COMPILED_FRAME_PX", 10**12)
     ref = lenslets.lenslet_stats(image, lmap)
     assert np.array_equal(fast.energy, ref.energy)
     assert np.array_equal(fast.pixels, ref.pixels)
@@ -174,9 +174,9 @@ def test_compiled_lenslet_map_equals_the_numpy_stamping(monkeypatch):
     centres = np.column_stack([x, y]) + rng.uniform(-0.3, 0.3, (x.size, 2))
     centres = np.vstack([centres, centres[100:110]])  # duplicates: ties everywhere in them
     shape = (240, 370)
-    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 0)
+    monkeypatch.setattr(lenslets, "COMPILED_FRAME_PX", 0)
     fast = lenslets.build_lenslet_map(centres, shape, 0.6 * pitch)
-    monkeypatch.setattr(lenslets, "COMPILED_SUMS_PX", 10**12)
+    monkeypatch.setattr(lenslets, "COMPILED_FRAME_PX", 10**12)
     ref = lenslets.build_lenslet_map(centres, shape, 0.6 * pitch)
     assert np.array_equal(fast.labels, ref.labels)
     assert (ref.labels >= len(x)).any() and (ref.labels == -1).any()  # ties and gaps occur

@@ -212,6 +212,7 @@ class LensletModel:
                / profile.sensor.pixel_pitch_mm)
         self.s_px = min(0.9, self.spacing * mag)
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
+        self.cell_shape = None if self.lattice is None else _cell_shape(self.lattice)
         self.evaluations = 0
         self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
 
@@ -288,15 +289,14 @@ class LensletModel:
             from lfcam.measure.kernels import deposit_moments  # numba: imported on first use
 
             lat = self.lattice
-            b = lat.basis
-            la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
+            la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
             # one argument signature for every call: the compiled code is cached on disk
             # per signature, and a new one would compile again (~3 s)
             return deposit_moments(
                 x, y, sx, sy, wt, gaps, tag.astype(np.int64, copy=False), int(groups),
-                lat.origin, b, lat.inverse, bool(abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb),
-                la, lb, float(pp), float(ax), float(ay), int(x0), int(y0), float(s_px),
-                self.mom.labels, self.mom.centres_px, float(self.geom.pitch_px))
+                lat.origin, lat.basis, lat.inverse, rect, la, lb, float(pp), float(ax),
+                float(ay), int(x0), int(y0), float(s_px), self.mom.labels, self.mom.centres_px,
+                float(self.geom.pitch_px))
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
         share = np.clip(0.5 - gap / gaps, 0.0, 0.5)
         split = share > 0
@@ -326,6 +326,14 @@ class LensletModel:
         return ((self.mom.data - a * m) / self.mom.norm).ravel()
 
 
+def _cell_shape(lattice: LocalLattice) -> tuple[float, float, bool]:
+    """Lengths of the lattice's two basis vectors and whether its cells are rectangular (a
+    shear below 1e-4 moves their corners by < 1e-4 pitch)."""
+    b = lattice.basis
+    la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
+    return la, lb, bool(abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb)
+
+
 def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
     """Nearest and second-nearest lattice nodes of MLA points, and each point's distance to
     their bisector (the cell border it is nearest to): (n1x, n1y, n2x, n2y, gap)."""
@@ -334,10 +342,9 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
     inv = lattice.inverse
     ex, ey = x - o[0], y - o[1]
     u = (inv[0, 0] * ex + inv[0, 1] * ey, inv[1, 0] * ex + inv[1, 1] * ey)
-    la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
-    if abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb:
-        # rectangular cells (a shear below 1e-4 moves their corners by < 1e-4 pitch): the
-        # nearest node by rounding, the nearest border along u or v
+    la, lb, rect = _cell_shape(lattice)
+    if rect:
+        # rectangular cells: the nearest node by rounding, the nearest border along u or v
         i, j = np.rint(u[0]), np.rint(u[1])
         fu, fv = u[0] - i, u[1] - j
         gu = (0.5 - np.abs(fu)) * la
@@ -937,10 +944,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             break  # the same basin
     q, r, f, jac = best
 
+    def evaluations() -> int:
+        return (point.evaluations + scan_model.evaluations + coarse.evaluations
+                + fine.evaluations)
+
     def stopped(stage_misfit: float) -> LensletFit:
-        total = (point.evaluations + scan_model.evaluations + coarse.evaluations
-                 + fine.evaluations)
-        return LensletFit(nan3, stage_misfit, np.nan, total, False, RegionStatus.POOR_FIT)
+        return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
+                          RegionStatus.POOR_FIT)
 
     # the stages' own ray noise lowers the misfit too: stops only well above it
     useful_below = max(useful_below, LINE_STOP_FLOOR)
@@ -960,8 +970,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
     dist = math.exp(_log_distance(q))
     sigma_d = dist * _log_distance_sigma(jac, r)
-    total = (point.evaluations + scan_model.evaluations + coarse.evaluations
-             + fine.evaluations)
+    total = evaluations()
     mid = 0.5 * (ends[0] + ends[1])
     if _at_far_bound(q):
         return LensletFit(mid, math.sqrt(f), sigma_d, total, False, RegionStatus.NO_SOLUTION,
