@@ -103,16 +103,37 @@ def _model_pair(profile, geom, shape, rays):
             LensletModel(profile, geom, mom, rays, kernel="numpy"))
 
 
-@pytest.mark.parametrize("grid", ["rect", "hex"])
-def test_compiled_moments_equal_the_numpy_chain(grid):
-    # lfcam.measure.kernels against the numpy chain it replaces (cells, border shares, pixel
-    # boxes, label look-up, bincount): the same sums up to their order, for point sources on
-    # both sides of the focused plane (1 m), on and off the lattice's symmetry lines, one at a
-    # time and as stacked sets and lines (groups); a rotated hex MLA takes the hex branch
+def _ideal_lens_profile(base):
+    """``base`` with an ideal main lens carrying spherical terms (the learned-lens form)."""
+    from dataclasses import replace
+
+    from lfcam.camera import MainLens
+    from lfcam.optics.lens import ideal_lens
+
+    rx = ideal_lens(base.main_lens.focal_length_mm, None, 30.0, None,
+                    spherical=(2e-7, -1e-10), name="ideal test lens",
+                    exit_pupil_diameter_mm=base.main_lens.pupil_diameter_mm)
+    return replace(base, main_lens=MainLens(prescription=rx))
+
+
+@pytest.mark.parametrize(("grid", "lens"), [("rect", "system2"), ("hex", "system2"),
+                                            ("rect", "cooke_triplet"), ("hex", "double_gauss"),
+                                            ("rect", "ideal")])
+def test_compiled_moments_equal_the_numpy_chain(grid, lens):
+    # lfcam.measure.kernels (the lens trace and the deposit) against the numpy chain it
+    # replaces (lfcam.optics.trace, cells, border shares, pixel boxes, label look-up,
+    # bincount): the same sums up to rounding, for point sources on both sides of the focused
+    # plane (1 m), on and off the lattice's symmetry lines, one at a time and as stacked sets
+    # and lines (groups); a rotated hex MLA takes the hex branch; the singlet (stop on the
+    # front surface), two multi-element lenses (stop inside: aperture points mapped per
+    # source; conic and flat surfaces) and an ideal lens with spherical terms
     from lfcam.sim.capture import apply_overrides
     from lfcam.sim.geometry import truth_geometry
 
-    base = load_profile(Path(__file__).resolve().parents[1] / "calibration" / "system2.toml")
+    calib = Path(__file__).resolve().parents[1] / "calibration"
+    base = load_profile(calib / f"{'system2' if lens == 'ideal' else lens}.toml")
+    if lens == "ideal":
+        base = _ideal_lens_profile(base)
     prof = apply_overrides(base, {"mla": {"focus_mm": 1000.0, "grid": grid,
                                           **({"rotation_rad": 0.05} if grid == "hex" else {})},
                                   "sensor": {"width_px": 400, "height_px": 400}})
@@ -135,6 +156,35 @@ def test_compiled_moments_equal_the_numpy_chain(grid):
     a, b = fast.simulate_sets(sources + [line]), ref.simulate_sets(sources + [line])
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
     assert total > 0
+
+
+def test_compiled_trace_drops_the_rays_the_lens_stops():
+    # vignetting, a source behind the lens and a ray that misses a steep surface: the compiled
+    # trace keeps exactly the rays lfcam.optics.trace passes, and their positions
+    from lfcam.measure.fastfit import _packed_lens
+    from lfcam.measure.kernels import trace_model_rays
+    from lfcam.optics.trace import trace_sources_fast
+
+    prof = load_profile(Path(__file__).resolve().parents[1] / "calibration" / "double_gauss.toml")
+    lens = prof.main_lens
+    table, coef, mapped = _packed_lens(lens)
+    assert mapped
+    half = 0.5 * lens.pupil_diameter_mm
+    g = np.linspace(-1.3, 1.3, 41) * half  # beyond the pupil: the stop and rims cut
+    rx, ry = (a.ravel() for a in np.meshgrid(g, g))
+    fv = lens.front_vertex_z_mm
+    pts = np.array([[0.0, 0.0, fv - 800.0], [40.0, -25.0, fv - 300.0], [0.0, 0.0, fv + 5.0]])
+    ref = trace_sources_fast(lens, pts, rx, ry, prof.d_in_mm, map_pupil=False)
+    maps = np.tile([0.0, 0.0, 1.0, 1.0], (3, 1))
+    x, y, sx, sy, wt, rows, foot = trace_model_rays(pts, maps, rx, ry, table, coef, fv,
+                                                   lens.rim_z_mm, prof.d_in_mm, 1.0)
+    ok = ref.ok
+    assert 0 < ok[1].sum() < ok[0].sum() < rx.size and not ok[2].any()
+    np.testing.assert_array_equal(rows, np.nonzero(ok)[0])
+    np.testing.assert_allclose(x, ref.x[ok], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sy, ref.dy[ok] / ref.dz[ok], rtol=1e-13, atol=1e-15)
+    assert foot[2] == 0 and foot[0] == pytest.approx(
+        max(np.ptp(ref.x[0][ok[0]]), np.ptp(ref.y[0][ok[0]])), abs=1e-12)
 
 
 def test_compiled_lenslet_sums_equal_bincount(monkeypatch):

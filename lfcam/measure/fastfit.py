@@ -47,7 +47,7 @@ from lfcam.measure.noise import capture_noise, moments_misfit
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.verify import line_trigger, poor_fit_limit
-from lfcam.optics.trace import forward, trace_sources_fast
+from lfcam.optics.trace import forward, pupil_map, trace_sources_fast
 from lfcam.status import RegionStatus
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -213,6 +213,7 @@ class LensletModel:
         self.s_px = min(0.9, self.spacing * mag)
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
         self.cell_shape = None if self.lattice is None else _cell_shape(self.lattice)
+        self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
         self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
 
@@ -253,6 +254,10 @@ class LensletModel:
     def _simulate(self, sources: np.ndarray, group: np.ndarray | None = None,
                   groups: int = 1) -> np.ndarray:
         """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
+        points = np.atleast_2d(sources)
+        out = np.zeros((groups * len(self.mom.data), 4))
+        if self.kernel == "compiled":
+            return self._simulate_compiled(points, group, groups, out)
         p = self.profile
         lens = p.main_lens
         fx = p.mla.focal_length_mm
@@ -260,8 +265,6 @@ class LensletModel:
         ax, ay = p.sensor.axis_xy_px
         x0, y0 = self.mom.box[:2]
         h, w = self.mom.labels.shape
-        points = np.atleast_2d(sources)
-        out = np.zeros((groups * len(self.mom.data), 4))
         s_px = self.s_px
         # every point's rays in one trace (lines: LINE_POINTS points)
         tr = trace_sources_fast(lens, points, self.rx, self.ry, self.geom.d_in_mm)
@@ -285,18 +288,6 @@ class LensletModel:
         sy = fx * tr.dy[ok] / tr.dz[ok]
         gaps = spacing[rows_ok]
         tag = group[rows_ok] if group is not None else np.zeros(rows_ok.size, dtype=np.int64)
-        if self.kernel == "compiled":
-            from lfcam.measure.kernels import deposit_moments  # numba: imported on first use
-
-            lat = self.lattice
-            la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
-            # one argument signature for every call: the compiled code is cached on disk
-            # per signature, and a new one would compile again (~3 s)
-            return deposit_moments(
-                x, y, sx, sy, wt, gaps, tag.astype(np.int64, copy=False), int(groups),
-                lat.origin, lat.basis, lat.inverse, rect, la, lb, float(pp), float(ax),
-                float(ay), int(x0), int(y0), float(s_px), self.mom.labels, self.mom.centres_px,
-                float(self.geom.pitch_px))
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
         share = np.clip(0.5 - gap / gaps, 0.0, 0.5)
         split = share > 0
@@ -315,6 +306,42 @@ class LensletModel:
                            rows[known] + y0, wts_[known], k[known],
                            tag[ray[known]] if group is not None else None, groups)
 
+    def _simulate_compiled(self, points: np.ndarray, group: np.ndarray | None, groups: int,
+                           out: np.ndarray) -> np.ndarray:
+        """:meth:`_simulate` through the compiled trace and deposit
+        (:mod:`lfcam.measure.kernels`): the same rays, weights, spacings and sums."""
+        from lfcam.measure.kernels import deposit_moments, trace_model_rays  # numba
+
+        p = self.profile
+        lens = p.main_lens
+        if self.packed is None:
+            self.packed = _packed_lens(lens)
+        table, coef, mapped = self.packed
+        maps = np.empty((len(points), 4))
+        maps[:] = (0.0, 0.0, 1.0, 1.0)
+        if mapped:  # the real stop's image on the aperture plane, per point
+            for i, pt in enumerate(points):
+                maps[i] = pupil_map(lens, tuple(pt))
+        x, y, sx, sy, wt, rows, foot = trace_model_rays(
+            np.ascontiguousarray(points, dtype=np.float64), maps, self.rx, self.ry, table, coef,
+            float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
+            float(p.mla.focal_length_mm))
+        if rows.size == 0:
+            return out
+        spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
+        tag = group[rows] if group is not None else np.zeros(rows.size, dtype=np.int64)
+        lat = self.lattice
+        la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
+        ax, ay = p.sensor.axis_xy_px
+        x0, y0 = self.mom.box[:2]
+        # one argument signature for every call: the compiled code is cached on disk per
+        # signature, and a new one would compile again (~3 s)
+        return deposit_moments(
+            x, y, sx, sy, wt, spacing[rows], tag.astype(np.int64, copy=False), int(groups),
+            lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
+            float(ax), float(ay), int(x0), int(y0), float(self.s_px), self.mom.labels,
+            self.mom.centres_px, float(self.geom.pitch_px))
+
     def residual(self, sources: np.ndarray) -> np.ndarray:
         """Data minus the best-scaled model moments, over the data's norm."""
         return self.residual_of(self.simulate(sources))
@@ -324,6 +351,17 @@ class LensletModel:
         mm = float((m * m).sum())
         a = float((m * self.mom.data).sum()) / mm if mm > 0 else 0.0
         return ((self.mom.data - a * m) / self.mom.norm).ravel()
+
+
+def _packed_lens(lens) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The main lens's prescription packed for the compiled trace, and whether its stop is
+    behind the front surface (aperture points are then mapped per source, as
+    :func:`lfcam.optics.trace.trace_sources_fast` does)."""
+    from lfcam.measure.kernels import pack_prescription
+
+    prescription = lens.as_prescription
+    table, coef = pack_prescription(prescription)
+    return table, coef, prescription.stop_index != 0
 
 
 def _cell_shape(lattice: LocalLattice) -> tuple[float, float, bool]:

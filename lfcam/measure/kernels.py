@@ -1,10 +1,16 @@
 """Compiled inner loops of the measurement (``numba``; compiled once, cached on disk).
 
-Two loops that numpy can only express as chains of frame- or ray-sized temporaries:
+Loops that numpy can only express as chains of frame- or ray-sized temporaries:
 
 * :func:`lenslet_sums`: each lenslet's pixel count, sum and first moments over a label map
   (:func:`lfcam.measure.lenslets.lenslet_stats`): one pass over the frame instead of four
   ``bincount`` and two weighted copies of it (41 Mpx: 1.6 s → 0.1 s).
+* :func:`trace_model_rays`: the lenslet fit's rays from point sources through the main lens
+  (any :class:`~lfcam.optics.lens.Prescription`: conics, flats, ideal surfaces) to the MLA
+  plane, with the rules and arithmetic of :func:`lfcam.optics.raytrace.trace_components`.
+  Each surface is one loop over the rays with no branch on the ray (a failed ray only clears
+  its flag), so the compiler runs it in SIMD lanes: 10–14 ns a ray against numpy's 70–100
+  (singlet; benchmarks/speed_kernels.py).
 * :func:`deposit_moments`: the lenslet fit's rays to per-lenslet moments.
   :class:`lfcam.measure.fastfit.LensletModel` traces a point (or line) source's rays through
   the main lens to the MLA plane; each ray then
@@ -18,9 +24,11 @@ Two loops that numpy can only express as chains of frame- or ray-sized temporari
      micro-image holds each pixel: ``Σw``, ``Σw·dx``, ``Σw·dy``, ``Σw·(dx² + dy²)`` with
      ``(dx, dy)`` the pixel centre's offset from the micro-image centre in pitches.
 
-  With numpy this cost ~75 % of a model evaluation. The numpy chain stays in
-  :mod:`lfcam.measure.fastfit` as the reference the tests compare this kernel with
-  (``tests/test_speed_paths.py``); both give the same sums up to their order.
+  With numpy this cost ~75 % of a model evaluation.
+
+The numpy chains stay (:mod:`lfcam.optics.raytrace`, :mod:`lfcam.measure.fastfit` with
+``kernel="numpy"``) as the references the tests compare these kernels with
+(``tests/test_speed_paths.py``): the same sums up to their order and rounding (1e-12).
 """
 
 from __future__ import annotations
@@ -157,6 +165,10 @@ def warm_up() -> None:
     deposit_moments(one, one, one, one, one, np.ones(1), np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
                     np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
+    table = np.zeros((1, 8))
+    table[0, 3:6] = (1.0, 1.0, 1.0)
+    trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]), one, one,
+                     table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
 
 
 @njit(cache=True, nogil=True)
@@ -220,3 +232,231 @@ def stamp_labels(labels, centres, ids, ox, oy, r2, band):
                 if d2 <= best[at]:
                     best[at] = d2
                     labels[py, px] = k
+
+
+# ----------------------------------------------------------------------------- lens trace
+# Columns of the packed prescription (:func:`pack_prescription`).
+_VZ, _C, _K, _SEMI2, _N1, _N2, _IDEAL, _POWER = range(8)
+RIM_TOLERANCE = 1e-9  # as lfcam.optics.raytrace.RIM_TOLERANCE
+TRACE_BLOCK = 4096  # rays a block of the compiled trace
+
+
+def pack_prescription(prescription) -> tuple[np.ndarray, np.ndarray]:
+    """A :class:`~lfcam.optics.lens.Prescription` as the arrays :func:`trace_model_rays`
+    reads: ``(S, 8)`` per surface (vertex z, curvature, conic, clear semi-diameter², index
+    before and after, ideal flag, ideal paraxial power) and ``(S, A)`` the ideal surfaces'
+    aberration coefficients (zeros elsewhere)."""
+    from lfcam.optics.raytrace import RIM_TOLERANCE as tol
+
+    if tol != RIM_TOLERANCE:  # one rim rule for both tracers
+        raise AssertionError("RIM_TOLERANCE differs from lfcam.optics.raytrace")
+    surfaces = prescription.surfaces
+    n_coef = max([len(s.spherical) for s in surfaces if s.is_ideal] + [0])
+    table = np.zeros((len(surfaces), 8))
+    coef = np.zeros((len(surfaces), max(n_coef, 1)))
+    for i, s in enumerate(surfaces):
+        table[i] = (prescription.vertex_z_mm[i], s.curvature_per_mm, s.conic,
+                    s.semi_diameter_mm * s.semi_diameter_mm, prescription.index_before[i],
+                    s.refractive_index, float(s.is_ideal),
+                    1.0 / s.focal_length_mm if s.is_ideal else 0.0)
+        if s.is_ideal:
+            coef[i, :len(s.spherical)] = s.spherical
+    return table, coef
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _surface(x, y, z, dx, dy, dz, ok, i, table, coef) -> None:
+    """Carry the rays (component arrays, in place) through surface ``i`` of ``table``: the
+    rules and arithmetic of :func:`lfcam.optics.raytrace._run` (forward, clipped), written
+    without branches on the ray so that the loop runs in SIMD lanes; a ray that fails
+    (misses, vignetted, backward, total internal reflection) has ``ok`` cleared and carries
+    on with meaningless numbers."""
+    vz = table[i, _VZ]
+    c = table[i, _C]
+    k = table[i, _K]
+    semi2 = table[i, _SEMI2] * (1.0 + RIM_TOLERANCE)
+    n1 = table[i, _N1]
+    n2 = table[i, _N2]
+    eta = n1 / n2
+    q = (1.0 + k) * c
+    lim = 1.0 / q if q != 0.0 else 0.0
+    # the first surface may not lie behind the ray, unless it is a flat plane in air
+    first = i == 0 and not (c == 0.0 and n1 == 1.0 and n2 == 1.0)
+    if table[i, _IDEAL] != 0.0:  # flat, air on both sides: s_out = s_in − (x, y)·P(r)
+        p0 = table[i, _POWER]
+        for r in range(x.size):
+            t = (vz - z[r]) / dz[r]
+            x1 = x[r] + t * dx[r]
+            y1 = y[r] + t * dy[r]
+            r2 = x1 * x1 + y1 * y1
+            good = not (first and t < 0.0)
+            good &= r2 <= semi2
+            p = p0
+            term = 1.0
+            for j in range(coef.shape[1]):
+                term = term * r2
+                p = p + coef[i, j] * term
+            sx = dx[r] / dz[r] - x1 * p
+            sy = dy[r] / dz[r] - y1 * p
+            dz1 = 1.0 / math.sqrt(1.0 + sx * sx + sy * sy)
+            x[r] = x1
+            y[r] = y1
+            z[r] = vz
+            dx[r] = sx * dz1
+            dy[r] = sy * dz1
+            dz[r] = dz1
+            ok[r] &= good
+    elif c == 0.0:  # flat: only the axial component changes
+        for r in range(x.size):
+            t = (vz - z[r]) / dz[r]
+            x1 = x[r] + t * dx[r]
+            y1 = y[r] + t * dy[r]
+            good = not (first and t < 0.0)
+            good &= x1 * x1 + y1 * y1 <= semi2
+            x[r] = x1
+            y[r] = y1
+            z[r] = vz
+            if n1 != n2:
+                cos_i = dz[r]
+                kk = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+                good &= kk >= 0.0
+                dx[r] = eta * dx[r]
+                dy[r] = eta * dy[r]
+                dz1 = math.sqrt(max(kk, 0.0))
+                good &= dz1 > 0.0
+                dz[r] = dz1
+            ok[r] &= good
+    else:  # a conic (Spencer & Murty: tangent plane, then the vertex-branch root)
+        for r in range(x.size):
+            ddx = dx[r]
+            ddy = dy[r]
+            ddz = dz[r]
+            t = (vz - z[r]) / ddz
+            x0 = x[r] + t * ddx
+            y0 = y[r] + t * ddy
+            cc = c * (x0 * x0 + y0 * y0)
+            b = ddz - c * (x0 * ddx + y0 * ddy)
+            a = c if k == 0.0 else c * (1.0 + k * ddz * ddz)
+            disc = b * b - a * cc
+            good = disc >= 0.0
+            step = cc / (b + math.copysign(math.sqrt(max(disc, 0.0)), b))
+            x1 = x0 + step * ddx
+            y1 = y0 + step * ddy
+            zl = step * ddz
+            good &= not ((q > 0.0 and zl >= lim) or (q < 0.0 and zl <= lim))
+            good &= not (first and t + step < 0.0)
+            good &= x1 * x1 + y1 * y1 <= semi2
+            x[r] = x1
+            y[r] = y1
+            z[r] = vz + zl
+            if n1 != n2:
+                nx = c * x1
+                ny = c * y1
+                nz = c * (1.0 + k) * zl - 1.0
+                if k != 0.0:
+                    inv = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz)
+                    nx = nx * inv
+                    ny = ny * inv
+                    nz = nz * inv
+                cos_i = -(nx * ddx + ny * ddy + nz * ddz)
+                kk = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+                good &= kk >= 0.0
+                g = eta * cos_i - math.sqrt(max(kk, 0.0))
+                dz1 = eta * ddz + g * nz
+                good &= dz1 > 0.0
+                dx[r] = eta * ddx + g * nx
+                dy[r] = eta * ddy + g * ny
+                dz[r] = dz1
+            ok[r] &= good
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane, fx):
+    """The lenslet model's rays: every point source ``points`` (M, 3) (lens frame) through
+    the aperture points ``(rx, ry)`` (on the plane ``rim_z``; per point mapped by ``maps``
+    (M, 4) ``= (cx, cy, sx, sy)`` onto the real stop's image) through the prescription
+    (``table``, ``coef`` from :func:`pack_prescription`, front vertex at ``front_z``) to the
+    MLA plane ``z_plane``.
+
+    Returns, for the rays that pass, in point-major order: ``x, y`` (mm at the MLA),
+    ``sx, sy`` (``fx`` × slope), the cosine³ weight ``wt`` (unmapped aperture point), the
+    point index ``row``; and ``foot`` (M,): each point's footprint extent at the MLA (the
+    larger of its x and y ranges; 0 when no ray passes). The same quantities
+    :class:`~lfcam.measure.fastfit.LensletModel` computes with numpy from
+    :func:`lfcam.optics.trace.trace_sources_fast` (to ~1e-15, ``tests/test_speed_paths.py``).
+    """
+    m = points.shape[0]
+    n = rx.size
+    size = m * n
+    block = min(TRACE_BLOCK, max(n, 1))
+    # one block of rays at a time through every surface: scratch arrays that stay in cache
+    x = np.empty(block)
+    y = np.empty(block)
+    z = np.empty(block)
+    dx = np.empty(block)
+    dy = np.empty(block)
+    dz = np.empty(block)
+    wt = np.empty(block)
+    ok = np.empty(block, dtype=np.uint8)
+    xs = np.empty(size)
+    ys = np.empty(size)
+    sxs = np.empty(size)
+    sys_ = np.empty(size)
+    wts = np.empty(size)
+    rows = np.empty(size, dtype=np.int64)
+    lo_x = np.full(m, np.inf)
+    hi_x = np.full(m, -np.inf)
+    lo_y = np.full(m, np.inf)
+    hi_y = np.full(m, -np.inf)
+    zp = z_plane - front_z
+    count = 0
+    for p in range(m):
+        px = points[p, 0]
+        py = points[p, 1]
+        pz = points[p, 2]
+        along = rim_z - pz
+        a2 = along * along
+        for lo in range(0, n, block):
+            k = min(block, n - lo)
+            for b in range(k):
+                j = lo + b
+                ex = maps[p, 0] + maps[p, 2] * rx[j] - px
+                ey = maps[p, 1] + maps[p, 3] * ry[j] - py
+                norm = 1.0 / math.sqrt(ex * ex + ey * ey + along * along)
+                x[b] = px
+                y[b] = py
+                z[b] = pz - front_z
+                dx[b] = ex * norm
+                dy[b] = ey * norm
+                dz[b] = along * norm
+                ok[b] = along * norm > 0.0
+                ux = rx[j] - px
+                uy = ry[j] - py
+                cos2 = a2 / (ux * ux + uy * uy + a2)
+                wt[b] = cos2 * math.sqrt(cos2)  # (cos² θ)^1.5, without pow
+            for i in range(table.shape[0]):
+                _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
+            for b in range(k):
+                t = (zp - z[b]) / dz[b]
+                xr = x[b] + t * dx[b]
+                yr = y[b] + t * dy[b]
+                if not (ok[b] and math.isfinite(xr) and math.isfinite(yr)
+                        and math.isfinite(dz[b])):
+                    continue
+                xs[count] = xr
+                ys[count] = yr
+                sxs[count] = fx * dx[b] / dz[b]
+                sys_[count] = fx * dy[b] / dz[b]
+                wts[count] = wt[b]
+                rows[count] = p
+                count += 1
+                lo_x[p] = min(lo_x[p], xr)
+                hi_x[p] = max(hi_x[p], xr)
+                lo_y[p] = min(lo_y[p], yr)
+                hi_y[p] = max(hi_y[p], yr)
+    foot = np.zeros(m)
+    for p in range(m):
+        if hi_x[p] >= lo_x[p]:
+            foot[p] = max(hi_x[p] - lo_x[p], hi_y[p] - lo_y[p])
+    return (xs[:count], ys[:count], sxs[:count], sys_[:count], wts[:count], rows[:count],
+            foot)
