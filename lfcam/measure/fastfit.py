@@ -806,7 +806,8 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
 
 
 def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                      region: Region, polish_above: float = math.inf) -> LensletFit:
+                      region: Region, polish_above: float = math.inf,
+                      mom: _Moments | None = None) -> LensletFit:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -815,10 +816,11 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     turned pupil sample check that the fine fit has settled (:func:`_settled`), and only a
     fit that has not is polished with ``POLISH_RAYS``, or one whose misfit is over
     ``polish_above`` (a misfit a gate will read: the polish lowers it by up to ~15 %;
-    ``0`` always polishes, as the lens calibration does).
+    ``0`` always polishes, as the lens calibration does). ``mom``: the region's
+    :func:`data_moments`, when the caller has them.
     """
-    box = _region_box(geom, region, image.shape)
-    mom = data_moments(geom, image, box)
+    if mom is None:
+        mom = data_moments(geom, image, _region_box(geom, region, image.shape))
     nan3 = np.full(3, np.nan)
     if not mom.norm > 0 or len(mom.ids) < 3:
         return LensletFit(nan3, np.nan, np.nan, 0, False, RegionStatus.EMPTY)
@@ -901,7 +903,7 @@ def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.n
 
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
-                     useful_below: float = math.inf) -> LensletFit:
+                     useful_below: float = math.inf, mom: _Moments | None = None) -> LensletFit:
     """Fit a line source (``LINE_POINTS`` equally bright points, 5 parameters) to the
     region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
     a distance scan (centre from the chief ray through the light's centroid); both with the
@@ -913,13 +915,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     over ``LINE_STOP_FINE`` × that (either at least ``LINE_STOP_FLOOR``), stops there
     (``ok=False``, status ``poor-fit``): the later stages lower the misfit by at most 2.7× and
     2.0× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
-    when they cannot win").
+    when they cannot win"). ``mom``: the region's :func:`data_moments`, when the caller has
+    them.
     """
-    box = _region_box(geom, region, image.shape)
-    mom = data_moments(geom, image, box)
+    if mom is None:
+        mom = data_moments(geom, image, _region_box(geom, region, image.shape))
     nan3 = np.full(3, np.nan)
     if point is None:
-        point = fit_lenslet_point(profile, geom, image, region)
+        point = fit_lenslet_point(profile, geom, image, region, mom=mom)
     if not point.ok:
         return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
     frame = _Frame(profile)
@@ -1035,12 +1038,13 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
+    mom = data_moments(geom, image, box)  # once: the noise misfit, the point and the line fit
     nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
-                        geom.pitch_px, box, pedestal(image), data_moments(geom, image, box).norm)
+                        geom.pitch_px, box, pedestal(image), mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
     trigger = line_trigger(nm, LINE_TRIGGER)
     fit = fit_lenslet_point(profile, geom, image, region,
-                            polish_above=POLISH_NEAR_GATE * min(limit, trigger))
+                            polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
     # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
@@ -1048,7 +1052,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if region.kind == "line" or fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         line = fit_lenslet_line(profile, geom, image, region, fit,
-                                useful_below=min(LINE_GAIN * fit.misfit, limit))
+                                useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
         if line.ok and line.misfit < LINE_GAIN * fit.misfit:
             if not line.misfit <= limit:
                 return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
