@@ -390,19 +390,12 @@ def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane,
     size = m * n
     block = min(TRACE_BLOCK, max(n, 1))
     # one block of rays at a time through every surface: scratch arrays that stay in cache
-    x = np.empty(block)
-    y = np.empty(block)
-    z = np.empty(block)
-    dx = np.empty(block)
-    dy = np.empty(block)
-    dz = np.empty(block)
-    wt = np.empty(block)
+    scratch = np.empty((7, block))
+    x, y, z, dx, dy, dz, wt = (scratch[0], scratch[1], scratch[2], scratch[3], scratch[4],
+                               scratch[5], scratch[6])
     ok = np.empty(block, dtype=np.uint8)
-    xs = np.empty(size)
-    ys = np.empty(size)
-    sxs = np.empty(size)
-    sys_ = np.empty(size)
-    wts = np.empty(size)
+    res = np.empty((5, size))  # the passing rays: x, y, sx, sy, wt
+    xs, ys, sxs, sys_, wts = res[0], res[1], res[2], res[3], res[4]
     rows = np.empty(size, dtype=np.int64)
     lo_x = np.full(m, np.inf)
     hi_x = np.full(m, -np.inf)
