@@ -39,9 +39,10 @@ def test_mad_sigma_equals_scipy_and_estimates_sigma():
 def test_disc_means_match_an_exact_neighbour_count(rotation):
     # a jittered hex lattice. Hex neighbours lie at 1, √3 = 1.73, 2, √7 = 2.65 … pitches: at
     # 1.3 and 2.3 pitches every lenslet is ≥ 0.26 pitch from the border, beyond the raster's
-    # 0.18 pitch (+ 0.04 jitter), so membership is exact; at 8 pitches (~230 members) a few
-    # lenslets of the border ring flip, which moves each mean by ~10 % of the spread of the
-    # means (measured 0.11); a wrong radius or a shifted raster moves it by ~100 %
+    # 0.18 pitch (+ 0.04 jitter), so membership is exact; at 8 and 12 pitches (~230 and ~520
+    # members, raster of pitch / 4) a few lenslets of the border ring flip, which moves each
+    # mean by ~10 % of the spread of the means (measured 0.11-0.13 and 0.07); a wrong radius or
+    # a shifted raster moves it by ~100 %
     pitch = 14.29
     i, j = np.meshgrid(np.arange(-30, 31), np.arange(-30, 31))
     i, j = i.ravel().astype(float), j.ravel().astype(float)
@@ -52,7 +53,7 @@ def test_disc_means_match_an_exact_neighbour_count(rotation):
     centres = np.column_stack([c * x - s * y, s * x + c * y]) + 500.0
     centres += rng.uniform(-0.02, 0.02, centres.shape) * pitch
     values = rng.normal(0.0, 1.0, len(centres))
-    radii = (1.3, 2.3, 8.0)
+    radii = (1.3, 2.3, 8.0, 12.0)
     got = _disc_means(values, centres, pitch, radii)
     tree = cKDTree(centres)
     for radius, mean in zip(radii, got, strict=True):

@@ -40,10 +40,11 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _nearest_two(ex, ey, inv, b, rect, la, lb):
+def _nearest_two(ex, ey, inv, b, rect, la, lb, seps):
     """Lattice indices of the nearest and second-nearest node of the point ``(ex, ey)``
     (relative to the lattice origin) and the point's distance to their bisector — the same
-    rules and tie-breaking as ``fastfit._two_cells``."""
+    rules and tie-breaking as ``fastfit._two_cells``. ``seps[di + 1, dj + 1]``: the length of
+    the lattice vector ``(di, dj)`` (:func:`_separations`)."""
     u0 = inv[0, 0] * ex + inv[0, 1] * ey
     u1 = inv[1, 0] * ex + inv[1, 1] * ey
     if rect:
@@ -79,10 +80,21 @@ def _nearest_two(ex, ey, inv, b, rect, la, lb):
     j = fv + float(k1 >> 1)
     i2 = fu + float(k2 & 1)
     j2 = fv + float(k2 >> 1)
-    di = i2 - i
-    dj = j2 - j
-    sep = math.hypot(b[0, 0] * di + b[0, 1] * dj, b[1, 0] * di + b[1, 1] * dj)
+    sep = seps[int(i2 - i) + 1, int(j2 - j) + 1]
     return i, j, i2, j2, (best2 - best1) / (2.0 * sep)
+
+
+@njit(cache=True, nogil=True)
+def _separations(b):
+    """Lengths of the lattice vectors ``(di, dj)``, ``di, dj ∈ {−1, 0, 1}`` (two corners of a
+    lattice cell), as ``[di + 1, dj + 1]``: looked up rather than recomputed for every ray."""
+    seps = np.empty((3, 3))
+    for a in range(3):
+        for c in range(3):
+            di = float(a - 1)
+            dj = float(c - 1)
+            seps[a, c] = math.hypot(b[0, 0] * di + b[0, 1] * dj, b[1, 0] * di + b[1, 1] * dj)
+    return seps
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -115,6 +127,25 @@ def _land(out, labels, centres_px, inv_pitch, x0, y0, base, px, py, w, s, inv_s)
     nx = cx + np.sign(tx)
     ny = cy + np.sign(ty)
     ic, ir, inx, iny = int(cx), int(cy), int(nx), int(ny)
+    h, wd = labels.shape
+    if 0 <= min(ic, inx) and max(ic, inx) < wd and 0 <= min(ir, iny) and max(ir, iny) < h:
+        k = labels[ir, ic]
+        if (k >= 0 and (ex == 0 or labels[ir, inx] == k) and (ey == 0 or labels[iny, ic] == k)
+                and (ex == 0 or ey == 0 or labels[iny, inx] == k)):
+            # the (up to) four pixels belong to one lenslet: their shares summed in one update
+            cxk = centres_px[k, 0]
+            cyk = centres_px[k, 1]
+            dx0 = (ic + x0 - cxk) * inv_pitch
+            dx1 = (inx + x0 - cxk) * inv_pitch
+            dy0 = (ir + y0 - cyk) * inv_pitch
+            dy1 = (iny + y0 - cyk) * inv_pitch
+            n = base + k
+            out[n, 0] += w
+            out[n, 1] += w * ((1 - ex) * dx0 + ex * dx1)
+            out[n, 2] += w * ((1 - ey) * dy0 + ey * dy1)
+            out[n, 3] += w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
+                              + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
+            return
     _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir, w * (1 - ex) * (1 - ey))
     if ex > 0:
         _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, ir, w * ex * (1 - ey))
@@ -137,9 +168,10 @@ def deposit_moments(x, y, sx, sy, wt, spacing, tag, groups, origin, basis, inver
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
     inv_s = 1.0 / s_px
+    seps = _separations(basis)
     for r in range(x.size):
         i, j, i2, j2, gap = _nearest_two(x[r] - origin[0], y[r] - origin[1], inverse, basis,
-                                         rect, la, lb)
+                                         rect, la, lb, seps)
         share = min(max(0.5 - gap / spacing[r], 0.0), 0.5)
         base = tag[r] * n_k
         c1x = origin[0] + basis[0, 0] * i + basis[0, 1] * j

@@ -194,7 +194,9 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
     return found
 
 
-DISC_CELLS_PER_PITCH = 8  # raster of the disc averages: lenslet centres rounded to pitch / 8
+DISC_CELLS_PER_PITCH = 8  # raster of the disc averages: lenslet centres rounded to pitch / 8,
+DISC_CELLS_PER_RADIUS = 32  # ... or to radius / 32 where that is coarser (large discs),
+DISC_MIN_CELLS_PER_PITCH = 4  # ... but never coarser than pitch / 4
 
 
 def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
@@ -207,20 +209,30 @@ def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     large discs): a sparse all-pairs matrix of the 12-pitch disc held 1.2·10⁸ entries on an
     Illum-size sensor (17-22 s, ~2 GB). Rounding the centres changes a pair's distance by at
     most √2 cells (0.18 pitch): lenslets that close to a disc's border may fall on either side.
+    Discs of more than 4 pitches use cells of ``radius / DISC_CELLS_PER_RADIUS`` (at most
+    ``pitch / DISC_MIN_CELLS_PER_PITCH``): the same share of their radius, and 4× fewer cells
+    (Illum size: find_regions 2.8 → 2.2 s, the 2- and 4-pitch means unchanged).
     """
     import cv2
 
-    cell = pitch_px / DISC_CELLS_PER_PITCH
     c = np.asarray(centres_px, dtype=np.float64)
-    ij = np.rint((c - c.min(axis=0)) / cell).astype(np.int64)
-    shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)
-    flat = ij[:, 1] * shape[1] + ij[:, 0]
-    size = shape[0] * shape[1]
-    grid_v = np.bincount(flat, weights=values, minlength=size).reshape(shape)
-    grid_n = np.bincount(flat, minlength=size).astype(np.float64).reshape(shape)
+    c = c - c.min(axis=0)
     out = []
+    grids: dict[int, tuple] = {}
     for radius in radii_pitch:
-        r = radius * DISC_CELLS_PER_PITCH
+        per_pitch = min(DISC_CELLS_PER_PITCH, max(DISC_MIN_CELLS_PER_PITCH,
+                                                  round(DISC_CELLS_PER_RADIUS / radius)))
+        if per_pitch not in grids:
+            cell = pitch_px / per_pitch
+            ij = np.rint(c / cell).astype(np.int64)
+            shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)
+            flat = ij[:, 1] * shape[1] + ij[:, 0]
+            size = shape[0] * shape[1]
+            grid_v = np.bincount(flat, weights=values, minlength=size).reshape(shape)
+            grid_n = np.bincount(flat, minlength=size).astype(np.float64).reshape(shape)
+            grids[per_pitch] = (flat, grid_v, grid_n)
+        flat, grid_v, grid_n = grids[per_pitch]
+        r = radius * per_pitch
         k = int(np.floor(r))
         yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
         kernel = (np.hypot(xx, yy) <= r + 1e-9).astype(np.float64)
