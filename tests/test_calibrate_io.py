@@ -43,6 +43,7 @@ def test_round_trip(tmp_path, small_cal):
     (lambda d: d.update(lattice_matrix=[[1, 0], [0, 1]]), "lattice_matrix"),
     (lambda d: d.update(white_sha256="xyz"), "sha256"),
     (lambda d: d.update(format="other"), "format"),
+    (lambda d: d["indices"].__setitem__(5, d["indices"][2]), "share one lattice index"),
 ])
 def test_invalid_files(tmp_path, small_cal, edit, msg):
     p = save_calibration(small_cal, tmp_path / "c.json")

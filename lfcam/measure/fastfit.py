@@ -44,7 +44,7 @@ from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moments_misfit
-from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
+from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.verify import line_trigger, poor_fit_limit
 from lfcam.optics.trace import forward, pupil_map, trace_sources_fast
@@ -597,8 +597,10 @@ def _starts(profile, geom, mom, frame, model):
     t_data = summary(profile, geom, mom, mom.data)
     target = t_data[1:3]
     qs = []
-    for d in np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES):
-        xy = chief_ray_offset(profile, geom.d_in_mm, d, target)
+    distances = np.geomspace(1.1 * f, 3e4, SCAN_DISTANCES)
+    gains = chief_ray_gains(profile, geom.d_in_mm, distances)  # one trace for the scan
+    for d, g in zip(distances, gains, strict=True):
+        xy = chief_ray_offset(profile, geom.d_in_mm, d, target, gain=float(g))
         qs.append(frame.params(np.array([xy[0], xy[1], frame.z_front - d])))
     ms = model.simulate_each(np.array([frame.source(q) for q in qs]))
     scan = []
@@ -936,11 +938,15 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
     cbar = (c * w[:, None]).sum(0) / w.sum()
 
-    def segment(d: float, centre_mm: np.ndarray | None = None) -> np.ndarray:
-        # the footprint's long axis and length, seen from a trial distance d
-        gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]))[0]  # src/MLA
+    def segment(d: float, centre_mm: np.ndarray | None = None,
+                g: float | None = None) -> np.ndarray:
+        # the footprint's long axis and length, seen from a trial distance d (g: the chief
+        # ray's gain there, when known)
+        if g is None:
+            g = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
+        gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0]
         along = frame.z_rim - (frame.z_front - d)
-        centre = (chief_ray_offset(profile, geom.d_in_mm, d, cbar) if centre_mm is None
+        centre = (chief_ray_offset(profile, geom.d_in_mm, d, cbar, gain=g) if centre_mm is None
                   else centre_mm) / along
         half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
         return np.r_[math.log(d), centre - half, centre + half]
@@ -971,8 +977,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
     fun_c = fun_of(coarse, LINE_POINTS)
-    scan = [segment(float(d)) for d in np.geomspace(1.1 * profile.main_lens.focal_length_mm,
-                                                   3e4, SCAN_DISTANCES)]
+    distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
+    scan = [segment(float(d), g=float(g)) for d, g in zip(
+        distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
     costs = [_sq(r) for r in many_of(scan_model, LINE_POINTS)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     best = None

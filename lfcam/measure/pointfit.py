@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lfcam.camera import CameraProfile
-from lfcam.optics.trace import trace_backward_fast, trace_source_fast
+from lfcam.optics.trace import trace_backward_fast, trace_source_fast, trace_sources_fast
 from lfcam.status import RegionStatus
 
 MIN_SPOTS = 6
@@ -601,15 +601,26 @@ def _match_centroid(patch, profile, d_in_mm, distance_mm, target_xy_mm, z_front,
     return xy
 
 
-def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm):
-    """Lateral source position whose chief ray (through the stop centre) meets the MLA at
-    ``target_xy_mm`` — the paraxial-free starting point of the image fit at a trial distance."""
+def chief_ray_gains(profile, d_in_mm, distances_mm) -> np.ndarray:
+    """MLA height per unit source height of the chief ray (through the stop centre), for each
+    of ``distances_mm`` in one trace (0 where it does not reach the MLA)."""
     lens = profile.main_lens
-    z_src = lens.front_vertex_z_mm - distance_mm
+    d = np.atleast_1d(np.asarray(distances_mm, dtype=np.float64))
     probe = 1.0
-    tr = trace_source_fast(lens, (probe, 0.0, z_src), np.zeros(1), np.zeros(1), d_in_mm)
-    gain = tr.x[0] / probe  # MLA height per unit source height (chief ray, linear to 1st order)
-    if not (np.isfinite(gain) and gain != 0):
+    src = np.column_stack([np.full(d.size, probe), np.zeros(d.size),
+                           lens.front_vertex_z_mm - d])
+    tr = trace_sources_fast(lens, src, np.zeros(1), np.zeros(1), d_in_mm)
+    gain = tr.x[:, 0] / probe  # linear to first order in the source height
+    return np.where(np.isfinite(gain), gain, 0.0)
+
+
+def chief_ray_offset(profile, d_in_mm, distance_mm, target_xy_mm, gain=None):
+    """Lateral source position whose chief ray (through the stop centre) meets the MLA at
+    ``target_xy_mm`` — the paraxial-free starting point of the image fit at a trial distance.
+    ``gain``: :func:`chief_ray_gains` at that distance, when the caller has it."""
+    if gain is None:
+        gain = float(chief_ray_gains(profile, d_in_mm, distance_mm)[0])
+    if gain == 0:
         return np.zeros(2)
     return np.asarray(target_xy_mm, dtype=np.float64) / gain
 
