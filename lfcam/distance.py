@@ -7,12 +7,13 @@ regions on the lenslet lattice → per region a blur measurement (:mod:`lfcam.me
 (:mod:`lfcam.export`).
 
 Methods: ``lightfield`` (default; the exact light-field fit, ``fast=True`` keeps its
-triangulation), ``lenslet`` (the exact forward model fitted to per-lenslet moments, ~50 ms a
-region), ``diameter`` (the seed's footprint diameter) and ``auto`` (the cheapest method whose
-measured worst error meets ``tolerance_pct``, :func:`lfcam.models.auto.choose_method`).
-Regions are measured in parallel over ``jobs`` processes (spawned before the geometry, so
-that their start-up overlaps it; the image and the lenslet map are shared once through shared
-memory); the results equal the serial run's.
+triangulation), ``lenslet`` (the exact forward model fitted to per-lenslet moments, ~0.1 s
+a point region), ``diameter`` (the seed's footprint diameter) and ``auto`` (the cheapest method
+whose measured worst error meets ``tolerance_pct``, :func:`lfcam.models.auto.choose_method`).
+Regions are measured in parallel over ``jobs`` processes (forked from a server that has
+loaded the measurement modules once, started before the geometry so that its start-up
+overlaps it; the image and the lenslet map are shared once through shared memory); the
+results equal the serial run's.
 Models: those of
 :data:`lfcam.models.DISTANCE_MODELS`; ``auto`` picks per region the cheapest whose predicted
 error (model error table ⊕ measurement uncertainty) meets ``tolerance_pct`` (default: best
@@ -364,24 +365,37 @@ def _worker_region(names: tuple[str, str, str], shape: tuple[int, int], reg: Reg
 
 
 class _RegionPool:
-    """``jobs`` spawned worker processes for the regions of a capture.
+    """``jobs`` worker processes for the regions of a capture.
 
-    Started before the geometry: a worker's interpreter start-up and imports (~0.5 s) then
-    overlap the parent's geometry and region detection instead of following them. Each
-    capture's image and lenslet labels are shared once through shared memory; the results
-    equal the serial run's.
+    Started before the geometry, from a thread: the fork server's interpreter start-up and
+    imports (~1 s, :mod:`lfcam.measure.preload`) then overlap the parent's geometry and region
+    detection instead of following them, and are paid once rather than in every worker (with
+    spawned workers, scene (b) of ``benchmarks/many_sources.py`` ran 14.4–15.0 s in process,
+    forked 13.4–13.5 s). Each capture's image and lenslet labels are shared once through
+    shared memory; the results equal the serial run's.
     """
 
     def __init__(self, jobs: int):
         import multiprocessing as mp
+        import threading
 
-        # one BLAS thread a worker: spawned interpreters read this before importing numpy
-        # (setting it in the worker is too late); restored once the workers are started
+        # workers forked from a server that has loaded the measurement modules and kernels
+        # once (lfcam.measure.preload); the server is single-threaded (no fork of a threaded
+        # parent) and lives as long as this process
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(["lfcam.measure.preload"])
+        self.pool = ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_boot)
+        # started from a thread: the first start waits for the server's imports (~1 s),
+        # which then overlap the parent's geometry instead of delaying it
+        self._starter = threading.Thread(target=self._start, args=(jobs,), daemon=True)
+        self._starter.start()
+
+    def _start(self, jobs: int) -> None:
+        # one BLAS thread a worker: the server reads this when it starts, before importing
+        # numpy (setting it in a worker is too late); restored once the workers are started
         saved = {v: os.environ.get(v) for v in _BLAS_THREAD_VARS}
         os.environ.update({v: "1" for v in _BLAS_THREAD_VARS})
         try:
-            self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
-                                            initializer=_worker_boot)
             for _ in range(jobs):  # each submit to a busy pool starts one more worker
                 self.pool.submit(_worker_ping)
         finally:
@@ -391,6 +405,8 @@ class _RegionPool:
                  noise_model=None) -> list:
         """:func:`_timed_estimate` of every region, in region order."""
         import pickle
+
+        self._starter.join()
         from concurrent.futures import as_completed
         from multiprocessing import shared_memory
 
@@ -425,6 +441,7 @@ class _RegionPool:
 
     def close(self) -> None:
         """Stop the workers (pending tasks are cancelled)."""
+        self._starter.join()
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
