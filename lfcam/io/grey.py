@@ -58,7 +58,7 @@ def to_grey(raw: np.ndarray, bayer: str = "none", black_level: float = 0.0,
         grey = cv2.cvtColor(bgr.astype(np.float32), cv2.COLOR_BGR2GRAY)
     else:
         grey = raw.astype(np.float32, copy=True)
-    if not np.all(np.isfinite(grey)):
+    if raw.dtype.kind not in "ui" and not np.all(np.isfinite(grey)):  # integers always are
         raise InputFileError("raw image contains NaN or infinite values")
     grey -= np.float32(black_level)
     grey *= np.float32(1.0 / span)
