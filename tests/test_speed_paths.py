@@ -261,3 +261,27 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
         classical.append(math.sqrt(float(r @ r) / (4 * k - p) * inv[0, 0]))
     assert np.mean(est) == pytest.approx(true_sigma, rel=0.1)
     assert np.mean(classical) < 0.75 * true_sigma  # what the classical σ states (0.67×)
+
+
+@pytest.mark.parametrize("lens", ["cooke_triplet", "double_gauss"])
+def test_compiled_pupil_maps_equal_the_aimed_numpy_ones(lens):
+    # kernels.pupil_maps runs aim_rays' damped Newton iteration per stop-edge ray: the same
+    # maps as lfcam.optics.trace.pupil_map (measured bit-equal) for sources from 150 mm to
+    # 20 m and up to 60 mm off axis, and the identity where an edge ray cannot be aimed (a
+    # source far outside the field) or the source is not finite
+    from lfcam.measure.fastfit import compiled_pupil_maps
+    from lfcam.optics.trace import pupil_map
+
+    prof = load_profile(Path(__file__).resolve().parents[1] / "calibration" / f"{lens}.toml")
+    main = prof.main_lens
+    fv = main.front_vertex_z_mm
+    rng = np.random.default_rng(0)
+    n = 40
+    pts = np.column_stack([rng.uniform(-60, 60, n), rng.uniform(-60, 60, n),
+                           fv - np.geomspace(150.0, 20000.0, n)])
+    pts = np.vstack([pts, [[300.0, 0.0, fv - 200.0], [np.nan, 0.0, 0.0]]])
+    ref = np.array([pupil_map(main, tuple(p)) for p in pts])
+    got = compiled_pupil_maps(main, pts)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    assert np.all(got[-2:] == [0.0, 0.0, 1.0, 1.0])  # the identity where aiming fails
+    assert np.all(np.abs(ref[:n, 2] - 1.0) > 1e-4)  # the maps of the field are not trivial

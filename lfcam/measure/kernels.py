@@ -189,7 +189,7 @@ def deposit_moments(x, y, sx, sy, wt, spacing, tag, groups, origin, basis, inver
 
 
 def warm_up() -> None:
-    """Load (or compile, the first time on a machine) the kernel with the argument types
+    """Load (or compile, the first time on a machine) the kernels with the argument types
     :class:`~lfcam.measure.fastfit.LensletModel` passes, so that a region worker pays for it
     while the parent is still busy with the geometry."""
     one = np.zeros(1)
@@ -201,6 +201,8 @@ def warm_up() -> None:
     table[0, 3:6] = (1.0, 1.0, 1.0)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]), one, one,
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
+    pupil_maps(np.array([[0.0, 0.0, -10.0]]), np.zeros(1), table, np.zeros((1, 1)), 0, 1.0, 1.0,
+               0.0, 1.0)
 
 
 @njit(cache=True, nogil=True)
@@ -297,25 +299,29 @@ def pack_prescription(prescription) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _surface(x, y, z, dx, dy, dz, ok, i, table, coef) -> None:
+def _surface(x, y, z, dx, dy, dz, ok, i, table, coef, clip=True, refract=True) -> None:
     """Carry the rays (component arrays, in place) through surface ``i`` of ``table``: the
-    rules and arithmetic of :func:`lfcam.optics.raytrace._run` (forward, clipped), written
-    without branches on the ray so that the loop runs in SIMD lanes; a ray that fails
-    (misses, vignetted, backward, total internal reflection) has ``ok`` cleared and carries
-    on with meaningless numbers."""
+    rules and arithmetic of :func:`lfcam.optics.raytrace._run` (forward), written without
+    branches on the ray so that the loop runs in SIMD lanes; a ray that fails (misses,
+    vignetted, backward, total internal reflection) has ``ok`` cleared and carries on with
+    meaningless numbers. ``clip=False``: no clear apertures; ``refract=False``: the ray stops
+    on the surface, its direction unchanged (``last_refracts=False``)."""
     vz = table[i, _VZ]
     c = table[i, _C]
     k = table[i, _K]
-    semi2 = table[i, _SEMI2] * (1.0 + RIM_TOLERANCE)
+    semi2 = table[i, _SEMI2] * (1.0 + RIM_TOLERANCE) if clip else np.inf
     n1 = table[i, _N1]
     n2 = table[i, _N2]
+    # the first surface may not lie behind the ray, unless it is a flat plane in air
+    first = i == 0 and not (c == 0.0 and n1 == 1.0 and n2 == 1.0)
+    if not refract:
+        n2 = n1
     eta = n1 / n2
     q = (1.0 + k) * c
     lim = 1.0 / q if q != 0.0 else 0.0
-    # the first surface may not lie behind the ray, unless it is a flat plane in air
-    first = i == 0 and not (c == 0.0 and n1 == 1.0 and n2 == 1.0)
-    if table[i, _IDEAL] != 0.0:  # flat, air on both sides: s_out = s_in − (x, y)·P(r)
+    if table[i, _IDEAL] != 0.0 and refract:  # flat, air both sides: s_out = s_in − (x, y)·P(r)
         p0 = table[i, _POWER]
+        n_coef = coef.shape[1]
         for r in range(x.size):
             t = (vz - z[r]) / dz[r]
             x1 = x[r] + t * dx[r]
@@ -325,7 +331,7 @@ def _surface(x, y, z, dx, dy, dz, ok, i, table, coef) -> None:
             good &= r2 <= semi2
             p = p0
             term = 1.0
-            for j in range(coef.shape[1]):
+            for j in range(n_coef):
                 term = term * r2
                 p = p + coef[i, j] * term
             sx = dx[r] / dz[r] - x1 * p
@@ -338,7 +344,7 @@ def _surface(x, y, z, dx, dy, dz, ok, i, table, coef) -> None:
             dy[r] = sy * dz1
             dz[r] = dz1
             ok[r] &= good
-    elif c == 0.0:  # flat: only the axial component changes
+    elif c == 0.0:  # flat: only the axial component changes (an ideal one: none here)
         for r in range(x.size):
             t = (vz - z[r]) / dz[r]
             x1 = x[r] + t * dx[r]
@@ -485,3 +491,132 @@ def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane,
             foot[p] = max(hi_x[p] - lo_x[p], hi_y[p] - lo_y[p])
     return (xs[:count], ys[:count], sxs[:count], sys_[:count], wts[:count], rows[:count],
             foot)
+
+
+# ----------------------------------------------------------------------------- ray aiming
+AIM_TOLERANCE_MM = 1e-11  # as lfcam.optics.raytrace.AIM_TOLERANCE_MM
+AIM_ITERATIONS = 30  # as lfcam.optics.raytrace.aim_rays' max_iterations
+_EDGES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # pupil_map's stop edges
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf):
+    """Where the ray from the source ``(sx, sy, sz)`` toward ``(ax, ay, z_ref)`` meets the
+    stop surface, minus the target ``(tx, ty)`` (NaN where it cannot): ``aim_rays``' miss,
+    traced unclipped through the surfaces up to the stop (no refraction there)."""
+    dx = ax - sx
+    dy = ay - sy
+    dz = z_ref - sz
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)  # rays_for: d / |d|
+    dx = dx / norm
+    dy = dy / norm
+    dz = dz / norm
+    inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)  # _prepare: d · (1 / |d|)
+    buf[0, 0] = sx
+    buf[1, 0] = sy
+    buf[2, 0] = sz
+    buf[3, 0] = dx * inv
+    buf[4, 0] = dy * inv
+    buf[5, 0] = dz * inv
+    ok = np.ones(1, dtype=np.uint8)  # (no check of the direction's sense, as _stop_hits)
+    for i in range(stop + 1):
+        _surface(buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], ok, i, table, coef, False,
+                 i != stop)
+    if not ok[0]:
+        return np.nan, np.nan
+    return buf[0, 0] - tx, buf[1, 0] - ty
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
+    """:func:`lfcam.optics.trace.pupil_map` of each point source ``points`` (M, 3) (prescription
+    frame), with ``z_refs`` (M,) the aiming plane of each (``aim_rays``' paraxial entrance
+    pupil, moved where it passes through the source): the four stop-edge rays aimed by the
+    same damped Newton iteration as :func:`lfcam.optics.raytrace.aim_rays`, each on its own.
+    Returns (M, 4) ``(cx, cy, sx, sy)``; the identity ``(0, 0, 1, 1)`` where an edge ray
+    cannot be aimed."""
+    m = points.shape[0]
+    out = np.empty((m, 4))
+    buf = np.empty((6, 1))
+    h = 1e-6 * max(r_ep, 1e-3)
+    scale = max(stop_sd, 1.0)
+    tol = AIM_TOLERANCE_MM * scale
+    hx = np.empty(4)
+    hy = np.empty(4)
+    for p in range(m):
+        sx = points[p, 0]
+        sy = points[p, 1]
+        sz = points[p, 2]
+        z_ref = z_refs[p]
+        aimed = True
+        for e in range(4):
+            tx = _EDGES[e, 0] * stop_sd
+            ty = _EDGES[e, 1] * stop_sd
+            ax = _EDGES[e, 0] * r_ep
+            ay = _EDGES[e, 1] * r_ep
+            f0, f1 = _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf)
+            for _ in range(AIM_ITERATIONS):
+                if math.hypot(f0, f1) <= tol:
+                    break
+                if math.isnan(f0) or math.isnan(f1):
+                    # a guess that misses a surface: pull it toward the axis and retry
+                    ax *= 0.5
+                    ay *= 0.5
+                    f0, f1 = _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop,
+                                        buf)
+                    continue
+                gx0, gx1 = _stop_miss(ax + h, ay, sx, sy, sz, z_ref, tx, ty, table, coef,
+                                      stop, buf)
+                gy0, gy1 = _stop_miss(ax, ay + h, sx, sy, sz, z_ref, tx, ty, table, coef,
+                                      stop, buf)
+                j11 = (gx0 - f0) / h
+                j21 = (gx1 - f1) / h
+                j12 = (gy0 - f0) / h
+                j22 = (gy1 - f1) / h
+                det = j11 * j22 - j12 * j21
+                step_x = -(j22 * f0 - j12 * f1) / det
+                step_y = -(-j21 * f0 + j11 * f1) / det
+                if not math.isfinite(step_x):
+                    step_x = 0.0
+                if not math.isfinite(step_y):
+                    step_y = 0.0
+                old = math.hypot(f0, f1)
+                lam = 1.0
+                cx = ax
+                cy = ay
+                c0 = f0
+                c1 = f1
+                for _ in range(8):  # damping: halve the step while the miss grows or is NaN
+                    cx = ax + lam * step_x
+                    cy = ay + lam * step_y
+                    c0, c1 = _stop_miss(cx, cy, sx, sy, sz, z_ref, tx, ty, table, coef, stop,
+                                        buf)
+                    if math.hypot(c0, c1) <= max(old, tol):
+                        break
+                    lam *= 0.5
+                ax = cx
+                ay = cy
+                f0 = c0
+                f1 = c1
+            if not math.hypot(f0, f1) <= tol:
+                aimed = False
+                break
+            # the aimed object-space ray's crossing of the aperture plane
+            dx = ax - sx
+            dy = ay - sy
+            dz = z_ref - sz
+            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+            t = (z_ap - sz) / (dz / norm)
+            hx[e] = sx + t * (dx / norm)
+            hy[e] = sy + t * (dy / norm)
+        if aimed:
+            out[p, 0] = 0.5 * (hx[0] + hx[1])
+            out[p, 1] = 0.5 * (hy[2] + hy[3])
+            out[p, 2] = 0.5 * (hx[0] - hx[1]) / half
+            out[p, 3] = 0.5 * (hy[2] - hy[3]) / half
+        else:
+            out[p, 0] = 0.0
+            out[p, 1] = 0.0
+            out[p, 2] = 1.0
+            out[p, 3] = 1.0
+    return out
