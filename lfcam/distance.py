@@ -382,8 +382,11 @@ class _RegionPool:
         # workers forked from a server that has loaded the measurement modules and kernels
         # once (lfcam.measure.preload); the server is single-threaded (no fork of a threaded
         # parent) and lives as long as this process
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["lfcam.measure.preload"])
+        if "forkserver" in mp.get_all_start_methods():
+            ctx = mp.get_context("forkserver")
+            ctx.set_forkserver_preload(["lfcam.measure.preload"])
+        else:  # (Windows) spawned workers import the modules themselves (_worker_boot)
+            ctx = mp.get_context("spawn")
         self.pool = ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_boot)
         # started from a thread: the first start waits for the server's imports (~1 s),
         # which then overlap the parent's geometry instead of delaying it
