@@ -101,6 +101,28 @@ def test_lenslet_both_sides_of_focus(focus, distance):
     assert abs(best.distance_mm / distance - 1.0) < 0.005
 
 
+def test_oblique_line_behind_focus_is_not_long():
+    # a 3 mm line image at 60°, 3400 mm behind a 1 m focus (system 2; the renderer's lattice):
+    # 12 model points 2 pitches apart put it 1.7 % long (benchmarks/focus_grid.py --lines);
+    # points half a pitch apart bring it within 0.3 %
+    size = 1024
+    camera = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": size, "height_px": size}}
+    base = apply_overrides(load_profile("system2"), camera)
+    prof = base.with_d_in(base.d_in_mm)
+    u = np.array([math.cos(math.radians(60.0)), math.sin(math.radians(60.0))])
+    # the ends' chief rays meet the MLA 1.5 mm either side of the axis
+    ends = [chief_ray_offset(prof, prof.d_in_mm, 3400.0, s * 1.5 * u) for s in (-1.0, 1.0)]
+    img, used, _ = _render(camera, [{"type": "line", "distance_mm": 3400.0,
+                                     "start_mm": [float(v) for v in ends[0]],
+                                     "end_mm": [float(v) for v in ends[1]]}],
+                           rays=1_000_000, seed=3)
+    run = run_distance(img, used, None, model="exact", method="lenslet",
+                       geometry=truth_geometry(used, (size, size)))
+    r = max(run.regions, key=lambda r: r.diameter_mm if math.isfinite(r.diameter_mm) else 0.0)
+    assert r.kind == "line" and r.status == "ok"
+    assert abs(r.distance_mm / 3400.0 - 1.0) < 0.003
+
+
 def test_parallel_equals_serial():
     size = 1024
     camera = {"sensor": {"width_px": size, "height_px": size}}

@@ -26,9 +26,9 @@ quasi-random, no grid aliasing against the pixels) and four ``bincount`` — 0.5
 footprint centroid and size), Broyden matching of that summary from the best starts,
 Levenberg–Marquardt on the moments with a coarse model, Gauss–Newton steps with the fine model,
 and a polish with ``POLISH_RAYS`` only where the fine fit has not settled (:func:`_settled`).
-Lines (:func:`fit_lenslet_line`): ``LINE_POINTS`` equally bright points along a segment, 5
-parameters, started from the point fit and from a distance scan. Point or line is decided from
-the two misfits (:func:`measure_lenslet`).
+Lines (:func:`fit_lenslet_line`): equally bright points along a segment (at most
+``LINE_SPACING_PITCH`` apart on the MLA, 12–48), 5 parameters, started from the point fit and
+from a distance scan. Point or line is decided from the two misfits (:func:`measure_lenslet`).
 """
 
 from __future__ import annotations
@@ -73,7 +73,11 @@ SETTLED_GAIN = 0.05  # ... and lower the misfit² by less than this share, on a 
 SETTLED_SIGMA = 1e-3  # statistical σ (log distance) is under this: a shallower one is polished
 POLISH_NEAR_GATE = 0.7  # settled point fits are polished all the same when their misfit is
 # over this share of the line trigger or the poor-fit limit (the decision reads the misfit)
-LINE_POINTS = 12
+LINE_POINTS = 12  # points of the line model, at least (and the count the ray budgets are for)
+LINE_POINTS_MAX = 48  # ... at most
+LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
+LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
+LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
 LINE_FINE_PER_LENSLET = 10  # ... and fine model
@@ -941,7 +945,7 @@ def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.n
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
                      useful_below: float = math.inf, mom: _Moments | None = None) -> LensletFit:
-    """Fit a line source (``LINE_POINTS`` equally bright points, 5 parameters) to the
+    """Fit a line source (equally bright points half a pitch apart, 5 parameters) to the
     region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
     a distance scan (centre from the chief ray through the light's centroid); both with the
     footprint's long axis and the image length from its second moments (along − across =
@@ -989,16 +993,27 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
     n_lit = int(lit.sum())
+    # points along the segment at most LINE_SPACING_PITCH apart on the MLA: 12 points 2
+    # pitches apart left lines behind focus up to 1.7 % long (their sum of blurs is combed
+    # at the spacing); the rays a point shrink in proportion (the total stays) down to
+    # LINE_MIN_SHARE: at a quarter, each point's own ray noise put lines 1-7 % off
+    # (docs/distance.md, "Lines: points half a pitch apart")
+    n_pts = int(np.clip(math.ceil(length_mla / (LINE_SPACING_PITCH * profile.mla.pitch_mm)),
+                        LINE_POINTS, LINE_POINTS_MAX))
+    share = max(LINE_POINTS / n_pts, LINE_MIN_SHARE)
     # Every point of a line lights most of the blur: each needs about as many rays per lit
     # lenslet as a point source does, or the model's own sampling noise (misfit 0.10 at the
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
     # The fine model has at least the point polish's rays in all: on small noise-free blurs a
     # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
-    scan_model = LensletModel(profile, geom, mom, max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
-    coarse = LensletModel(profile, geom, mom, int(np.clip(
-        LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE, LINE_MAX_RAYS // 4)))
-    fine = LensletModel(profile, geom, mom, int(np.clip(
-        LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS, LINE_MAX_RAYS)))
+    scan_model = LensletModel(profile, geom, mom, max(
+        int(share * max(COARSE_RAYS // LINE_COARSE_SHARE, 200)), LINE_MIN_RAYS))
+    coarse = LensletModel(profile, geom, mom, max(int(share * np.clip(
+        LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE, LINE_MAX_RAYS // 4)),
+        LINE_MIN_RAYS))
+    fine = LensletModel(profile, geom, mom, max(int(share * np.clip(
+        LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS, LINE_MAX_RAYS)),
+        LINE_MIN_RAYS))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
     def fun_of(model, count):
@@ -1011,16 +1026,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # Starts: the point fit's distance, and the best node of a distance scan of the line
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
-    fun_c = fun_of(coarse, LINE_POINTS)
+    fun_c = fun_of(coarse, n_pts)
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
     scan = [segment(float(d), g=float(g)) for d, g in zip(
         distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
-    costs = [_sq(r) for r in many_of(scan_model, LINE_POINTS)(scan)]
+    costs = [_sq(r) for r in many_of(scan_model, n_pts)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     best = None
     for start in (q0, best_scan):
         cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
-                                    many_of(coarse, LINE_POINTS))
+                                    many_of(coarse, n_pts))
         if best is None or cand[2] < best[2]:
             best = cand
         if abs(best_scan[0] - q0[0]) < 0.05:
@@ -1039,12 +1054,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     useful_below = max(useful_below, LINE_STOP_FLOOR)
     if math.sqrt(f) > LINE_STOP_COARSE * useful_below:
         return stopped(math.sqrt(f))
-    fun = fun_of(fine, LINE_POINTS)
+    fun = fun_of(fine, n_pts)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, FINE_LM_ITERATIONS, 1e-3,
-                                             many_of(fine, LINE_POINTS), r0=r)
+                                             many_of(fine, n_pts), r0=r)
     if jac_fine is not None:
         jac = jac_fine
     pts = _line_points(frame, q, 2)
