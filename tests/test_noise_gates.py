@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from lfcam.calibrate import calibrate_white
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
-from lfcam.measure import lenslet_stats
+from lfcam.measure import lenslet_stats, prepare_geometry
 from lfcam.measure.fastfit import data_moments
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import NoiseModel, dark_sigma, moments_misfit, photon_gain
@@ -229,3 +230,44 @@ def test_detached_halo_arc_is_not_a_source():
     assert len(regions) == 2, at
     assert min(np.hypot(*(a - [30, 30])) for a in at) < 1.0
     assert min(np.hypot(*(a - [72, 70])) for a in at) < 1.5
+
+
+def test_faint_blur_touching_a_halo_keeps_its_region():
+    # system 2, focus 1 m, 12 sources exposed for the brightest (benchmarks/focus_grid.py
+    # --scene12): the 3500 mm source gets ~2 % of its light, 5 lenslets over the threshold,
+    # and its faint patch joins the halo of the 2700 mm source 22 pitches away. It had no
+    # region; the part of the patch round its own lit lenslets, beyond that halo's reach, is
+    # now one. Every source has exactly one region.
+    base = load_profile("system2")
+    camera = {"mla": {"focus_mm": 1000.0}}
+    prof = apply_overrides(base, camera)
+    prof = prof.with_d_in(prof.d_in_mm)
+    half = 0.5 * prof.sensor.width_px * prof.sensor.pixel_pitch_mm
+    mag = 1.0 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
+    near, far = [550.0, 600.0, 650.0, 700.0, 750.0, 800.0], [1500.0, 1900.0, 2300.0, 2700.0,
+                                                            3100.0, 3500.0]
+    grid = [(fx, fy) for fy in (-0.45, 0.0, 0.45) for fx in (-0.6, -0.2, 0.2, 0.6)]
+    objects = []
+    for k, (fx, fy) in enumerate(grid):
+        d = near[k // 2] if k % 2 == 0 else far[k // 2]
+        xy = chief_ray_offset(prof, prof.d_in_mm, d, np.array([fx, fy]) * half / mag)
+        objects.append({"type": "point", "distance_mm": d,
+                        "position_mm": [float(xy[0]), float(xy[1])]})
+    raw, used, truth = simulate(base, scene_from_dict(
+        {"seed": 4, "rays_per_source": 1_000_000, "camera": camera, "exposure": {"peak": 0.8},
+         "sensor": {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0},
+         "objects": objects}))
+    img = raw.astype(np.float64)
+    # the calibrated centres of a rendered white (with the renderer's lattice the patch does
+    # not join the halo)
+    white, _, _ = simulate(base, scene_from_dict(
+        {"seed": 5, "objects": [{"type": "white"}], "camera": camera}))
+    cal = calibrate_white(white.astype(np.float32))
+    geom = prepare_geometry(used, cal.with_d_in(used.d_in_mm, "profile"), img.shape)
+    regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
+    assert len(regions) == 12
+    for src in truth["sources"]:
+        x, y = src["centroid_px"]
+        inside = [r for r in regions
+                  if r.box_px[0] <= x < r.box_px[2] and r.box_px[1] <= y < r.box_px[3]]
+        assert len(inside) == 1, (src["distance_mm"], len(inside))
