@@ -100,6 +100,10 @@ LINE_STOP_FINE = 3.0  # ... or after the fine Gauss–Newton steps over this × 
 #                       on noisy captures) ...
 LINE_STOP_FLOOR = 0.02  # ... or this, if larger: on noise-free data the coarse model's own ray
 #                         noise dominates its misfit (0.01-0.03), not the data's
+SIGMA_FLOOR_REL = 3e-4  # added in quadrature to the fit's σ of a distance: the share of the
+# calibration and the model that the statistical σ leaves out (bright blurs: σ 0.002-0.003 %,
+# error 0.014-0.026 %). Chosen on the 108 single sources of benchmarks/focus_grid.py (3σ:
+# 92 → 108), checked on the independent renderer's (2σ: 29 → 38 of 40; docs/distance.md)
 POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 # The distance profile (docs/distance.md, "Blurs of a few lenslets"). A blur over a 2×2 block
 # of lenslets splits the pupil into four parts whose shapes fix only the ratio of the image
@@ -1116,7 +1120,9 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             return replace(_line_measurement(profile, geom, line), noise_misfit=nm)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
-    return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
+    distance = profile.main_lens.front_vertex_z_mm - float(fit.source_mm[2])
+    return point_measurement(profile, geom.d_in_mm, fit.source_mm,
+                             math.hypot(fit.sigma_distance_mm, SIGMA_FLOOR_REL * distance),
                              misfit=fit.misfit, noise_misfit=nm)
 
 
@@ -1131,5 +1137,6 @@ def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) 
     y1 = 0.5 * (ends[0][0] + ends[1][0])
     y2 = 0.5 * (ends[0][1] + ends[1][1])
     return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
-                       line.sigma_distance_mm, RegionStatus.OK, geom.d_in_mm, kind="line",
+                       math.hypot(line.sigma_distance_mm, SIGMA_FLOOR_REL * distance),
+                       RegionStatus.OK, geom.d_in_mm, kind="line",
                        misfit=line.misfit, endpoints=tuple(ends))
