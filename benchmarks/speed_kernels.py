@@ -72,7 +72,7 @@ def main() -> None:
         mom = data_moments(geom, np.zeros(shape), (50, 50, 350, 350))
         src = np.array([3.0, -2.0, _Frame(prof).z_front - 1600.0])
         lens = prof.main_lens
-        table, coef, mapped = _packed_lens(lens)
+        table, coef, mapped = _packed_lens(lens)[:3]
         maps = np.array([pupil_map(lens, tuple(src)) if mapped else (0.0, 0.0, 1.0, 1.0)])
         for n in RAYS:
             fast = LensletModel(prof, geom, mom, n, kernel="compiled")

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -324,7 +325,7 @@ class LensletModel:
         lens = p.main_lens
         if self.packed is None:
             self.packed = _packed_lens(lens)
-        table, coef, _ = self.packed
+        table, coef = self.packed.table, self.packed.coef
         # the real stop's image on the aperture plane, per point (identity for the singlet)
         maps = compiled_pupil_maps(lens, points, self.packed)
         x, y, sx, sy, wt, rows, foot = trace_model_rays(
@@ -358,52 +359,60 @@ class LensletModel:
         return ((self.mom.data - a * m) / self.mom.norm).ravel()
 
 
-def _packed_lens(lens) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The main lens's prescription packed for the compiled trace, and whether its stop is
-    behind the front surface (aperture points are then mapped per source, as
-    :func:`lfcam.optics.trace.trace_sources_fast` does)."""
+class _PackedLens(NamedTuple):
+    """The main lens as the compiled kernels read it, computed once per model."""
+
+    table: np.ndarray  # kernels.pack_prescription
+    coef: np.ndarray
+    mapped: bool  # the stop is behind the front surface: aperture points mapped per source
+    stop: int  # the stop's surface index
+    aim: tuple[float, float, float, float]  # lfcam.optics.raytrace.aim_reference
+    z_ap: float  # the aperture plane (prescription frame)
+    half: float  # half the pupil diameter
+
+
+def _packed_lens(lens) -> _PackedLens:
+    """The main lens's prescription packed for the compiled trace and aperture maps; aperture
+    points are mapped per source when the stop is behind the front surface, as
+    :func:`lfcam.optics.trace.trace_sources_fast` does."""
     from lfcam.measure.kernels import pack_prescription
+    from lfcam.optics.raytrace import aim_reference
 
-    prescription = lens.as_prescription
-    table, coef = pack_prescription(prescription)
-    return table, coef, prescription.stop_index != 0
+    p = lens.as_prescription
+    table, coef = pack_prescription(p)
+    mapped = p.stop_index != 0
+    return _PackedLens(table, coef, mapped, int(p.stop_index),
+                       aim_reference(p) if mapped else (0.0, 0.0, 0.0, 0.0),
+                       float(lens.rim_z_mm - lens.front_vertex_z_mm),
+                       0.5 * lens.pupil_diameter_mm)
 
 
-def compiled_pupil_maps(lens, points_mm: np.ndarray, packed=None) -> np.ndarray:
+def compiled_pupil_maps(lens, points_mm: np.ndarray, packed: _PackedLens | None = None
+                        ) -> np.ndarray:
     """:func:`lfcam.optics.trace.pupil_map` of each source ``points_mm`` (M, 3), with the
     stop-edge rays aimed by :func:`lfcam.measure.kernels.pupil_maps` (the same iteration as
     :func:`lfcam.optics.raytrace.aim_rays`, compiled: ~1.3 ms → ~20 µs a source). ``packed``:
     :func:`_packed_lens` of ``lens``, when the caller has it. (M, 4)."""
     from lfcam.errors import OpticsError
     from lfcam.measure.kernels import pupil_maps
-    from lfcam.optics.raytrace import _start_plane_z
 
-    table, coef, mapped = _packed_lens(lens) if packed is None else packed
+    pk = _packed_lens(lens) if packed is None else packed
     pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
     out = np.tile([0.0, 0.0, 1.0, 1.0], (len(pts), 1))
-    if not mapped:
+    if not pk.mapped:
         return out
-    p = lens.as_prescription
-    fv = lens.front_vertex_z_mm
-    src = pts - [0.0, 0.0, fv]
+    src = pts - [0.0, 0.0, lens.front_vertex_z_mm]
     good = np.isfinite(src).all(axis=1)  # pupil_map: the identity for a source that is not
     if not good.any():
         return out
-    par = p.paraxial
-    stop_sd = p.surfaces[p.stop_index].semi_diameter_mm
-    z_ref = par.entrance_pupil_z_mm
-    r_ep = 0.5 * par.entrance_pupil_diameter_mm
-    if not (math.isfinite(z_ref) and math.isfinite(r_ep)):
-        z_ref, r_ep = 0.0, stop_sd
-    z_start = _start_plane_z(p)
+    z_ref, r_ep, stop_sd, z_start = pk.aim
     if np.any(src[good, 2] >= z_start):
         raise OpticsError(f"object points must lie in front of the lens (z < {z_start:.4g} mm "
                           "in the front-vertex frame)")
     # a pupil plane through the source cannot parametrise rays (aim_rays' rule)
     z_refs = np.where(np.isclose(z_ref, src[good, 2]), z_start + 0.5, z_ref)
-    out[good] = pupil_maps(np.ascontiguousarray(src[good]), z_refs, table, coef,
-                           int(p.stop_index), float(stop_sd), float(r_ep),
-                           float(lens.rim_z_mm - fv), 0.5 * lens.pupil_diameter_mm)
+    out[good] = pupil_maps(np.ascontiguousarray(src[good]), z_refs, pk.table, pk.coef,
+                           pk.stop, stop_sd, r_ep, pk.z_ap, pk.half)
     return out
 
 

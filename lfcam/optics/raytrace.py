@@ -457,6 +457,21 @@ def _stop_hits(prescription: Prescription, origins: np.ndarray, directions: np.n
     return x, y
 
 
+def aim_reference(prescription: Prescription) -> tuple[float, float, float, float]:
+    """What :func:`aim_rays` starts from: the plane its unknowns live on (the paraxial
+    entrance pupil's z, or 0 when that is not finite), the radius the stop edge starts at on
+    it (the entrance pupil's, or the stop's), the stop's semi-diameter, and the plane in
+    front of every surface where aimed rays start (:func:`_start_plane_z`). Also read by the
+    compiled aiming of :func:`lfcam.measure.kernels.pupil_maps`."""
+    par = prescription.paraxial
+    stop_sd = prescription.surfaces[prescription.stop_index].semi_diameter_mm
+    z_ref = par.entrance_pupil_z_mm
+    r_ep = 0.5 * par.entrance_pupil_diameter_mm
+    if not (math.isfinite(z_ref) and math.isfinite(r_ep)):
+        z_ref, r_ep = 0.0, stop_sd
+    return float(z_ref), float(r_ep), float(stop_sd), _start_plane_z(prescription)
+
+
 def _start_plane_z(prescription: Prescription) -> float:
     """A plane 1 mm in front of every surface point (where aimed rays start)."""
     lowest = min(
@@ -519,14 +534,8 @@ def aim_rays(
         raise OpticsError("aim_rays needs exactly one of points_mm and field_directions")
     pupil = np.asarray(pupil_xy, dtype=np.float64).reshape(-1, 2)
     n = len(pupil)
-    par = prescription.paraxial
-    stop_sd = prescription.surfaces[prescription.stop_index].semi_diameter_mm
+    z_ref, r_ep, stop_sd, z_start = aim_reference(prescription)
     target = pupil * stop_sd
-    z_ref = par.entrance_pupil_z_mm
-    r_ep = 0.5 * par.entrance_pupil_diameter_mm
-    if not (math.isfinite(z_ref) and math.isfinite(r_ep)):
-        z_ref, r_ep = 0.0, stop_sd
-    z_start = _start_plane_z(prescription)
     if points_mm is not None:
         src = np.broadcast_to(np.asarray(points_mm, dtype=np.float64).reshape(-1, 3), (n, 3))
         if np.any(src[:, 2] >= z_start):
