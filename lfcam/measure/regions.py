@@ -79,6 +79,15 @@ class Region:
     parts: int = 1  # connected clusters merged into this region (halo fragments included)
 
 
+def _neighbour_components(points: np.ndarray, pitch_px: float) -> tuple[int, np.ndarray]:
+    """Connected groups of lenslet centres ``points`` (K, 2), neighbours being closer than
+    1.6 pitches: (count, label of each point)."""
+    pairs = cKDTree(points).query_pairs(1.6 * pitch_px, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(points), len(points)))
+    return connected_components(graph, directed=False)
+
+
 def lit_threshold(energy: np.ndarray) -> float:
     """Energy above which a lenslet counts as lit: median + ``NOISE_SIGMAS``·(robust σ)."""
     med = float(np.median(energy))
@@ -109,10 +118,7 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     if lit.size == 0:
         return []
     centres = lmap.centres_px
-    pairs = cKDTree(centres[lit]).query_pairs(1.6 * pitch_px, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                       shape=(lit.size, lit.size))
-    n, comp = connected_components(graph, directed=False)
+    n, comp = _neighbour_components(centres[lit], pitch_px)
     groups, parts = _merge_fragments(lit, comp, n, energy, centres)
     groups, parts = _add_faint(groups, parts, faint_lit(energy, lit, centres, pitch_px),
                                centres, pitch_px)
@@ -188,10 +194,7 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
         above = above[~np.isin(above, lit)]
         if above.size == 0:
             continue
-        close = cKDTree(centres_px[above]).query_pairs(1.6 * pitch_px, output_type="ndarray")
-        graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])),
-                           shape=(above.size, above.size))
-        _, comp = connected_components(graph, directed=False)
+        _, comp = _neighbour_components(centres_px[above], pitch_px)
         seen = np.bincount(comp, weights=found[above].astype(np.float64))
         found[above[seen[comp] == 0]] = True
     return found
@@ -251,10 +254,7 @@ def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
     idx = np.flatnonzero(faint)
     if idx.size < FAINT_MIN_LENSLETS:
         return groups, parts
-    pairs = cKDTree(centres[idx]).query_pairs(1.6 * pitch_px, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                       shape=(idx.size, idx.size))
-    n, comp = connected_components(graph, directed=False)
+    n, comp = _neighbour_components(centres[idx], pitch_px)
     owner = np.full(centres.shape[0], -1)
     for g, members in enumerate(groups):
         owner[members] = g
@@ -302,11 +302,7 @@ def _add_faint(groups: list[np.ndarray], parts: list[int], faint: np.ndarray,
                     keep &= (to_bright > big_reach[k]) & (own < to_bright)
                 part = members[keep]
                 if part.size >= FAINT_MIN_LENSLETS:
-                    sub = cKDTree(centres[part]).query_pairs(1.6 * pitch_px,
-                                                             output_type="ndarray")
-                    m, lab = connected_components(coo_matrix(
-                        (np.ones(len(sub)), (sub[:, 0], sub[:, 1])),
-                        shape=(part.size, part.size)), directed=False)
+                    _, lab = _neighbour_components(centres[part], pitch_px)
                     # the piece round the lit cluster only
                     near = lab[np.argmin(np.hypot(*(centres[part] - gc).T))]
                     patches.append((part[lab == near], False))
