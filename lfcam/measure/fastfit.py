@@ -1019,14 +1019,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
     # The fine model has at least the point polish's rays in all: on small noise-free blurs a
     # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
-    scan_model = LensletModel(profile, geom, mom, max(
-        int(share * max(COARSE_RAYS // LINE_COARSE_SHARE, 200)), LINE_MIN_RAYS))
-    coarse = LensletModel(profile, geom, mom, max(int(share * np.clip(
-        LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE, LINE_MAX_RAYS // 4)),
-        LINE_MIN_RAYS))
-    fine = LensletModel(profile, geom, mom, max(int(share * np.clip(
-        LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS, LINE_MAX_RAYS)),
-        LINE_MIN_RAYS))
+    def model(rays_12: float) -> LensletModel:  # the 12 points' rays a point, shared
+        return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS))
+
+    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
+    coarse = model(np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
+                           LINE_MAX_RAYS // 4))
+    fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS,
+                         LINE_MAX_RAYS))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
     def fun_of(model, count):
