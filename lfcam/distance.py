@@ -408,10 +408,10 @@ class _RegionPool:
                  noise_model=None) -> list:
         """:func:`_timed_estimate` of every region, in region order."""
         import pickle
-
-        self._starter.join()
         from concurrent.futures import as_completed
         from multiprocessing import shared_memory
+
+        self._starter.join()  # the workers' start (and its BLAS variables) is over
 
         ctx = pickle.dumps({
             "profile": profile, "geom": ((geom.lmap.centres_px, geom.lmap.radius_px),

@@ -500,7 +500,7 @@ _EDGES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])  # pupil_m
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf):
+def _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf, ok):
     """Where the ray from the source ``(sx, sy, sz)`` toward ``(ax, ay, z_ref)`` meets the
     stop surface, minus the target ``(tx, ty)`` (NaN where it cannot): ``aim_rays``' miss,
     traced unclipped through the surfaces up to the stop (no refraction there)."""
@@ -518,7 +518,7 @@ def _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf):
     buf[3, 0] = dx * inv
     buf[4, 0] = dy * inv
     buf[5, 0] = dz * inv
-    ok = np.ones(1, dtype=np.uint8)  # (no check of the direction's sense, as _stop_hits)
+    ok[0] = 1  # (no check of the direction's sense, as _stop_hits)
     for i in range(stop + 1):
         _surface(buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], ok, i, table, coef, False,
                  i != stop)
@@ -537,7 +537,8 @@ def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
     cannot be aimed."""
     m = points.shape[0]
     out = np.empty((m, 4))
-    buf = np.empty((6, 1))
+    buf = np.empty((6, 1))  # one ray's scratch for _stop_miss, reused
+    ok = np.empty(1, dtype=np.uint8)
     h = 1e-6 * max(r_ep, 1e-3)
     scale = max(stop_sd, 1.0)
     tol = AIM_TOLERANCE_MM * scale
@@ -554,7 +555,7 @@ def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
             ty = _EDGES[e, 1] * stop_sd
             ax = _EDGES[e, 0] * r_ep
             ay = _EDGES[e, 1] * r_ep
-            f0, f1 = _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf)
+            f0, f1 = _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop, buf, ok)
             for _ in range(AIM_ITERATIONS):
                 if math.hypot(f0, f1) <= tol:
                     break
@@ -563,12 +564,12 @@ def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
                     ax *= 0.5
                     ay *= 0.5
                     f0, f1 = _stop_miss(ax, ay, sx, sy, sz, z_ref, tx, ty, table, coef, stop,
-                                        buf)
+                                        buf, ok)
                     continue
                 gx0, gx1 = _stop_miss(ax + h, ay, sx, sy, sz, z_ref, tx, ty, table, coef,
-                                      stop, buf)
+                                      stop, buf, ok)
                 gy0, gy1 = _stop_miss(ax, ay + h, sx, sy, sz, z_ref, tx, ty, table, coef,
-                                      stop, buf)
+                                      stop, buf, ok)
                 j11 = (gx0 - f0) / h
                 j21 = (gx1 - f1) / h
                 j12 = (gy0 - f0) / h
@@ -590,7 +591,7 @@ def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
                     cx = ax + lam * step_x
                     cy = ay + lam * step_y
                     c0, c1 = _stop_miss(cx, cy, sx, sy, sz, z_ref, tx, ty, table, coef, stop,
-                                        buf)
+                                        buf, ok)
                     if math.hypot(c0, c1) <= max(old, tol):
                         break
                     lam *= 0.5
