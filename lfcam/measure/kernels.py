@@ -280,10 +280,12 @@ def pack_prescription(prescription) -> tuple[np.ndarray, np.ndarray]:
     reads: ``(S, 8)`` per surface (vertex z, curvature, conic, clear semi-diameter², index
     before and after, ideal flag, ideal paraxial power) and ``(S, A)`` the ideal surfaces'
     aberration coefficients (zeros elsewhere)."""
-    from lfcam.optics.raytrace import RIM_TOLERANCE as tol
+    from lfcam.optics import raytrace
 
-    if tol != RIM_TOLERANCE:  # one rim rule for both tracers
-        raise AssertionError("RIM_TOLERANCE differs from lfcam.optics.raytrace")
+    # one rim rule and one aiming rule for both tracers (compiled code freezes these)
+    if (raytrace.RIM_TOLERANCE, raytrace.AIM_TOLERANCE_MM) != (RIM_TOLERANCE, AIM_TOLERANCE_MM):
+        raise AssertionError("RIM_TOLERANCE or AIM_TOLERANCE_MM differs from "
+                             "lfcam.optics.raytrace")
     surfaces = prescription.surfaces
     n_coef = max([len(s.spherical) for s in surfaces if s.is_ideal] + [0])
     table = np.zeros((len(surfaces), 8))
