@@ -17,8 +17,9 @@ from lfcam.calibrate import load_calibration
 from lfcam.camera import load_profile
 from lfcam.io import load_capture
 from lfcam.measure import find_regions, lenslet_stats, prepare_geometry
+from lfcam.measure import regions as regions_module
 from lfcam.measure.fastfit import _Frame, fit_lenslet_point
-from lfcam.measure.regions import _disc_means
+from lfcam.measure.regions import _disc_means, lattice_coordinates
 from lfcam.robust import mad_sigma
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
@@ -35,23 +36,61 @@ def test_mad_sigma_equals_scipy_and_estimates_sigma():
     assert math.isnan(mad_sigma(np.array([])))
 
 
-@pytest.mark.parametrize("rotation", [0.0, 0.37])
-def test_disc_means_match_an_exact_neighbour_count(rotation):
-    # a jittered hex lattice. Hex neighbours lie at 1, √3 = 1.73, 2, √7 = 2.65 … pitches: at
-    # 1.3 and 2.3 pitches every lenslet is ≥ 0.26 pitch from the border, beyond the raster's
-    # 0.18 pitch (+ 0.04 jitter), so membership is exact; at 8 and 12 pitches (~230 and ~520
-    # members, raster of pitch / 4) a few lenslets of the border ring flip, which moves each
-    # mean by ~10 % of the spread of the means (measured 0.11-0.13 and 0.07); a wrong radius or
-    # a shifted raster moves it by ~100 %
-    pitch = 14.29
-    i, j = np.meshgrid(np.arange(-30, 31), np.arange(-30, 31))
+def _jittered_lattice(grid, rotation, jitter, pitch=14.29, n=30):
+    i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1))
     i, j = i.ravel().astype(float), j.ravel().astype(float)
-    x = pitch * (i + 0.5 * j)
-    y = pitch * (math.sqrt(3) / 2) * j
+    if grid == "hex":
+        x, y = pitch * (i + 0.5 * j), pitch * (math.sqrt(3) / 2) * j
+    else:
+        x, y = pitch * i, pitch * j
     c, s = math.cos(rotation), math.sin(rotation)
     rng = np.random.default_rng(2)
     centres = np.column_stack([c * x - s * y, s * x + c * y]) + 500.0
-    centres += rng.uniform(-0.02, 0.02, centres.shape) * pitch
+    return centres + rng.uniform(-jitter, jitter, centres.shape) * pitch, rng
+
+
+@pytest.mark.parametrize(("grid", "rotation"), [("hex", 0.0), ("hex", 0.37), ("rect", 1.2)])
+def test_disc_means_on_a_lattice_equal_an_exact_neighbour_search(grid, rotation):
+    # lattice coordinates: a pair is in or out of a disc by the fitted lattice's distance, so
+    # where no pair lies within 0.05 pitch of the radius (the jitter is ±0.01) membership and
+    # means equal a k-d tree's search of the true centres, at every radius
+    pitch = 14.29
+    centres, rng = _jittered_lattice(grid, rotation, 0.01, pitch)
+    assert lattice_coordinates(centres, pitch) is not None
+    values = rng.normal(0.0, 1.0, len(centres))
+    radii = (1.3, 2.3, 7.7, 11.9)
+    got = _disc_means(values, centres, pitch, radii)
+    tree = cKDTree(centres)
+    for radius, mean in zip(radii, got, strict=True):
+        near = tree.query_ball_point(centres, (radius + 0.05) * pitch)
+        members = tree.query_ball_point(centres, radius * pitch)
+        assert sum(map(len, near)) == sum(map(len, members))  # the radius is unambiguous
+        exact = np.array([values[m].mean() for m in members])
+        np.testing.assert_allclose(mean, exact, rtol=0, atol=1e-9)
+
+
+def test_lattice_coordinates_refuse_what_is_no_lattice():
+    pitch = 14.29
+    centres, _ = _jittered_lattice("hex", 0.2, 0.01, pitch)
+    ij, basis = lattice_coordinates(centres, pitch)
+    assert np.linalg.norm(basis, axis=0) == pytest.approx([pitch, pitch], rel=1e-3)
+    assert len({tuple(v) for v in ij}) == len(centres)
+    assert lattice_coordinates(_jittered_lattice("hex", 0.2, 0.3, pitch)[0], pitch) is None
+    doubled = np.vstack([centres, centres[:1] + 0.1 * pitch])  # two centres on one index
+    assert lattice_coordinates(doubled, pitch) is None
+
+
+@pytest.mark.parametrize("rotation", [0.0, 0.37])
+def test_raster_disc_means_match_an_exact_neighbour_count(rotation, monkeypatch):
+    # the fallback for centres that are no lattice: a raster of pitch / 8 cells. At 1.3 and
+    # 2.3 pitches every lenslet is ≥ 0.26 pitch from the border, beyond the raster's 0.18
+    # pitch (+ 0.04 jitter), so membership is exact; at 8 and 12 pitches (~230 and ~520
+    # members, raster of pitch / 4) a few lenslets of the border ring flip, which moves each
+    # mean by ~10 % of the spread of the means (measured 0.11-0.13 and 0.07); a wrong radius
+    # or a shifted raster moves it by ~100 %
+    monkeypatch.setattr(regions_module, "lattice_coordinates", lambda *a: None)
+    pitch = 14.29
+    centres, rng = _jittered_lattice("hex", rotation, 0.02, pitch)
     values = rng.normal(0.0, 1.0, len(centres))
     radii = (1.3, 2.3, 8.0, 12.0)
     got = _disc_means(values, centres, pitch, radii)

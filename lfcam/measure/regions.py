@@ -200,9 +200,88 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
     return found
 
 
-DISC_CELLS_PER_PITCH = 8  # raster of the disc averages: lenslet centres rounded to pitch / 8,
+DISC_CELLS_PER_PITCH = 8  # fallback raster of the disc averages: centres rounded to pitch / 8,
 DISC_CELLS_PER_RADIUS = 32  # ... or to radius / 32 where that is coarser (large discs),
 DISC_MIN_CELLS_PER_PITCH = 4  # ... but never coarser than pitch / 4
+LATTICE_MAX_RESIDUAL = 0.25  # lattice coordinates are used when every centre lies this close
+# (pitches) to the lattice fitted to them, each on its own index
+
+
+def lattice_coordinates(centres_px: np.ndarray, pitch_px: float
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Integer lattice indices of micro-image centres and the lattice's basis, found from the
+    centres alone.
+
+    The two basis vectors are the medians of the nearest-neighbour vectors (one pitch long)
+    along the commonest direction and along the next one 50-95° from it (hex: 60°, rect:
+    90°); indices are rounded from them about the most central lenslet, and the lattice
+    ``c = o + B·(i, j)`` is refitted to all centres by least squares, twice.
+
+    Parameters
+    ----------
+    centres_px : (N, 2) array
+    pitch_px : float
+        Micro-image pitch.
+
+    Returns
+    -------
+    (indices (N, 2) int array, basis (2, 2) array: columns the two lattice vectors, px), or
+    None when the centres are not such a lattice: two share an index, or one lies more than
+    ``LATTICE_MAX_RESIDUAL`` pitches from the fitted lattice (irregular centres, a gap of a
+    missing row, a lattice too distorted for one affine fit).
+    """
+    c = np.asarray(centres_px, dtype=np.float64)
+    n = len(c)
+    if n < 8 or not pitch_px > 0:
+        return None
+    # the basis from the central lenslets: the 2000 nearest the centroid, their neighbours
+    # among the 8000 nearest (a tree of every centre cost 0.2 s at Illum size)
+    r2 = ((c - c.mean(axis=0)) ** 2).sum(axis=1)
+    near = np.argsort(r2)[:8000] if n > 8000 else np.argsort(r2)
+    tree = cKDTree(c[near])
+    pick = near[:2000]
+    dist, idx = tree.query(c[pick], k=min(7, len(near)))
+    vec = (c[near[idx[:, 1:]]] - c[pick, None, :]).reshape(-1, 2)
+    length = dist[:, 1:].ravel()
+    vec = vec[np.abs(length - pitch_px) < 0.15 * pitch_px]
+    if len(vec) < 8:
+        return None
+    vec[vec[:, 1] < 0] *= -1.0  # fold to one half-plane: v and −v are the same direction
+    ang = np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 180.0
+    hist = np.bincount(np.floor(ang / 5.0).astype(np.int64) % 36, minlength=36)
+    first = (np.argmax(hist) + 0.5) * 5.0
+
+    def around(a0: float, lo: float, hi: float) -> np.ndarray:
+        d = (ang - a0) % 180.0
+        return vec[(d >= lo) & (d < hi)] if hi > lo else vec[(d >= lo) | (d < hi)]
+
+    v1 = around(first, 175.0, 5.0)
+    v1 = np.where((v1 @ v1[0])[:, None] < 0, -v1, v1)
+    a1 = np.median(v1, axis=0)
+    d1 = float(np.degrees(np.arctan2(a1[1], a1[0])))
+    v2 = around(d1, 50.0, 95.0)
+    if len(v1) < 4 or len(v2) < 4:
+        return None
+    v2 = np.where((v2 @ v2[0])[:, None] < 0, -v2, v2)
+    basis = np.column_stack([a1, np.median(v2, axis=0)])
+    origin = c[near[0]]
+    for _ in range(3):
+        try:
+            ij = np.rint(np.linalg.solve(basis, (c - origin).T).T)
+        except np.linalg.LinAlgError:
+            return None
+        design = np.column_stack([np.ones(n), ij])
+        coef = np.linalg.lstsq(design, c, rcond=None)[0]
+        origin, basis = coef[0], coef[1:].T
+    ij = np.rint(np.linalg.solve(basis, (c - origin).T).T).astype(np.int64)
+    resid = np.hypot(*(c - origin - ij @ basis.T).T)
+    if float(resid.max()) > LATTICE_MAX_RESIDUAL * pitch_px:
+        return None
+    span = ij.max(axis=0) - ij.min(axis=0) + 1
+    key = (ij[:, 0] - ij[:, 0].min()) * span[1] + (ij[:, 1] - ij[:, 1].min())
+    if np.unique(key).size != n:
+        return None
+    return ij, basis
 
 
 def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
@@ -210,17 +289,44 @@ def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     """Mean of ``values`` over the lenslets whose centres lie within each radius (pitches) of
     each lenslet's centre, one array per radius.
 
-    The lenslets are placed on a raster of ``pitch / DISC_CELLS_PER_PITCH`` cells and both
-    the values and the lenslet counts are filtered with a disc (OpenCV, Fourier domain for
-    large discs): a sparse all-pairs matrix of the 12-pitch disc held 1.2·10⁸ entries on an
-    Illum-size sensor (17-22 s, ~2 GB). Rounding the centres changes a pair's distance by at
-    most √2 cells (0.18 pitch): lenslets that close to a disc's border may fall on either side.
-    Discs of more than 4 pitches use cells of ``radius / DISC_CELLS_PER_RADIUS`` (at most
-    ``pitch / DISC_MIN_CELLS_PER_PITCH``): the same share of their radius, and 4× fewer cells
-    (Illum size: find_regions 2.8 → 2.2 s, the 2- and 4-pitch means unchanged).
+    On a lattice (:func:`lattice_coordinates`) the values and the lenslet counts are placed
+    on the grid of lattice indices and filtered (OpenCV, Fourier domain for large kernels)
+    with the index offsets whose lattice vector is within the radius: one cell a lenslet, and
+    a pair is in or out by the fitted lattice's distance (exact up to the centres' deviation
+    from it). Illum size: the four discs take 0.04 s, against 1.9 s on the fallback raster.
+
+    Fallback (irregular centres): the lenslets are placed on a raster of ``pitch /
+    DISC_CELLS_PER_PITCH`` cells, which changes a pair's distance by at most √2 cells (0.18
+    pitch); discs of more than 4 pitches use cells of ``radius / DISC_CELLS_PER_RADIUS`` (at
+    most ``pitch / DISC_MIN_CELLS_PER_PITCH``). A sparse all-pairs matrix of the 12-pitch disc
+    held 1.2·10⁸ entries on an Illum-size sensor (17-22 s, ~2 GB).
     """
     import cv2
 
+    values = np.asarray(values, dtype=np.float64)
+    lattice = lattice_coordinates(centres_px, pitch_px)
+    if lattice is not None:
+        ij, basis = lattice
+        ij = ij - ij.min(axis=0)
+        shape = (int(ij[:, 1].max()) + 1, int(ij[:, 0].max()) + 1)  # rows: j, columns: i
+        flat = ij[:, 1] * shape[1] + ij[:, 0]
+        size = shape[0] * shape[1]
+        grid_v = np.bincount(flat, weights=values, minlength=size).reshape(shape)
+        grid_n = np.bincount(flat, minlength=size).astype(np.float64).reshape(shape)
+        # the smallest lattice vector length bounds the index reach of a disc
+        short = float(np.linalg.svd(basis, compute_uv=False).min())
+        out = []
+        for radius in radii_pitch:
+            r_px = radius * pitch_px
+            k = int(np.ceil(r_px / short)) + 1
+            dj, di = np.mgrid[-k:k + 1, -k:k + 1]
+            off = np.column_stack([di.ravel(), dj.ravel()]) @ basis.T
+            kernel = (np.hypot(off[:, 0], off[:, 1]) <= r_px + 1e-9).astype(np.float64)
+            kernel = kernel.reshape(di.shape)
+            sums = cv2.filter2D(grid_v, cv2.CV_64F, kernel, borderType=cv2.BORDER_CONSTANT)
+            counts = cv2.filter2D(grid_n, cv2.CV_64F, kernel, borderType=cv2.BORDER_CONSTANT)
+            out.append(sums.ravel()[flat] / np.maximum(np.rint(counts.ravel()[flat]), 1.0))
+        return out
     c = np.asarray(centres_px, dtype=np.float64)
     c = c - c.min(axis=0)
     out = []
