@@ -12,7 +12,9 @@ Methods: ``lightfield`` (exact forward-model fit of the pixels; slow), ``lightfi
 (triangulation of the lenslet spots alone), ``lenslet`` (exact forward model fitted to
 per-lenslet moments, issue 17), ``diameter`` (the seed's footprint diameter).
 Times are single-core CPU seconds (``time.process_time``) of each method in the same run;
-``max_time_per_region_ms`` is the worst single region.
+``max_time_per_region_ms`` is the worst single region. Per-capture work (lenslet statistics,
+regions, the capture's noise model) counts in the frame's time, not the region's, as in
+``lfcam distance``'s stages.
 Budget: the slow method runs on :data:`SLOW_POINTS` and :data:`SLOW_LINES_MM` only; the fast ones
 on the whole seed grid. ``--quick`` keeps one capture per system and source (schema test).
 
@@ -60,6 +62,7 @@ from lfcam.measure import (  # noqa: E402
     prepare_geometry,
 )
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
+from lfcam.measure.noise import capture_noise  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
 
 DATA = ROOT / "data" / "synthetic"
@@ -125,6 +128,8 @@ def run_capture(img, prof, geom, method: str) -> dict[str, tuple[float, str, flo
     stats = lenslet_stats(img, geom.lmap)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
     noise = noise_sigma(img)
+    if method != "diameter" and regions:  # the capture's noise model, once, as run_distance
+        capture_noise(img, geom.lmap, geom.pitch_px, stats)
     detect_s = time.process_time() - t0
     measured = []
     for reg in regions:

@@ -124,8 +124,10 @@ def test_settled_fit_agrees_with_the_polished_one(system, dist, dh):
     assert full.polished and auto.ok and full.ok
     d_auto = z_front - auto.source_mm[2]
     d_full = z_front - full.source_mm[2]
-    # settled: within the test's 0.05 % of the polished fit; polished: the same fit
-    assert abs(d_auto / d_full - 1.0) < (5e-4 if not auto.polished else 1e-12)
+    # settled: within the test's 0.05 % of the polished fit; polished: the same minimum (the
+    # polish starts from the settled test's Jacobian when it has one, else from differences:
+    # measured 8e-7 apart)
+    assert abs(d_auto / d_full - 1.0) < (5e-4 if not auto.polished else 1e-5)
     # and both as close to the truth as the seed-grid test asks of the method
     assert abs(d_auto / truth["distance_mm"] - 1.0) < 0.003
     # the reported misfit is the polishing model's either way: within 10 % of the polished

@@ -34,6 +34,7 @@ from a distance scan. Point or line is decided from the two misfits (:func:`meas
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import NamedTuple
@@ -98,13 +99,15 @@ LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this ×
 LINE_STOP_COARSE = 4.0  # a line fit stops after its coarse stage when the misfit is over this
 LINE_STOP_FINE = 3.0  # ... or after the fine Gauss–Newton steps over this × the misfit it must
 #                       reach to matter (coarse → final measured ≤ 2.7×, fine GN → final ≤ 2.0×
-#                       on noisy captures) ...
-LINE_STOP_FLOOR = 0.02  # ... or this, if larger: on noise-free data the coarse model's own ray
-#                         noise dominates its misfit (0.01-0.03), not the data's
+#                       on noisy captures, ≤ 2.7× on the noise-free seed lines) ...
+LINE_STOP_FLOOR = 0.02  # ... the coarse stage's limit at least this × LINE_STOP_COARSE: on
+#                         noise-free data the coarse model's own ray noise dominates its misfit
+#                         (0.01-0.03), not the data's (the fine model is the final one)
 SIGMA_FLOOR_REL = 3e-4  # added in quadrature to the fit's σ of a distance: the share of the
 # calibration and the model that the statistical σ leaves out (bright blurs: σ 0.002-0.003 %,
 # error 0.014-0.026 %). Chosen on the 108 single sources of benchmarks/focus_grid.py (3σ:
 # 92 → 108), checked on the independent renderer's (2σ: 29 → 38 of 40; docs/distance.md)
+POLISH_MAX_GAIN = 0.9  # the polish lowers a point's misfit by at most this share (82 % seen)
 POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 # The distance profile (docs/distance.md, "Blurs of a few lenslets"). A blur over a 2×2 block
 # of lenslets splits the pupil into four parts whose shapes fix only the ratio of the image
@@ -115,7 +118,8 @@ PROFILE_MAX_LOG = 0.7  # a side not bounded within ×2 (log distance 0.7): no di
 PROFILE_RIDGE_LOG = 0.1  # a 10 % step costing less than PROFILE_RIDGE_RISE × the model's
 PROFILE_RIDGE_RISE = 5.0  # systematic misfit² (≤ PROFILE_FLOOR²): a ridge, no distance
 PROFILE_FLOOR = 0.001  # relative misfit of the exact model on bright far sources (0.0006-7)
-PROFILE_LM_ITERATIONS = 3  # lateral refit at each trial distance
+PROFILE_GN_STEPS = 2  # lateral Gauss–Newton steps at each trial distance (fixed Jacobian)
+PROFILE_START = 2.0  # the first trial step, in units of the Jacobian's σ
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
@@ -511,22 +515,32 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None):
+                         r0=None, jac0=None, broyden=False):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
     one by one (the difference Jacobian's columns in one model pass). ``r0`` (optional) is
-    ``fun(q0)`` when the caller already has it.
+    ``fun(q0)`` when the caller already has it. ``jac0`` (optional): the Jacobian to start
+    from (of a model of the same function with fewer rays), else it is taken by differences.
+    ``broyden``: after an accepted step the Jacobian is updated by Broyden's rule (one
+    evaluation a step instead of one a parameter more) and taken by differences again only
+    when a step fails.
 
-    Returns (q, residual, cost, Jacobian at the last linearisation).
+    Returns (q, residual, cost, Jacobian at the last linearisation: with ``broyden``, the
+    last one taken by differences or ``jac0``; the secant updates steer the steps only, as
+    they leave the σ of a line 2-3× off).
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
     f = _sq(r)
     lam = 1e-4
-    jac = None
+    jac = None if jac0 is None else np.array(jac0, dtype=np.float64)
+    last = jac
+    fresh = jac is None
     for _ in range(max_iter):
-        jac = _fd_jacobian(fun, fun_many, q, r, steps)
+        if jac is None:
+            jac = _fd_jacobian(fun, fun_many, q, r, steps)
+            last, fresh = jac, True
         jtj = _gram(jac)
         g = _jt(jac, r)
         improved = False
@@ -541,14 +555,22 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             r2 = fun(q + dq)
             f2 = _sq(r2)
             if f2 < f:
+                if broyden:  # the secant of the accepted step
+                    jac = jac + np.outer((r2 - r) - jac @ dq, dq) / float(dq @ dq)
+                    fresh = False
                 q, r, f = q + dq, r2, f2
                 lam = max(lam / 10, 1e-8)
                 improved = True
                 break
             lam *= 10
+        if not improved and not fresh:
+            jac = None  # the updated Jacobian found no descent: take it by differences
+            continue
         if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
             break
-    return q, r, f, jac
+        if not broyden:
+            jac = None
+    return q, r, f, last
 
 
 def _fd_jacobian(fun, fun_many, q, r, steps) -> np.ndarray:
@@ -829,25 +851,46 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
     distance to that mismatch: such sources were measured 5–8 % off with a statistical σ of
     1.3–2.3 %. Returns the larger side's σ, or ``inf`` on a ridge or when a side does not
     rise by s² within a factor 2 in distance (the data do not fix the distance).
+
+    The lateral refit at a trial distance starts where the Jacobian at ``q`` predicts the
+    lateral minimum and takes up to ``PROFILE_GN_STEPS`` Gauss–Newton steps with that
+    Jacobian's lateral columns (one evaluation a step; the lowest misfit seen is the
+    profile's); the first trial is ``PROFILE_START`` Jacobian σ out, where a quadratic
+    profile has risen past s². Levenberg–Marquardt with a fresh difference Jacobian at every
+    trial, from one σ out, took 21–71 evaluations a profile on the seed grid, this 12–34
+    (docs/distance.md, "A cheaper misfit profile and polish").
     """
-    f0 = _sq(fun(q))
+    r0 = fun(q)
+    f0 = _sq(r0)
     s2 = f0 / max(n_res - 3, 1)
     if not s2 > 0.0:
         return sigma_rel
     systematic = min(f0, PROFILE_FLOOR**2)
+    jac = _fd_jacobian(fun, fun_many, q, r0, COARSE_STEPS)
+    jp, jz = jac[:, 1:], jac[:, 0]
+    try:
+        solve = np.linalg.inv(_gram(jp))
+    except np.linalg.LinAlgError:
+        return math.inf
+    lateral_slope = -(solve @ _jt(jp, jz))  # the lateral minimum's drift per unit of t
 
     def rise(t: float) -> float:
-        z = q[0] + t
-        _, _, f_t, _ = _levenberg_marquardt(
-            lambda p: fun(np.r_[z, p]), q[1:], COARSE_STEPS[1:], PROFILE_LM_ITERATIONS, 1e-3,
-            lambda ps: fun_many([np.r_[z, p] for p in ps]))
-        return f_t - f0
+        p = q[1:] + t * lateral_slope
+        best = math.inf
+        for _ in range(PROFILE_GN_STEPS):
+            r = fun(np.r_[q[0] + t, p])
+            f = _sq(r)
+            if not f < best:
+                break
+            best = f
+            p = p - solve @ _jt(jp, r)
+        return best - f0
 
     worst = 0.0
     for sign in (1.0, -1.0):
         if rise(sign * PROFILE_RIDGE_LOG) < PROFILE_RIDGE_RISE * systematic:
             return math.inf
-        t = min(max(sigma_rel, 1e-4), PROFILE_MAX_LOG)
+        t = min(max(PROFILE_START * sigma_rel, 1e-4), PROFILE_MAX_LOG)
         while True:
             d = rise(sign * t)
             if d >= s2:
@@ -862,6 +905,15 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
 def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                       region: Region, polish_above: float = math.inf,
                       mom: _Moments | None = None) -> LensletFit:
+    """Fit a point source to the region's lenslet moments (:func:`point_fit_stages`, run to
+    its end)."""
+    *_, fit = point_fit_stages(profile, geom, image, region, polish_above, mom)
+    return fit
+
+
+def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                     region: Region, polish_above: float = math.inf,
+                     mom: _Moments | None = None) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -872,12 +924,18 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``polish_above`` (a misfit a gate will read: the polish lowers it by up to ~15 %;
     ``0`` always polishes, as the lens calibration does). ``mom``: the region's
     :func:`data_moments`, when the caller has them.
+
+    Yields twice: the fine fit with the polishing model's misfit at it (``polished=False``,
+    its σ the Jacobian's, no profile), then the final fit. A caller that learns from the
+    first that the region is no point (a line fits it far better) stops there and saves the
+    polish and the σ profile.
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
     nan3 = np.full(3, np.nan)
     if not mom.norm > 0 or len(mom.ids) < 3:
-        return LensletFit(nan3, np.nan, np.nan, 0, False, RegionStatus.EMPTY)
+        yield LensletFit(nan3, np.nan, np.nan, 0, False, RegionStatus.EMPTY)
+        return
     n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     frame = _Frame(profile)
@@ -915,6 +973,14 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     polish = LensletModel(profile, geom, mom, POLISH_RAYS)
     fun_p = fun_of(polish)
     r_p = fun_p(q)
+
+    def evaluations() -> int:
+        return (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
+                + polish.evaluations)
+
+    yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)),
+                     math.exp(_log_distance(q)) * _log_distance_sigma(jac, r), evaluations(),
+                     not _at_far_bound(q))
     # a misfit near a gate is polished whatever the settled test says: do not run it then
     settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else _settled(
         fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, COARSE_STEPS)
@@ -923,7 +989,8 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         jac, r, f = jac_q, r_p, _sq(r_p)
     else:
         q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, COARSE_STEPS, FINE_LM_ITERATIONS,
-                                                 1e-3, many_of(polish), r0=r_p)
+                                                 1e-3, many_of(polish), r0=r_p, jac0=jac_q,
+                                                 broyden=True)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -936,13 +1003,14 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         ridge = not math.isfinite(s_rel)  # the data do not fix the distance
         if not ridge:
             sigma_d = max(sigma_d, dist * s_rel)
-    evals = (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
-             + polish.evaluations)
+    evals = evaluations()
     if ridge:
-        return LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
-    if _at_far_bound(q) or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm:
-        return LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
-    return LensletFit(source, misfit, sigma_d, evals, True, polished=polished)
+        yield LensletFit(source, misfit, np.inf, evals, False, RegionStatus.NEAR_FOCUS)
+    elif (_at_far_bound(q)
+          or not source[2] < frame.z_front - 1.02 * profile.main_lens.focal_length_mm):
+        yield LensletFit(source, misfit, sigma_d, evals, False, RegionStatus.NO_SOLUTION)
+    else:
+        yield LensletFit(source, misfit, sigma_d, evals, True, polished=polished)
 
 
 def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
@@ -965,12 +1033,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     Lᵢ²/12).
 
     ``useful_below``: the misfit a line must reach to change the caller's answer. A fit whose
-    coarse misfit is over ``LINE_STOP_COARSE`` × that, or whose fine Gauss–Newton misfit is
-    over ``LINE_STOP_FINE`` × that (either at least ``LINE_STOP_FLOOR``), stops there
+    coarse misfit is over ``LINE_STOP_COARSE`` × that (that at least ``LINE_STOP_FLOOR``), or
+    whose fine Gauss–Newton misfit is over ``LINE_STOP_FINE`` × that, stops there
     (``ok=False``, status ``poor-fit``): the later stages lower the misfit by at most 2.7× and
-    2.0× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
-    when they cannot win"). ``mom``: the region's :func:`data_moments`, when the caller has
-    them.
+    2.7× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
+    when they cannot win", "A cheaper misfit profile and polish"). ``mom``: the region's
+    :func:`data_moments`, when the caller has them.
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1063,9 +1131,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
                           RegionStatus.POOR_FIT)
 
-    # the stages' own ray noise lowers the misfit too: stops only well above it
-    useful_below = max(useful_below, LINE_STOP_FLOOR)
-    if math.sqrt(f) > LINE_STOP_COARSE * useful_below:
+    # the coarse model's own ray noise lowers its misfit too: it stops only well above it
+    if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
     fun = fun_of(fine, n_pts)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
@@ -1113,26 +1180,46 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                         geom.pitch_px, box, pedestal(image), mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
     trigger = line_trigger(nm, LINE_TRIGGER)
-    fit = fit_lenslet_point(profile, geom, image, region,
-                            polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom)
+    stages = point_fit_stages(profile, geom, image, region,
+                              polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom)
+    fit = next(stages)  # the fine fit, before its polish and σ profile
+    line = None
+    if fit.ok and (1.0 - POLISH_MAX_GAIN) * fit.misfit > trigger:
+        # no polish can bring this misfit under the trigger, so a line will be tried: it is
+        # tried before the point is finished, and when it wins by more than any polish could
+        # take back (POLISH_MAX_GAIN), the point's polish and σ profile are not needed
+        line = fit_lenslet_line(profile, geom, image, region, fit,
+                                useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
+        if line.ok and line.misfit < LINE_GAIN * (1.0 - POLISH_MAX_GAIN) * fit.misfit:
+            stages.close()
+            return _line_answer(profile, geom, line, limit, nm)
+    if fit.ok:
+        fit = next(stages)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
     # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
     # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
     if region.kind == "line" or fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
-        line = fit_lenslet_line(profile, geom, image, region, fit,
-                                useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
+        if line is None:
+            line = fit_lenslet_line(profile, geom, image, region, fit,
+                                    useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
         if line.ok and line.misfit < LINE_GAIN * fit.misfit:
-            if not line.misfit <= limit:
-                return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
-            return replace(_line_measurement(profile, geom, line), noise_misfit=nm)
+            return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     distance = profile.main_lens.front_vertex_z_mm - float(fit.source_mm[2])
     return point_measurement(profile, geom.d_in_mm, fit.source_mm,
                              math.hypot(fit.sigma_distance_mm, SIGMA_FLOOR_REL * distance),
                              misfit=fit.misfit, noise_misfit=nm)
+
+
+def _line_answer(profile: CameraProfile, geom: Geometry, line: LensletFit, limit: float,
+                 noise_misfit: float) -> Measurement:
+    """The measurement of a line that won over the point: ``poor-fit`` over ``limit``."""
+    if not line.misfit <= limit:
+        return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
+    return replace(_line_measurement(profile, geom, line), noise_misfit=noise_misfit)
 
 
 def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:
