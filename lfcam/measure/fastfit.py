@@ -78,6 +78,7 @@ POLISH_NEAR_GATE = 0.7  # settled point fits are polished all the same when thei
 LINE_POINTS = 12  # points of the line model, at least (and the count the ray budgets are for)
 LINE_POINTS_MAX = 48  # ... at most
 LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
+LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -134,6 +135,14 @@ def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     r = np.sqrt((i + 0.5) / n)
     t = i * GOLDEN_ANGLE + phase
     x, y = r * np.cos(t), r * np.sin(t)
+    # in the spiral's order, successive points lie on opposite sides of the disc, and so do
+    # their rays' landings on the MLA and sensor: every deposit then misses the cache on a
+    # large blur. Ordered along rows of the disc instead (bands about √n points long, the
+    # direction alternating), successive rays land side by side
+    bands = max(1, int(round(math.sqrt(n) / 2.0)))
+    band = np.minimum(((y + 1.0) * 0.5 * bands).astype(np.int64), bands - 1)
+    order = np.lexsort((np.where(band % 2 == 0, x, -x), band))
+    x, y = x[order], y[order]
     x.flags.writeable = False
     y.flags.writeable = False
     return x, y
@@ -1087,12 +1096,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
     # The fine model has at least the point polish's rays in all: on small noise-free blurs a
     # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
-    def model(rays_12: float) -> LensletModel:  # the 12 points' rays a point, shared
+    def model(rays_12: float, share: float = share) -> LensletModel:
+        # the 12 points' rays a point, shared
         return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS))
 
-    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200))
+    # the scan and the coarse stage find the basin: at most LINE_COARSE_POINTS points (a long
+    # line's 48 points with half the rays each cost twice the 12 points' rays)
+    n_coarse = min(n_pts, LINE_COARSE_POINTS)
+    share_c = max(LINE_POINTS / n_coarse, LINE_MIN_SHARE)
+    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c)
     coarse = model(np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
-                           LINE_MAX_RAYS // 4))
+                           LINE_MAX_RAYS // 4), share_c)
     fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS,
                          LINE_MAX_RAYS))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
@@ -1107,16 +1121,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # Starts: the point fit's distance, and the best node of a distance scan of the line
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
-    fun_c = fun_of(coarse, n_pts)
+    fun_c = fun_of(coarse, n_coarse)
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
     scan = [segment(float(d), g=float(g)) for d, g in zip(
         distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
-    costs = [_sq(r) for r in many_of(scan_model, n_pts)(scan)]
+    costs = [_sq(r) for r in many_of(scan_model, n_coarse)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     best = None
     for start in (q0, best_scan):
         cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
-                                    many_of(coarse, n_pts))
+                                    many_of(coarse, n_coarse))
         if best is None or cand[2] < best[2]:
             best = cand
         if abs(best_scan[0] - q0[0]) < 0.05:
