@@ -16,7 +16,7 @@ from lfcam.calibrate import calibrate_white
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
 from lfcam.measure import lenslet_stats, prepare_geometry
-from lfcam.measure.fastfit import data_moments
+from lfcam.measure.fastfit import data_moments, pedestal
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import NoiseModel, dark_sigma, moments_misfit, photon_gain
 from lfcam.measure.pointfit import DATA_BLUR_PX, chief_ray_offset
@@ -100,6 +100,10 @@ def test_moments_misfit_matches_monte_carlo():
     # data_moments removes the frame's dark pedestal (0 here: most pixels see no spot)
     expected = moments_misfit(model, img, geom.lmap, geom.pitch_px, box, 0.0, clean.norm)
     assert expected == pytest.approx(np.sqrt(np.mean(power)) / clean.norm, rel=0.08)
+    # the fits read it from the sums data_moments keeps (one pass over the pixels)
+    same = moments_misfit(model, img, geom.lmap, geom.pitch_px, box, pedestal(img), clean.norm)
+    assert model.moments_misfit_of(clean.noise_sums, clean.norm) == pytest.approx(same,
+                                                                                   rel=1e-12)
 
 
 def _render(objects):

@@ -45,7 +45,7 @@ from lfcam.camera import CameraProfile
 from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
-from lfcam.measure.noise import capture_noise, moments_misfit
+from lfcam.measure.noise import capture_noise, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.verify import line_trigger, poor_fit_limit
@@ -163,6 +163,7 @@ class _Moments:
     centres_px: np.ndarray  # (K, 2) micro-image centres
     data: np.ndarray  # (K, 4)
     norm: float
+    noise_sums: tuple[float, float] = (math.nan, math.nan)  # noise.moment_noise_sums
 
 
 def _moments_of(centres_px, pitch_px, x_px, y_px, w, k, group=None, groups=1):
@@ -197,11 +198,28 @@ def pedestal(image: np.ndarray) -> float:
     return _PEDESTAL.get(image, level)
 
 
-def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int]) -> _Moments:
+def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int],
+                 kernel: str | None = None) -> _Moments:
     """Moments of the data over the lenslets whose pixels lie in ``box`` (the dark pedestal
-    removed, :func:`pedestal`)."""
+    removed, :func:`pedestal`), and their noise sums. ``kernel``: "compiled"
+    (:func:`lfcam.measure.kernels.box_moments`, one pass) or "numpy" (the reference);
+    default :data:`KERNEL`."""
     x0, y0, x1, y1 = box
     lab = geom.lmap.labels[y0:y1, x0:x1]
+    ped = pedestal(image)
+    if (KERNEL if kernel is None else kernel) == "compiled":
+        from lfcam.measure.kernels import box_moments  # numba
+
+        # contiguous copies of the box: one argument signature (compiled once, cached)
+        ids, m, s0, s1 = box_moments(
+            np.ascontiguousarray(lab, dtype=np.int32),
+            np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float64),
+            np.ascontiguousarray(geom.lmap.centres_px, dtype=np.float64), int(x0), int(y0),
+            float(geom.pitch_px), float(ped), int(geom.lmap.count))
+        index = np.full(geom.lmap.count + 1, -1, dtype=np.int64)
+        index[ids] = np.arange(len(ids))
+        return _Moments(box, index[lab], ids, geom.lmap.centres_px[ids], m,
+                        float(np.sqrt((m * m).sum())), (s0, s1))
     keep = lab >= 0
     present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0
     ids = np.flatnonzero(present)
@@ -211,9 +229,12 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     inv = compact[keep]
     yy, xx = np.nonzero(keep)
     cen = geom.lmap.centres_px[ids]
-    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - pedestal(image)
+    v = np.asarray(image[y0:y1, x0:x1], dtype=np.float64)[keep] - ped
     m = _moments_of(cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
-    return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())))
+    dx = (xx + x0 - cen[inv, 0]) / geom.pitch_px
+    dy = (yy + y0 - cen[inv, 1]) / geom.pitch_px
+    return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())),
+                    moment_noise_sums(dx, dy, v))
 
 
 class LensletModel:
@@ -1190,8 +1211,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
     mom = data_moments(geom, image, box)  # once: the noise misfit, the point and the line fit
-    nm = moments_misfit(capture_noise(image, geom.lmap, geom.pitch_px), image, geom.lmap,
-                        geom.pitch_px, box, pedestal(image), mom.norm)
+    nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
+                                                                           mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
     trigger = line_trigger(nm, LINE_TRIGGER)
     stages = point_fit_stages(profile, geom, image, region,

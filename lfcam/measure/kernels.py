@@ -5,6 +5,8 @@ Loops that numpy can only express as chains of frame- or ray-sized temporaries:
 * :func:`lenslet_sums`: each lenslet's pixel count, sum and first moments over a label map
   (:func:`lfcam.measure.lenslets.lenslet_stats`): one pass over the frame instead of four
   ``bincount`` and two weighted copies of it (41 Mpx: 1.6 s → 0.1 s).
+* :func:`box_moments`: a region's data moments and their noise sums in one pass over its
+  box (numpy: ``nonzero``, fancy indexing and four ``bincount``; Illum-size blurs 10 → 2 ms).
 * :func:`trace_model_rays`: the lenslet fit's rays from point sources through the main lens
   (any :class:`~lfcam.optics.lens.Prescription`: conics, flats, ideal surfaces) to the MLA
   plane, with the rules and arithmetic of :func:`lfcam.optics.raytrace.trace_components`.
@@ -194,6 +196,8 @@ def warm_up() -> None:
     while the parent is still busy with the geometry."""
     one = np.zeros(1)
     eye = np.eye(2)
+    box_moments(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 2)), 0, 0, 1.0,
+                0.0, 1)
     deposit_moments(one, one, one, one, one, np.ones(1), np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
                     np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
@@ -225,6 +229,53 @@ def lenslet_sums(labels, image, n):
             mx[k] += v * col
             my[k] += v * row
     return pixels, energy, mx, my
+
+
+@njit(cache=True, nogil=True)
+def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslets):
+    """:func:`lfcam.measure.fastfit.data_moments` of a box in one pass: ``labels`` and
+    ``image`` are the box's slices (corner ``(x0, y0)``), ``centres_px`` every lenslet's
+    micro-image centre. Returns (ids of the lenslets present, in increasing order; their
+    moments ``(K, 4)``; the noise sums of :func:`lfcam.measure.noise.moment_noise_sums`),
+    summed in a row-major pass as ``np.bincount`` does."""
+    h, w = labels.shape
+    present = np.zeros(n_lenslets + 1, dtype=np.int64)
+    for row in range(h):
+        for col in range(w):
+            k = labels[row, col]
+            if k >= 0:
+                present[k] = 1
+    count = 0
+    for k in range(n_lenslets):
+        if present[k]:
+            present[k] = count + 1  # compact index + 1
+            count += 1
+    ids = np.empty(count, dtype=np.int64)
+    for k in range(n_lenslets):
+        if present[k]:
+            ids[present[k] - 1] = k
+    out = np.zeros((count, 4))
+    s0 = 0.0
+    s1 = 0.0
+    for row in range(h):
+        for col in range(w):
+            k = labels[row, col]
+            if k < 0:
+                continue
+            c = present[k] - 1
+            v = image[row, col] - pedestal
+            dx = (col + x0 - centres_px[k, 0]) / pitch_px
+            dy = (row + y0 - centres_px[k, 1]) / pitch_px
+            r2 = dx * dx + dy * dy
+            out[c, 0] += v
+            out[c, 1] += v * dx
+            out[c, 2] += v * dy
+            out[c, 3] += v * r2
+            f2 = 1.0 + r2 + r2 * r2
+            s0 += f2
+            if v > 0.0:
+                s1 += v * f2
+    return ids, out, s0, s1
 
 
 @njit(cache=True, nogil=True)
