@@ -60,7 +60,7 @@ from lfcam.measure import (
 )
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.verify import verify_regions
-from lfcam.models import auto, check_distance_model
+from lfcam.models import POINT_MODELS, auto, check_distance_model
 from lfcam.models import line as line_model
 from lfcam.models.base import Status
 from lfcam.progress import Progress
@@ -105,7 +105,16 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
         return model, nan, nan, nan, meas.status
     if meas.kind == "line":
         return _apply_line_model(profile, meas, model)
-    if model == "auto":
+    fitted = np.isfinite(meas.distance_mm)  # the lightfield or lenslet fit located the source
+    if fitted and (model == "exact" or (model == "auto" and tolerance_pct is None)):
+        # the answer is the fit's own; the exact inversion of its rim heights only checks the
+        # round trip (status, offset): its σ propagation (four more inversions, ~4 ms) would
+        # be thrown away
+        name = "exact"
+        inv = POINT_MODELS["exact"](profile, meas.plane_d_in_mm, np.array([meas.y1_mm]),
+                                    np.array([meas.y2_mm]))
+        sigma = np.array([meas.sigma_distance_mm])
+    elif model == "auto":
         names, inv, sigma = auto.choose(profile, meas.plane_d_in_mm, meas.y1_mm, meas.y2_mm,
                                         meas.sigma_y_mm, meas.sigma_y_mm, tolerance_pct)
         name = str(names[0])
@@ -120,7 +129,7 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
     status = Status(int(inv.status[0])).label
     d = float(inv.distance_mm[0])
     s = float(sigma[0])
-    if name == "exact" and np.isfinite(meas.distance_mm) and status == RegionStatus.OK:
+    if name == "exact" and fitted and status == RegionStatus.OK:
         # the lightfield fit already located the source exactly: use its own uncertainty
         d, s = meas.distance_mm, meas.sigma_distance_mm
     return name, d, abs(float(inv.offset_mm[0])), s, status

@@ -67,7 +67,7 @@ COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
 FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
-LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (fewer: lines grid 0.134 → 0.156 % mean, 8 ms saved)
+LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
 POLISH_RAYS = 80000  # rays of the polishing model
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
