@@ -205,7 +205,7 @@ class Camera:
         """(run results, their regions' lenslet counts, wall s, CPU s)."""
         t0, c0 = time.perf_counter(), time.process_time()
         res = run_distance(img, self.used, None, model="exact", method=METHOD[0],
-                           geometry=self.geom, jobs=1)
+                           tolerance_pct=TOLERANCE[0], geometry=self.geom, jobs=1)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         regions = find_regions(lenslet_stats(img, self.geom.lmap), self.geom.lmap,
                                self.geom.pitch_px)
@@ -399,6 +399,7 @@ def read_rows(paths) -> list[dict]:
 
 
 METHOD = ["lightfield"]  # set from --method
+TOLERANCE: list = [None]  # set from --tolerance (--method auto)
 
 
 def main() -> None:
@@ -414,8 +415,10 @@ def main() -> None:
     ap.add_argument("--rotation", type=float, default=0.0, help="MLA rotation, rad")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per source")
     ap.add_argument("--quick", action="store_true", help="2 distances a side, fields 0 and 0.8")
-    ap.add_argument("--method", default="lightfield", choices=("lightfield", "lenslet"),
+    ap.add_argument("--method", default="lightfield", choices=("lightfield", "lenslet", "auto"),
                     help="measurement method (docs/distance.md)")
+    ap.add_argument("--tolerance", type=float, default=None,
+                    help="--method auto: allowed distance error, percent")
     ap.add_argument("--scene12", action="store_true", help="12 point sources in one capture")
     ap.add_argument("--lines", action="store_true", help="lines at 0°, 60°, 135°")
     ap.add_argument("--renderer", default="sim", choices=RENDERERS,
@@ -434,6 +437,7 @@ def main() -> None:
                     help="only print the tables of these CSVs")
     args = ap.parse_args()
     METHOD[0] = args.method
+    TOLERANCE[0] = args.tolerance
     if args.table:
         print_table(read_rows(args.table))
         return

@@ -146,9 +146,21 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     if model == "refocus":
         d, sig, status = measure_refocus(profile, geom, img, reg)
         return reg.kind, "refocus", d, nan, nan, sig, status, None
+    meas = None
     if method == "auto":
         method = auto.choose_method(tolerance_pct, reg.kind)
-    if method == "lightfield":
+        if method == "lightfield" and tolerance_pct is not None:
+            # the lenslet fit first (~0.1 s): its answer stands where its own σ meets the
+            # tolerance (a line's always: no method measures lines better); the pixel fit
+            # (seconds) only for the regions it does not
+            first = measure_lenslet(profile, geom, img, reg, noise)
+            if first.status == RegionStatus.OK and (
+                    first.kind == "line" or auto.lenslet_answer_meets(
+                        first.distance_mm, first.sigma_distance_mm, tolerance_pct)):
+                meas = first
+    if meas is not None:
+        pass
+    elif method == "lightfield":
         meas = measure_lightfield(profile, geom, img, reg, noise, fast)
     elif method == "lenslet":
         meas = measure_lenslet(profile, geom, img, reg, noise)

@@ -45,3 +45,54 @@ def test_auto_meets_its_tolerance_and_is_cheap_where_it_can_be(tolerance_pct):
     assert (err <= tolerance_pct * 1.02).all()
     if tolerance_pct >= 1.0:
         assert (models != "exact").sum() > 30  # closed forms used where good enough
+
+
+def test_lenslet_answer_meets_a_tolerance_by_three_of_its_sigma():
+    # 1000 mm ± 3 mm: 3σ = 0.9 % of the distance
+    assert auto.LENSLET_ACCEPT_SIGMAS == 3.0
+    assert auto.lenslet_answer_meets(1000.0, 3.0, 1.0)
+    assert not auto.lenslet_answer_meets(1000.0, 3.0, 0.8)
+    assert not auto.lenslet_answer_meets(1000.0, float("nan"), 5.0)
+    assert not auto.lenslet_answer_meets(float("nan"), 1.0, 5.0)
+
+
+def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(monkeypatch):
+    """--method auto --tolerance: the lenslet fit first, the pixel fit only for the regions whose
+    lenslet answer's 3σ exceeds the tolerance (or that failed); a line keeps its lenslet fit."""
+    from dataclasses import replace
+
+    import lfcam.distance as distance
+    from lfcam.camera import load_profile
+    from lfcam.measure.base import Measurement
+    from lfcam.measure.regions import Region
+
+    prof = load_profile("system2")
+    calls = []
+    ok = replace(Measurement.failed("ok", prof.d_in_mm), status="ok", distance_mm=1000.0,
+                 offset_mm=0.0, y1_mm=0.1, y2_mm=-0.1, sigma_y_mm=1e-4)
+
+    def lenslet(profile, geom, img, reg, noise):
+        calls.append(("lenslet", reg.region_id))
+        sigma = {0: 1.0, 1: 5.0, 2: 5.0}[reg.region_id]
+        kind = "line" if reg.region_id == 2 else "spot"
+        return replace(ok, sigma_distance_mm=sigma, kind=kind)
+
+    def lightfield(profile, geom, img, reg, noise, fast):
+        calls.append(("lightfield", reg.region_id))
+        return replace(ok, sigma_distance_mm=2.0, distance_mm=1001.0)
+
+    monkeypatch.setattr(distance, "measure_lenslet", lenslet)
+    monkeypatch.setattr(distance, "measure_lightfield", lightfield)
+    monkeypatch.setattr(distance, "_apply_model", lambda p, m, model, tol: (
+        "exact", m.distance_mm, 0.0, m.sigma_distance_mm, m.status))
+    out = {}
+    for rid in (0, 1, 2):
+        reg = Region(region_id=rid, kind="spot", lenslets=np.arange(3), energy=1.0,
+                     centroid_px=(0.0, 0.0), box_px=(0, 0, 1, 1), elongation=1.0,
+                     axis_dir=(1.0, 0.0), parts=1)
+        out[rid] = distance._estimate(prof, None, None, None, reg, 0.0, "exact", "auto", 1.0,
+                                      False)
+    # region 0: 3σ = 0.3 % ≤ 1 %: the lenslet answer; region 1: 1.5 % > 1 %: pixels;
+    # region 2: a line, kept
+    assert calls == [("lenslet", 0), ("lenslet", 1), ("lightfield", 1), ("lenslet", 2)]
+    assert out[0][2] == 1000.0 and out[1][2] == 1001.0 and out[2][0] == "line"

@@ -869,7 +869,8 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
     return bool(abs(q_b[0] - q[0]) < SETTLED_LOG), jac_q
 
 
-def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -> float:
+def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
+                   r0: np.ndarray | None = None, jac0: np.ndarray | None = None) -> float:
     """σ of the log distance from the misfit profile (lateral position refitted at each trial
     distance), for blurs of a few lenslets (:data:`PROFILE_LENSLETS`).
 
@@ -881,7 +882,8 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
     ``PROFILE_FLOOR``², the mismatch of the exact model on bright far sources) leaves the
     distance to that mismatch: such sources were measured 5–8 % off with a statistical σ of
     1.3–2.3 %. Returns the larger side's σ, or ``inf`` on a ridge or when a side does not
-    rise by s² within a factor 2 in distance (the data do not fix the distance).
+    rise by s² within a factor 2 in distance (the data do not fix the distance). ``r0`` and
+    ``jac0``: ``fun(q)`` and its difference Jacobian (steps ``COARSE_STEPS``), when known.
 
     The lateral refit at a trial distance starts where the Jacobian at ``q`` predicts the
     lateral minimum and takes up to ``PROFILE_GN_STEPS`` Gauss–Newton steps with that
@@ -891,13 +893,13 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float) -
     trial, from one σ out, took 21–71 evaluations a profile on the seed grid, this 12–34
     (docs/distance.md, "A cheaper misfit profile and polish").
     """
-    r0 = fun(q)
+    r0 = fun(q) if r0 is None else r0
     f0 = _sq(r0)
     s2 = f0 / max(n_res - 3, 1)
     if not s2 > 0.0:
         return sigma_rel
     systematic = min(f0, PROFILE_FLOOR**2)
-    jac = _fd_jacobian(fun, fun_many, q, r0, COARSE_STEPS)
+    jac = _fd_jacobian(fun, fun_many, q, r0, COARSE_STEPS) if jac0 is None else jac0
     jp, jz = jac[:, 1:], jac[:, 0]
     try:
         solve = np.linalg.inv(_gram(jp))
@@ -995,6 +997,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fun = fun_of(fine)
     q_c = q
     q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
+    r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
     # at 80 000. The same fit through a turned pupil sample measures that shift; only when it
@@ -1030,7 +1033,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sigma_d = dist * _log_distance_sigma(jac, r)
     ridge = False
     if n_lit <= PROFILE_LENSLETS and math.isfinite(sigma_d) and not _at_far_bound(q):
-        s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist)
+        s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist,
+                               *((None, None) if polished else (r_fine, jac_q)))
         ridge = not math.isfinite(s_rel)  # the data do not fix the distance
         if not ridge:
             sigma_d = max(sigma_d, dist * s_rel)
