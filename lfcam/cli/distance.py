@@ -44,7 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS,
                    help="blur measurement: lightfield (exact fit of the pixels), lenslet (exact "
                    "fit of per-lenslet moments, fast), diameter (the seed's), auto (cheapest "
-                   "meeting --tolerance); default: auto with --model auto --tolerance, the "
+                   "meeting --tolerance; a spot's lenslet answer stands where 3σ meets it, "
+                   "the pixel fit measures the rest); default: auto with --model auto "
+                   "--tolerance, the "
                    "method a learned lens was learned with (lenslet), else lightfield")
     p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="--model auto: allowed distance error in percent (default: best)")
