@@ -94,6 +94,8 @@ def _apply_line_model(profile: CameraProfile, meas: Measurement, model: str) -> 
     model_err = float("nan")
     if status == RegionStatus.OK:
         model_err = float(table.predict("offaxis", d, meas.offset_mm)) * d
+        if np.isinf(model_err):  # outside where the closed form's error was measured
+            status = RegionStatus.OUT_OF_DOMAIN
     return "line", d, abs(float(inv.offset_mm)), model_err, status
 
 
@@ -123,10 +125,17 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
         inv, sigma = auto.propagate(model, profile, meas.plane_d_in_mm, np.array([meas.y1_mm]),
                                     np.array([meas.y2_mm]), meas.sigma_y_mm, meas.sigma_y_mm)
         if model != "exact":
+            # the model's error where the source is: at the measured offset when the
+            # measurement has one (the on-axis form reports 0 for its own)
+            off = meas.offset_mm if np.isfinite(meas.offset_mm) else inv.offset_mm
             table = auto.error_table(profile, meas.plane_d_in_mm)
-            model_err = table.predict(model, inv.distance_mm, inv.offset_mm) * inv.distance_mm
+            model_err = table.predict(model, inv.distance_mm, off) * inv.distance_mm
             sigma = np.hypot(sigma, model_err)
     status = Status(int(inv.status[0])).label
+    if status == RegionStatus.OK and np.isinf(sigma[0]):
+        # a closed form outside where its error was measured (the error table's field and
+        # distances): a number no one could defend
+        status = RegionStatus.OUT_OF_DOMAIN
     d = float(inv.distance_mm[0])
     s = float(sigma[0])
     if name == "exact" and fitted and status == RegionStatus.OK:
