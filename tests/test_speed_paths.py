@@ -351,3 +351,19 @@ def test_compiled_pupil_maps_equal_the_aimed_numpy_ones(lens):
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
     assert np.all(got[-2:] == [0.0, 0.0, 1.0, 1.0])  # the identity where aiming fails
     assert np.all(np.abs(ref[:n, 2] - 1.0) > 1e-4)  # the maps of the field are not trivial
+
+
+def test_frame_kernels_start_only_for_frames_that_use_them(monkeypatch):
+    # the CLI loads the compiled frame kernels beside the capture's decoding, for frames of
+    # COMPILED_FRAME_PX or more; the thread finishes without an error (the kernels run on its
+    # tiny inputs with the argument types of the real calls)
+    import threading
+
+    from lfcam.measure.lenslets import COMPILED_FRAME_PX, start_frame_kernels
+
+    errors = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: errors.append(args.exc_value))
+    assert start_frame_kernels((1000, 1000)) is None
+    thread = start_frame_kernels((COMPILED_FRAME_PX // 1000 + 1, 1000))
+    thread.join(timeout=120)
+    assert not thread.is_alive() and errors == []

@@ -70,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from lfcam.distance import run_distance, write_outputs
     from lfcam.io import load_capture
     from lfcam.io.capture import check_saturation
+    from lfcam.measure.lenslets import start_frame_kernels
 
     capture_path = Path(args.capture)
     out = Path(args.output)
@@ -79,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
                      [out / name for name in OUTPUT_FILES])
     check_output_dir(out)
     profile = profile_for_capture(capture_path, args.profile)
+    start_frame_kernels((profile.sensor.height_px, profile.sensor.width_px))
     with terminal_progress(args.quiet) as bar:
         t0 = time.perf_counter()
         bar("loading", 0, 1)
