@@ -167,14 +167,13 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
                     first.kind == "line" or auto.lenslet_answer_meets(
                         first.distance_mm, first.sigma_distance_mm, tolerance_pct)):
                 meas = first
-    if meas is not None:
-        pass
-    elif method == "lightfield":
-        meas = measure_lightfield(profile, geom, img, reg, noise, fast)
-    elif method == "lenslet":
-        meas = measure_lenslet(profile, geom, img, reg, noise)
-    else:
-        meas = measure_diameter(profile, geom, img, stats, reg, noise)
+    if meas is None:
+        if method == "lightfield":
+            meas = measure_lightfield(profile, geom, img, reg, noise, fast)
+        elif method == "lenslet":
+            meas = measure_lenslet(profile, geom, img, reg, noise)
+        else:
+            meas = measure_diameter(profile, geom, img, stats, reg, noise)
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
     return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
 
