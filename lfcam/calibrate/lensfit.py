@@ -31,22 +31,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from lfcam.calibrate.learned import (
+    LEARNED_METHOD,
+    MAX_SOURCES,
+    PARAMS,
+    surfaces_from_json,
+    surfaces_to_json,
+    validate_learned,
+)
 from lfcam.camera import CameraProfile, MainLens
-from lfcam.errors import CalibrationError, LfcamError, OpticsError
+from lfcam.errors import CalibrationError, LfcamError
 from lfcam.optics.lens import Prescription, ideal_lens
 from lfcam.progress import Progress
 from lfcam.status import RegionStatus
 
-PARAMS = ("focal_length_mm", "principal_mm", "d_in_mm")
 FOCAL_PRIOR_REL = 0.05  # a barrel's focal length is good to a few %
 MAX_ITERATIONS = 12
 TOL_DISTANCE_REL = 1e-3  # rounds stop when no target distance moves by more
 MIN_PLANES = 3
-MAX_SOURCES = 1000
 MIN_RELATIVE_SPREAD = 0.25  # planes must span ≥ 25 % in 1/distance (vergence) of the nearest
 LSA_BOUND_F = 0.01  # |marginal longitudinal spherical aberration| ≤ 1 % of f
 LSA_TOL_F = 1e-4
@@ -59,11 +64,6 @@ PUPIL_LOG_TOL = 0.008
 F_CRITICAL = 4.0  # ~95 % for one extra parameter
 SEED_D_IN_F = (1.04, 1.1, 1.25)  # seed MLA distances (focal lengths behind the principal plane)
 APEX_FLOOR_MM = 1e-4  # σ floor of one apex (numerical noise of the lenslet fit)
-# The measurement method the lens is learned with, and the distance stage's default with it:
-# the learned aberration terms stand in for the real lens's as that method sees them. On the
-# Cooke triplet at ∞ the image fit (``lightfield``) read every hidden source 1.7–1.9 % far
-# with the lens learned by the lenslet fit, which read them within 1 % (docs/calibration.md).
-LEARNED_METHOD = "lenslet"
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,7 @@ class LensFit:
         return {
             "model": "ideal-lens",
             "measured_with": LEARNED_METHOD,
-            "surfaces": _surfaces_to_json(
+            "surfaces": surfaces_to_json(
                 prescription_to_toml_dict(self.prescription)["main_lens"]["surfaces"]),
             "d_in_mm": float(self.d_in_mm),
             "f_number": float(self.f_number),
@@ -148,23 +148,6 @@ class LensFit:
                 for r in self.residuals
             ],
         }
-
-
-def _surfaces_to_json(rows: list[dict]) -> list[dict]:
-    """Surface tables for JSON: a flat surface's infinite radius is written as null."""
-    return [{k: (None if k == "radius_mm" and math.isinf(v) else v) for k, v in r.items()}
-            for r in rows]
-
-
-def _surfaces_from_json(rows: Any) -> Prescription:
-    """The prescription of a JSON ``surfaces`` list (null radius = flat)."""
-    from lfcam.optics.zmx import prescription_from_toml_dict
-
-    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-        raise CalibrationError("learned_lens.surfaces must be a list of tables")
-    rows = [{k: (math.inf if k == "radius_mm" and v is None else v) for k, v in r.items()}
-            for r in rows]
-    return prescription_from_toml_dict({"surfaces": rows})
 
 
 # ----------------------------------------------------------------------------- the model
@@ -759,7 +742,7 @@ def read_targets(csv_path, profile: CameraProfile) -> list[Target]:
 def learned_profile(profile: CameraProfile, learned: dict) -> CameraProfile:
     """``profile`` with the calibration's learned lens and MLA distance (block of
     :meth:`LensFit.to_dict`, validated by the calibration loader)."""
-    rx = _surfaces_from_json(learned["surfaces"])
+    rx = surfaces_from_json(learned["surfaces"])
     mla = replace(profile.mla, distance_mm=float(learned["d_in_mm"]), focus_mm=None)
     return replace(profile, main_lens=MainLens(prescription=rx), mla=mla)
 
@@ -806,54 +789,6 @@ def calibration_sigma_mm(learned: dict, profile: CameraProfile, distance_mm: flo
     g = distance_gradient(values, apex)
     var = float(g @ cov @ g)
     return math.sqrt(max(var, 0.0))
-
-
-def validate_learned(block: Any, where: str) -> dict:
-    """Check a calibration file's ``learned_lens`` block (sizes, numbers, plausibility)."""
-    if not isinstance(block, dict):
-        raise CalibrationError(f"{where}: learned_lens must be an object")
-    for key in ("surfaces", "d_in_mm", "parameters", "sigma", "covariance"):
-        if key not in block:
-            raise CalibrationError(f"{where}: learned_lens.{key} missing")
-    surfaces = block["surfaces"]
-    if not isinstance(surfaces, list) or not 1 <= len(surfaces) <= 64:
-        raise CalibrationError(f"{where}: learned_lens.surfaces must list 1–64 surfaces")
-    try:
-        rx = _surfaces_from_json(surfaces)
-        efl = rx.paraxial.efl_mm
-    except (LfcamError, TypeError, ValueError) as exc:
-        raise CalibrationError(f"{where}: learned_lens.surfaces: {exc}") from None
-    except OpticsError as exc:  # pragma: no cover - LfcamError above
-        raise CalibrationError(f"{where}: learned_lens: {exc}") from None
-    d_in = block["d_in_mm"]
-    if isinstance(d_in, bool) or not isinstance(d_in, (int, float)) or not (
-            math.isfinite(d_in) and 0 < d_in < 1e5):
-        raise CalibrationError(f"{where}: learned_lens.d_in_mm must be a positive length")
-    if not (0 < efl < 1e5) or d_in <= rx.paraxial.back_principal_z_mm:
-        raise CalibrationError(f"{where}: learned_lens: implausible lens (EFL {efl:.4g} mm, "
-                               f"d_in {d_in:.4g} mm)")
-    params, sigma = block["parameters"], block["sigma"]
-    for name, table in (("parameters", params), ("sigma", sigma)):
-        if not isinstance(table, dict) or set(table) != set(PARAMS) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                for v in table.values()):
-            raise CalibrationError(
-                f"{where}: learned_lens.{name} must give {', '.join(PARAMS)} as numbers")
-    cov = np.asarray(block["covariance"], dtype=np.float64) if isinstance(
-        block["covariance"], list) else None
-    if cov is None or cov.shape != (3, 3) or not np.isfinite(cov).all():
-        raise CalibrationError(f"{where}: learned_lens.covariance must be a 3×3 numeric matrix")
-    res = block.get("residuals", [])
-    if not isinstance(res, list) or len(res) > MAX_SOURCES:
-        raise CalibrationError(f"{where}: learned_lens.residuals must be a list of at most "
-                               f"{MAX_SOURCES}")
-    method = block.get("measured_with", LEARNED_METHOD)
-    if method not in ("lenslet", "lightfield"):
-        raise CalibrationError(f"{where}: learned_lens.measured_with must be lenslet or "
-                               f"lightfield, got {method!r}")
-    out = dict(block)
-    out["covariance"] = cov.tolist()
-    return out
 
 
 __all__ = ["LensFit", "SourceResidual", "Target", "apex_mm", "build_lens",

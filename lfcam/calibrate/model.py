@@ -600,7 +600,7 @@ def calibration_from_dict(d: Any, source: str = "") -> Calibration:
 
 
 def _learned_from_dict(block: Any, where: str) -> dict:
-    from lfcam.calibrate.lensfit import validate_learned
+    from lfcam.calibrate.learned import validate_learned
 
     return validate_learned(block, where)
 
