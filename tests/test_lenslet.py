@@ -17,8 +17,9 @@ from lfcam.camera import load_profile
 from lfcam.distance import run_distance
 from lfcam.io import load_capture
 from lfcam.measure import METHODS, prepare_geometry
-from lfcam.measure.fastfit import _pixel_boxes, _two_cells, lattice_of, vogel_disc
+from lfcam.measure.fastfit import _two_cells, lattice_of
 from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
+from lfcam.measure.sampling import pixel_boxes, vogel_disc
 from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_method
 from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
@@ -164,9 +165,9 @@ def test_auto_method_choice_reads_the_error_table():
 def test_soft_binning_is_continuous_and_exact_in_the_limit():
     # a ray's pixel share moves continuously; a vanishing box is nearest-pixel binning
     px = np.array([3.49, 3.51])
-    cols, _, w = _pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 0.2)
+    cols, _, w = pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 0.2)
     assert set(np.round(w, 6)) <= {0.45, 0.55} and set(cols) == {3, 4}
-    cols, _, w = _pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 1e-9)
+    cols, _, w = pixel_boxes(px, np.array([0.0, 0.0]), np.ones(2), 1e-9)
     assert list(cols[w > 0.5]) == [3, 4]
     # two nearest cells: the gap is the distance to their border
     centres = np.array([[i * 0.25, j * 0.25] for i in range(-3, 4) for j in range(-3, 4)])

@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -48,11 +47,11 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
+from lfcam.measure.sampling import pixel_boxes, vogel_disc
 from lfcam.measure.verify import line_trigger, poor_fit_limit
 from lfcam.optics.trace import forward, trace_sources_fast
 from lfcam.status import RegionStatus
 
-GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
 MIN_RAYS = 12000
 MAX_RAYS = 20000
@@ -125,28 +124,6 @@ PROFILE_START = 2.0  # the first trial step, in units of the Jacobian's σ
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
-
-
-@lru_cache(maxsize=64)
-def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral),
-    turned by ``phase`` radians. Cached (every model of every region draws the same few
-    samples); the arrays are read-only."""
-    i = np.arange(n, dtype=np.float64)
-    r = np.sqrt((i + 0.5) / n)
-    t = i * GOLDEN_ANGLE + phase
-    x, y = r * np.cos(t), r * np.sin(t)
-    # in the spiral's order, successive points lie on opposite sides of the disc, and so do
-    # their rays' landings on the MLA and sensor: every deposit then misses the cache on a
-    # large blur. Ordered along rows of the disc instead (bands about √n points long, the
-    # direction alternating), successive rays land side by side
-    bands = max(1, int(round(math.sqrt(n) / 2.0)))
-    band = np.minimum(((y + 1.0) * 0.5 * bands).astype(np.int64), bands - 1)
-    order = np.lexsort((np.where(band % 2 == 0, x, -x), band))
-    x, y = x[order], y[order]
-    x.flags.writeable = False
-    y.flags.writeable = False
-    return x, y
 
 
 def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
@@ -341,7 +318,7 @@ class LensletModel:
         tag = np.concatenate([tag, tag[split]])
         px = (cx + np.concatenate([sx, sx[split]])) / pp + ax - x0
         py = (cy + np.concatenate([sy, sy[split]])) / pp + ay - y0
-        cols, rows, wts_, ray = _pixel_boxes(px, py, wt, s_px, with_source=True)
+        cols, rows, wts_, ray = pixel_boxes(px, py, wt, s_px, with_source=True)
         inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
         cols, rows, wts_, ray = cols[inside], rows[inside], wts_[inside], ray[inside]
         k = self.mom.labels[rows, cols]
@@ -501,30 +478,6 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
         gap = (db - da) / (2.0 * sep)
     return (o[0] + b[0, 0] * i + b[0, 1] * j, o[1] + b[1, 0] * i + b[1, 1] * j,
             o[0] + b[0, 0] * i2 + b[0, 1] * j2, o[1] + b[1, 0] * i2 + b[1, 1] * j2, gap)
-
-
-def _pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float,
-                 with_source: bool = False):
-    """Bin rays at sensor positions (px, py) into pixels, each ray a box ``s`` px wide:
-    (cols, rows, weights[, index of the ray each share came from]); ``s → 0`` is
-    nearest-pixel binning (the sensor's integration)."""
-    cx, cy = np.floor(px + 0.5), np.floor(py + 0.5)
-    tx, ty = px - cx, py - cy  # offset from the pixel centre, [−0.5, 0.5)
-    ex = np.clip((np.abs(tx) + 0.5 * s - 0.5) / s, 0.0, 0.5)  # share beyond the near edge
-    ey = np.clip((np.abs(ty) + 0.5 * s - 0.5) / s, 0.0, 0.5)
-    nx = cx + np.sign(tx)
-    ny = cy + np.sign(ty)
-    sx, sy = ex > 0, ey > 0
-    sxy = sx & sy
-    cols = np.concatenate([cx, nx[sx], cx[sy], nx[sxy]]).astype(np.int64)
-    rows = np.concatenate([cy, cy[sx], ny[sy], ny[sxy]]).astype(np.int64)
-    wts = np.concatenate([w * (1 - ex) * (1 - ey), (w * ex * (1 - ey))[sx],
-                          (w * (1 - ex) * ey)[sy], (w * ex * ey)[sxy]])
-    if not with_source:
-        return cols, rows, wts
-    src = np.concatenate([np.arange(px.size), np.flatnonzero(sx), np.flatnonzero(sy),
-                          np.flatnonzero(sxy)])
-    return cols, rows, wts, src
 
 
 # Long vectors are reduced with einsum rather than BLAS: a threaded BLAS wakes its threads for

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lfcam.camera import CameraProfile
+from lfcam.measure.sampling import pixel_boxes, vogel_disc
 from lfcam.optics.trace import trace_backward_fast, trace_source_fast, trace_sources_fast
 from lfcam.status import RegionStatus
 
@@ -501,8 +502,6 @@ class _Patch:
         self.lattice = LocalLattice.fit(lens_centres_mm, profile.mla.pitch_mm)
         # a quasi-random (Vogel) pupil sample of the grid's ray count: a regular grid aliases
         # with the pixels and leaves ±0.3 % ripples in the misfit along the line of sight
-        from lfcam.measure.fastfit import vogel_disc  # fastfit imports this module
-
         self.pattern = vogel_disc(len(pupil_pattern(IMAGE_PUPIL_SAMPLES)[0]))
         self.evaluations = 0
 
@@ -550,9 +549,7 @@ class _Patch:
         # box SPLAT_BOX_PX wide so that the image stays continuous in the source position. The
         # former bilinear splat (a tent, matched to the pixel box in variance only) biased
         # 1–2 px spots behind focus by up to −1.3 % (docs/distance.md).
-        from lfcam.measure.fastfit import _pixel_boxes  # fastfit imports this module
-
-        jx, jy, wt = _pixel_boxes(px, py, weight, SPLAT_BOX_PX)
+        jx, jy, wt = pixel_boxes(px, py, weight, SPLAT_BOX_PX)
         inside = (jx >= 0) & (jx < w) & (jy >= 0) & (jy < h)
         img = np.bincount(jy[inside] * w + jx[inside], wt[inside], minlength=h * w).astype(
             np.float64)  # no ray inside: bincount returns int64, which GaussianBlur refuses

@@ -1,0 +1,63 @@
+"""Ray sampling shared by the measurement's forward models: the pupil sample and the
+sensor's pixel binning.
+
+:func:`vogel_disc` is the quasi-random pupil sample of both the image model
+(:mod:`lfcam.measure.pointfit`) and the lenslet model (:mod:`lfcam.measure.fastfit`);
+:func:`pixel_boxes` bins rays into pixels as a sensor integrates them, each ray a small box so
+that a model stays continuous in the source position.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
+@lru_cache(maxsize=64)
+def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` quasi-random points of the unit disc, equal area each (Vogel's sunflower spiral),
+    turned by ``phase`` radians. Cached (every model of every region draws the same few
+    samples); the arrays are read-only."""
+    i = np.arange(n, dtype=np.float64)
+    r = np.sqrt((i + 0.5) / n)
+    t = i * GOLDEN_ANGLE + phase
+    x, y = r * np.cos(t), r * np.sin(t)
+    # in the spiral's order, successive points lie on opposite sides of the disc, and so do
+    # their rays' landings on the MLA and sensor: every deposit then misses the cache on a
+    # large blur. Ordered along rows of the disc instead (bands about √n points long, the
+    # direction alternating), successive rays land side by side
+    bands = max(1, int(round(math.sqrt(n) / 2.0)))
+    band = np.minimum(((y + 1.0) * 0.5 * bands).astype(np.int64), bands - 1)
+    order = np.lexsort((np.where(band % 2 == 0, x, -x), band))
+    x, y = x[order], y[order]
+    x.flags.writeable = False
+    y.flags.writeable = False
+    return x, y
+
+
+def pixel_boxes(px: np.ndarray, py: np.ndarray, w: np.ndarray, s: float,
+                 with_source: bool = False):
+    """Bin rays at sensor positions (px, py) into pixels, each ray a box ``s`` px wide:
+    (cols, rows, weights[, index of the ray each share came from]); ``s → 0`` is
+    nearest-pixel binning (the sensor's integration)."""
+    cx, cy = np.floor(px + 0.5), np.floor(py + 0.5)
+    tx, ty = px - cx, py - cy  # offset from the pixel centre, [−0.5, 0.5)
+    ex = np.clip((np.abs(tx) + 0.5 * s - 0.5) / s, 0.0, 0.5)  # share beyond the near edge
+    ey = np.clip((np.abs(ty) + 0.5 * s - 0.5) / s, 0.0, 0.5)
+    nx = cx + np.sign(tx)
+    ny = cy + np.sign(ty)
+    sx, sy = ex > 0, ey > 0
+    sxy = sx & sy
+    cols = np.concatenate([cx, nx[sx], cx[sy], nx[sxy]]).astype(np.int64)
+    rows = np.concatenate([cy, cy[sx], ny[sy], ny[sxy]]).astype(np.int64)
+    wts = np.concatenate([w * (1 - ex) * (1 - ey), (w * ex * (1 - ey))[sx],
+                          (w * (1 - ex) * ey)[sy], (w * ex * ey)[sxy]])
+    if not with_source:
+        return cols, rows, wts
+    src = np.concatenate([np.arange(px.size), np.flatnonzero(sx), np.flatnonzero(sy),
+                          np.flatnonzero(sxy)])
+    return cols, rows, wts, src
