@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lfcam.camera import load_profile, profile_for_capture, profile_from_dict
+from lfcam.camera import load_profile, profile_from_dict
 from lfcam.io import load_capture
 from lfcam.io import lytro_meta as lm
 from lfcam.io.lfp import merged_metadata, read_lfp
+from lfcam.io.profiles import profile_for_capture
 from lfcam.sim.capture import profile_to_dict, simulate
 from lfcam.sim.lytro import lytro_metadata, write_lytro_capture
 from lfcam.sim.scene import scene_from_dict

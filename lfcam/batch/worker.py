@@ -22,10 +22,10 @@ import cv2
 
 from lfcam.atomic import atomic_write_text, sha256_file
 from lfcam.calibrate.model import calibration_from_bytes
-from lfcam.camera import profile_for_capture
 from lfcam.distance import run_distance, write_outputs
 from lfcam.errors import BatchError
 from lfcam.io import load_capture
+from lfcam.io.profiles import profile_for_capture
 from lfcam.measure import prepare_geometry
 
 OUTPUT_FILES = ("regions.csv", "distance.tiff", "distance.png")

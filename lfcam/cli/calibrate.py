@@ -74,8 +74,8 @@ def run(args: argparse.Namespace) -> int:
     target_profile = None
     if targets_csv is not None:
         # --profile, else the white's .profile.toml sidecar, else a Lytro file's own metadata
-        from lfcam.camera import profile_for_capture
         from lfcam.errors import ProfileError
+        from lfcam.io.profiles import profile_for_capture
 
         try:
             target_profile = profile_for_capture(args.white, args.profile)

@@ -10,7 +10,6 @@ from pathlib import Path
 
 from lfcam.atomic import check_output_dir, refuse_overwrite
 from lfcam.calibrate.lensfit import default_method
-from lfcam.camera import profile_for_capture
 from lfcam.cli.common import (
     add_no_verify,
     add_quiet,
@@ -21,6 +20,7 @@ from lfcam.cli.common import (
     profile_file,
     verify_mode,
 )
+from lfcam.io.profiles import profile_for_capture
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
 from lfcam.progress import terminal_progress
