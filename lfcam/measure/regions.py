@@ -212,10 +212,11 @@ def lattice_coordinates(centres_px: np.ndarray, pitch_px: float
     """Integer lattice indices of micro-image centres and the lattice's basis, found from the
     centres alone.
 
-    The two basis vectors are the medians of the nearest-neighbour vectors (one pitch long)
-    along the commonest direction and along the next one 50-95° from it (hex: 60°, rect:
-    90°); indices are rounded from them about the most central lenslet, and the lattice
-    ``c = o + B·(i, j)`` is refitted to all centres by least squares, twice.
+    The lattice's kind, pitch and rotation are the white calibration's rough estimate
+    (:func:`lfcam.calibrate.grid.rough_lattice`, from nearest-neighbour vectors) on the
+    central lenslets; indices are rounded from that basis about the most central lenslet, and
+    the lattice ``c = o + B·(i, j)`` is refitted to all centres by least squares, three
+    times.
 
     Parameters
     ----------
@@ -226,7 +227,8 @@ def lattice_coordinates(centres_px: np.ndarray, pitch_px: float
     Returns
     -------
     (indices (N, 2) int array, basis (2, 2) array: columns the two lattice vectors, px), or
-    None when the centres are not such a lattice: two share an index, or one lies more than
+    None when the centres are not such a lattice: no regular grid, a pitch more than 15 % from
+    ``pitch_px``, two centres on one index, or one lying more than
     ``LATTICE_MAX_RESIDUAL`` pitches from the fitted lattice (irregular centres, a gap of a
     missing row, a lattice too distorted for one affine fit).
     """
@@ -234,36 +236,21 @@ def lattice_coordinates(centres_px: np.ndarray, pitch_px: float
     n = len(c)
     if n < 8 or not pitch_px > 0:
         return None
-    # the basis from the central lenslets: the 2000 nearest the centroid, their neighbours
-    # among the 8000 nearest (a tree of every centre cost 0.2 s at Illum size)
-    r2 = ((c - c.mean(axis=0)) ** 2).sum(axis=1)
-    near = np.argsort(r2)[:8000] if n > 8000 else np.argsort(r2)
-    tree = cKDTree(c[near])
-    pick = near[:2000]
-    dist, idx = tree.query(c[pick], k=min(7, len(near)))
-    vec = (c[near[idx[:, 1:]]] - c[pick, None, :]).reshape(-1, 2)
-    length = dist[:, 1:].ravel()
-    vec = vec[np.abs(length - pitch_px) < 0.15 * pitch_px]
-    if len(vec) < 8:
-        return None
-    vec[vec[:, 1] < 0] *= -1.0  # fold to one half-plane: v and −v are the same direction
-    ang = np.degrees(np.arctan2(vec[:, 1], vec[:, 0])) % 180.0
-    hist = np.bincount(np.floor(ang / 5.0).astype(np.int64) % 36, minlength=36)
-    first = (np.argmax(hist) + 0.5) * 5.0
+    # the lattice's kind, pitch and rotation from the central lenslets (the calibration's own
+    # estimate, lfcam.calibrate.grid.rough_lattice, on the 8000 nearest the centroid: a tree
+    # of every centre cost 0.2 s at Illum size), in lfcam's one lattice convention
+    from lfcam.calibrate.grid import rough_lattice
+    from lfcam.errors import CalibrationError
+    from lfcam.optics.mla import lattice_basis, rotation_matrix
 
-    def around(a0: float, lo: float, hi: float) -> np.ndarray:
-        d = (ang - a0) % 180.0
-        return vec[(d >= lo) & (d < hi)] if hi > lo else vec[(d >= lo) | (d < hi)]
-
-    v1 = around(first, 175.0, 5.0)
-    v1 = np.where((v1 @ v1[0])[:, None] < 0, -v1, v1)
-    a1 = np.median(v1, axis=0)
-    d1 = float(np.degrees(np.arctan2(a1[1], a1[0])))
-    v2 = around(d1, 50.0, 95.0)
-    if len(v1) < 4 or len(v2) < 4:
+    near = np.argsort(((c - c.mean(axis=0)) ** 2).sum(axis=1))[:8000]
+    try:
+        grid, pitch, rotation, _ = rough_lattice(c[near])
+    except CalibrationError:  # no regular grid
         return None
-    v2 = np.where((v2 @ v2[0])[:, None] < 0, -v2, v2)
-    basis = np.column_stack([a1, np.median(v2, axis=0)])
+    if abs(pitch - pitch_px) > 0.15 * pitch_px:
+        return None
+    basis = pitch * rotation_matrix(rotation) @ lattice_basis(grid)
     origin = c[near[0]]
     for _ in range(3):
         try:
