@@ -189,14 +189,12 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
         from lfcam.measure.kernels import box_moments  # numba
 
         # contiguous copies of the box: one argument signature (compiled once, cached)
-        ids, m, s0, s1 = box_moments(
+        ids, compact, m, s0, s1 = box_moments(
             np.ascontiguousarray(lab, dtype=np.int32),
             np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float64),
             np.ascontiguousarray(geom.lmap.centres_px, dtype=np.float64), int(x0), int(y0),
             float(geom.pitch_px), float(ped), int(geom.lmap.count))
-        index = np.full(geom.lmap.count + 1, -1, dtype=np.int64)
-        index[ids] = np.arange(len(ids))
-        return _Moments(box, index[lab], ids, geom.lmap.centres_px[ids], m,
+        return _Moments(box, compact, ids, geom.lmap.centres_px[ids], m,
                         float(np.sqrt((m * m).sum())), (s0, s1))
     keep = lab >= 0
     present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0

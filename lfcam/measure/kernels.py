@@ -235,9 +235,10 @@ def lenslet_sums(labels, image, n):
 def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslets):
     """:func:`lfcam.measure.fastfit.data_moments` of a box in one pass: ``labels`` and
     ``image`` are the box's slices (corner ``(x0, y0)``), ``centres_px`` every lenslet's
-    micro-image centre. Returns (ids of the lenslets present, in increasing order; their
-    moments ``(K, 4)``; the noise sums of :func:`lfcam.measure.noise.moment_noise_sums`),
-    summed in a row-major pass as ``np.bincount`` does."""
+    micro-image centre. Returns (ids of the lenslets present, in increasing order; the box's
+    labels as compact indices into ``ids``, −1 none; their moments ``(K, 4)``; the noise sums
+    of :func:`lfcam.measure.noise.moment_noise_sums`), summed in a row-major pass as
+    ``np.bincount`` does."""
     h, w = labels.shape
     present = np.zeros(n_lenslets + 1, dtype=np.int64)
     for row in range(h):
@@ -254,6 +255,7 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
     for k in range(n_lenslets):
         if present[k]:
             ids[present[k] - 1] = k
+    compact = np.full((h, w), -1, dtype=np.int64)
     out = np.zeros((count, 4))
     s0 = 0.0
     s1 = 0.0
@@ -263,6 +265,7 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
             if k < 0:
                 continue
             c = present[k] - 1
+            compact[row, col] = c
             v = image[row, col] - pedestal
             dx = (col + x0 - centres_px[k, 0]) / pitch_px
             dy = (row + y0 - centres_px[k, 1]) / pitch_px
@@ -275,7 +278,7 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
             s0 += f2
             if v > 0.0:
                 s1 += v * f2
-    return ids, out, s0, s1
+    return ids, compact, out, s0, s1
 
 
 @njit(cache=True, nogil=True)
