@@ -848,7 +848,7 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
     profile's); the first trial is ``PROFILE_START`` Jacobian σ out, where a quadratic
     profile has risen past s². Levenberg–Marquardt with a fresh difference Jacobian at every
     trial, from one σ out, took 21–71 evaluations a profile on the seed grid, this 12–34
-    (docs/distance.md, "A cheaper misfit profile and polish").
+    (docs/distance.md, "Fewer evaluations: a cheaper σ profile and polish").
     """
     r0 = fun(q) if r0 is None else r0
     f0 = _sq(r0)
@@ -1029,8 +1029,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     whose fine Gauss–Newton misfit is over ``LINE_STOP_FINE`` × that, stops there
     (``ok=False``, status ``poor-fit``): the later stages lower the misfit by at most 2.7× and
     2.7× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
-    when they cannot win", "A cheaper misfit profile and polish"). ``mom``: the region's
-    :func:`data_moments`, when the caller has them.
+    when they cannot win", "Fewer evaluations: a cheaper σ profile and polish"). ``mom``: the
+    region's :func:`data_moments`, when the caller has them.
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))

@@ -209,6 +209,16 @@ def warm_up() -> None:
                0.0, 1.0)
 
 
+def warm_up_frame() -> None:
+    """Load (or compile) the frame kernels with the argument types
+    :mod:`lfcam.measure.lenslets` passes on large frames (the lenslet map's stamping, the
+    per-lenslet sums): what the parent process needs before its geometry."""
+    stamp_labels(np.full((1, 1), -1, dtype=np.int32), np.zeros((1, 2)),
+                 np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                 np.zeros(1, dtype=np.int64), 1.0, 1)
+    lenslet_sums(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), 1)
+
+
 @njit(cache=True, nogil=True)
 def lenslet_sums(labels, image, n):
     """Per lenslet ``0 … n−1``: pixel count, Σv, Σv·x, Σv·y over the pixels ``labels``

@@ -50,13 +50,9 @@ def start_frame_kernels(shape: tuple[int, int]):
     import threading
 
     def load() -> None:
-        from lfcam.measure.kernels import lenslet_sums, stamp_labels
+        from lfcam.measure.kernels import warm_up_frame
 
-        one = np.zeros((1, 1), dtype=np.int32)
-        stamp_labels(np.full((1, 1), -1, dtype=np.int32), np.zeros((1, 2)),
-                     np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-                     np.zeros(1, dtype=np.int64), 1.0, 1)
-        lenslet_sums(one, np.zeros((1, 1)), 1)
+        warm_up_frame()
 
     thread = threading.Thread(target=load, daemon=True)
     thread.start()
