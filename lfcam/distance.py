@@ -8,8 +8,9 @@ regions on the lenslet lattice → per region a blur measurement (:mod:`lfcam.me
 
 Methods: ``lightfield`` (default; the exact light-field fit, ``fast=True`` keeps its
 triangulation), ``lenslet`` (the exact forward model fitted to per-lenslet moments, 35-55 ms
-a point region on the seed grid), ``diameter`` (the seed's footprint diameter) and ``auto`` (the cheapest method
-whose measured worst error meets ``tolerance_pct``, :func:`lfcam.models.auto.choose_method`).
+a point region on the seed grid), ``diameter`` (the seed's footprint diameter) and ``auto``
+(the cheapest method whose measured worst error meets ``tolerance_pct``,
+:func:`lfcam.models.auto.choose_method`).
 Regions are measured in parallel over ``jobs`` processes (forked from a server that has
 loaded the measurement modules once, started before the geometry so that its start-up
 overlaps it; the image and the lenslet map are shared once through shared memory); the
