@@ -48,6 +48,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from lfcam.measure.cache import ObjectCache
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.robust import mad_sigma
 
@@ -203,6 +204,7 @@ def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,
 DISC_CELLS_PER_PITCH = 8  # fallback raster of the disc averages: centres rounded to pitch / 8,
 DISC_CELLS_PER_RADIUS = 32  # ... or to radius / 32 where that is coarser (large discs),
 DISC_MIN_CELLS_PER_PITCH = 4  # ... but never coarser than pitch / 4
+_LATTICE_CACHE = ObjectCache(4)
 LATTICE_MAX_RESIDUAL = 0.25  # lattice coordinates are used when every centre lies this close
 # (pitches) to the lattice fitted to them, each on its own index
 
@@ -291,7 +293,12 @@ def _disc_means(values: np.ndarray, centres_px: np.ndarray, pitch_px: float,
     import cv2
 
     values = np.asarray(values, dtype=np.float64)
-    lattice = lattice_coordinates(centres_px, pitch_px)
+    # per centres array (one geometry, every capture measured on it: a batch fits its lattice
+    # once, not once a capture; 0.15 s at Illum size)
+    pitch, lattice = _LATTICE_CACHE.get(
+        centres_px, lambda: (pitch_px, lattice_coordinates(centres_px, pitch_px)))
+    if pitch != pitch_px:
+        lattice = lattice_coordinates(centres_px, pitch_px)
     if lattice is not None:
         ij, basis = lattice
         ij = ij - ij.min(axis=0)
