@@ -72,7 +72,10 @@ def moments_misfit(noise: NoiseModel, image: np.ndarray, lmap: LensletMap, pitch
 
     Each moment is a weighted pixel sum, so its variance is ``Σ var·f²`` with ``var = σ_r² +
     g·max(v, 0)``; the misfit is the square root of their total over ``norm`` (the data
-    moments' norm).
+    moments' norm). The lenslet fit reads the same number from the sums that
+    :func:`~lfcam.measure.fastfit.data_moments` gathers in its own pass
+    (:meth:`NoiseModel.moments_misfit_of`); this standalone pass over the box is the reference
+    it is tested against.
 
     Parameters
     ----------
