@@ -159,15 +159,19 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     meas = None
     if method == "auto":
         method = auto.choose_method(tolerance_pct, reg.kind)
-        if method == "lightfield" and tolerance_pct is not None:
-            # the lenslet fit first (~0.1 s): its answer stands where its own σ meets the
-            # tolerance (a line's always: no method measures lines better); the pixel fit
-            # (seconds) only for the regions it does not
+        if method in ("lenslet", "lightfield") and tolerance_pct is not None:
+            # the lenslet fit first (~0.1 s). The kind it decides from the data, not the
+            # region's shape, picks the rule (vignetting and coma stretch off-axis spots into
+            # regions shaped like lines): a line's answer stands (no method measures lines
+            # better), a spot's where its own σ meets the tolerance; the pixel fit (seconds)
+            # only for the other spots, and for failed regions that look like spots
             first = measure_lenslet(profile, geom, img, reg, noise)
-            if first.status == RegionStatus.OK and (
-                    first.kind == "line" or auto.lenslet_answer_meets(
-                        first.distance_mm, first.sigma_distance_mm, tolerance_pct)):
+            if first.status != RegionStatus.OK:
+                meas = first if method == "lenslet" else None
+            elif first.kind == "line" or auto.lenslet_answer_meets(
+                    first.distance_mm, first.sigma_distance_mm, tolerance_pct):
                 meas = first
+            method = "lightfield"
     if meas is None:
         if method == "lightfield":
             meas = measure_lightfield(profile, geom, img, reg, noise, fast)

@@ -101,7 +101,7 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
 
     def lenslet(profile, geom, img, reg, noise):
         calls.append(("lenslet", reg.region_id))
-        sigma = {0: 1.0, 1: 5.0, 2: 5.0}[reg.region_id]
+        sigma = {0: 1.0, 1: 5.0, 2: 5.0, 3: 5.0, 4: 1.0}[reg.region_id]
         kind = "line" if reg.region_id == 2 else "spot"
         return replace(ok, sigma_distance_mm=sigma, kind=kind)
 
@@ -114,16 +114,20 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
     monkeypatch.setattr(distance, "_apply_model", lambda p, m, model, tol: (
         "exact", m.distance_mm, 0.0, m.sigma_distance_mm, m.status))
     out = {}
-    for rid in (0, 1, 2):
-        reg = Region(region_id=rid, kind="spot", lenslets=np.arange(3), energy=1.0,
-                     centroid_px=(0.0, 0.0), box_px=(0, 0, 1, 1), elongation=1.0,
-                     axis_dir=(1.0, 0.0), parts=1)
+    for rid in (0, 1, 2, 3, 4):
+        # regions 3 and 4 look like lines (an off-axis spot stretched by vignetting) but the
+        # lenslet fit finds spots: the spot rule applies to them
+        reg = Region(region_id=rid, kind="line" if rid >= 3 else "spot",
+                     lenslets=np.arange(3), energy=1.0, centroid_px=(0.0, 0.0),
+                     box_px=(0, 0, 1, 1), elongation=1.0, axis_dir=(1.0, 0.0), parts=1)
         out[rid] = distance._estimate(prof, None, None, None, reg, 0.0, "exact", "auto", 1.0,
                                       False)
     # region 0: 3σ = 0.3 % ≤ 1 %: the lenslet answer; region 1: 1.5 % > 1 %: pixels;
-    # region 2: a line, kept
-    assert calls == [("lenslet", 0), ("lenslet", 1), ("lightfield", 1), ("lenslet", 2)]
+    # region 2: a line, kept; region 3: a spot by the fit, 1.5 % > 1 %: pixels; region 4: 0.3 %
+    assert calls == [("lenslet", 0), ("lenslet", 1), ("lightfield", 1), ("lenslet", 2),
+                     ("lenslet", 3), ("lightfield", 3), ("lenslet", 4)]
     assert out[0][2] == 1000.0 and out[1][2] == 1001.0 and out[2][0] == "line"
+    assert out[3][2] == 1001.0 and out[4][2] == 1000.0
 
 
 def test_a_closed_form_outside_its_measured_field_is_out_of_domain():
