@@ -329,6 +329,48 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     assert np.mean(classical) < 0.75 * true_sigma  # what the classical σ states (0.67×)
 
 
+def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
+    # the same shape, but the distance fixed by a few of 40 lenslets (Jacobian rows 0.02-3,
+    # geometric) that are also the noisiest: the fit follows their noise, their residuals
+    # show only part of it, and the sandwich Σ g_k g_kᵀ averages to 0.76× the analytic σ.
+    # The delete-one-lenslet jackknife must average to it within 10 % (it states 1.04×), and
+    # equal the parameter change of refits that leave each lenslet out (its definition)
+    from lfcam.measure.fastfit import _jackknife_variance, _log_distance_sigma
+
+    rng = np.random.default_rng(7)
+    k, p = 40, 3
+    jac = rng.normal(size=(4 * k, p)) * np.repeat(np.geomspace(0.02, 3.0, k), 4)[:, None]
+    scale = np.repeat(np.geomspace(0.3, 3.0, k), 4)
+    mix = np.linalg.cholesky(0.5 * np.eye(4) + 0.5)
+    inv = np.linalg.inv(jac.T @ jac)
+    lsq = inv @ jac.T
+    cov = np.zeros((4 * k, 4 * k))
+    for i in range(k):
+        s = slice(4 * i, 4 * i + 4)
+        cov[s, s] = np.outer(scale[s], scale[s]) * (mix @ mix.T)
+    true_sigma = math.sqrt((lsq @ cov @ lsq.T)[0, 0])
+    est, sandwich = [], []
+    for _ in range(400):
+        noise = (rng.normal(size=(k, 4)) @ mix.T).ravel() * scale
+        r = noise - jac @ (lsq @ noise)
+        est.append(_log_distance_sigma(jac, r))
+        g = (jac * r[:, None]).reshape(k, 4, p).sum(axis=1) @ inv[0]
+        sandwich.append(math.sqrt(float(g @ g) * 4 * k / (4 * k - p)))
+    assert np.mean(est) == pytest.approx(true_sigma, rel=0.1)
+    assert np.mean(sandwich) < 0.85 * true_sigma
+    # definition: (K − 1)/K Σ (θ₋ₖ − θ)², θ₋ₖ the least-squares fit without lenslet k
+    noise = rng.normal(size=4 * k) * scale
+    theta = lsq @ noise
+    r = noise - jac @ theta
+    drops = []
+    for i in range(k):
+        keep = np.ones(4 * k, dtype=bool)
+        keep[4 * i:4 * i + 4] = False
+        drops.append(np.linalg.lstsq(jac[keep], noise[keep], rcond=None)[0] - theta)
+    ref = (k - 1) / k * sum(np.outer(d, d) for d in drops)
+    np.testing.assert_allclose(_jackknife_variance(jac, r, inv), ref, rtol=1e-8)
+
+
 @pytest.mark.parametrize("lens", ["cooke_triplet", "double_gauss"])
 def test_compiled_pupil_maps_equal_the_aimed_numpy_ones(lens):
     # kernels.pupil_maps runs aim_rays' damped Newton iteration per stop-edge ray: the same

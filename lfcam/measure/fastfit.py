@@ -745,12 +745,15 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
 def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
     """σ of the fitted log distance (parameter 0) from the Jacobian ``jac`` and residual ``r``
     at the minimum: the larger of the classical ``s²·(JᵀJ)⁻¹`` (``s² = Σr²/(n − p)``, every
-    residual equally noisy) and the cluster-robust sandwich ``(JᵀJ)⁻¹ (Σ_k g_k g_kᵀ)
-    (JᵀJ)⁻¹``, ``g_k = Σ J·r`` over the four moments of lenslet ``k``. The moments are not
-    equally noisy — a bright lenslet's carry more photon noise, the model's mismatch gathers
-    on a few — and on the 12-source scene the classical σ left far, dim sources 3–7σ off while
-    the sandwich covers every answer within 3.4σ (docs/distance.md, "Uncertainty that covers
-    the error"). ``inf`` when the Jacobian is singular."""
+    residual equally noisy) and the lenslet jackknife (:func:`_jackknife_variance`).
+
+    The moments are not equally noisy — a bright lenslet's carry more photon noise, the model's
+    mismatch gathers on a few — so the classical σ left far, dim sources of the 12-source
+    scenes 3–7σ off. The cluster-robust sandwich ``(JᵀJ)⁻¹ (Σ_k g_k g_kᵀ) (JᵀJ)⁻¹``,
+    ``g_k = Σ J·r`` over lenslet ``k``'s four moments, that replaced it was still 1.2–3.7× low
+    there: the few bright lenslets that fix the distance pull the fit onto their own noise, so
+    their residuals show only part of it (docs/distance.md, "Uncertainty that covers the
+    error"). ``inf`` when the Jacobian is singular."""
     n, p = jac.shape
     try:
         inv = np.linalg.inv(_gram(jac))
@@ -759,10 +762,32 @@ def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
     classical = _sq(r) / max(n - p, 1) * inv[0, 0]
     if n % 4:
         return math.sqrt(max(classical, 0.0))
-    g = (jac * r[:, None]).reshape(n // 4, 4, p).sum(axis=1)
-    row = inv[0]
-    robust = float(np.einsum("kp,p->k", g, row) @ np.einsum("kp,p->k", g, row))
-    return math.sqrt(max(classical, robust * n / max(n - p, 1), 0.0))
+    return math.sqrt(max(classical, _jackknife_variance(jac, r, inv)[0, 0], 0.0))
+
+
+LEVERAGE_CAP = 0.95  # a lenslet's leverage counted at most this (its residual × ≤ 20)
+
+
+def _jackknife_variance(jac: np.ndarray, r: np.ndarray, inv: np.ndarray) -> np.ndarray:
+    """Covariance of the least-squares parameters by the delete-one-lenslet jackknife
+    (the cluster "CR3" estimator): ``(K − 1)/K · Σ_k δ_k δ_kᵀ``, ``δ_k`` the change of the
+    parameters when lenslet ``k``'s four moments are left out,
+
+        δ_k = (JᵀJ)⁻¹ J_kᵀ (I − H_k)⁻¹ r_k,   H_k = J_k (JᵀJ)⁻¹ J_kᵀ,
+
+    exact for a linear model (Woodbury), one 4×4 eigen-decomposition a lenslet. Against the
+    sandwich it undoes the leverage ``H_k`` that shrinks a lenslet's residual below its noise.
+    Eigenvalues of ``H_k`` are capped at :data:`LEVERAGE_CAP`: a lenslet that alone fixes a
+    parameter does not make the variance infinite."""
+    n, p = jac.shape
+    k = n // 4
+    jk = jac.reshape(k, 4, p)
+    h = np.einsum("kap,pq,kbq->kab", jk, inv, jk)
+    lam, vec = np.linalg.eigh(h)
+    shrink = 1.0 / (1.0 - np.minimum(lam, LEVERAGE_CAP))
+    x = np.einsum("kab,kb,kcb,kc->ka", vec, shrink, vec, r.reshape(k, 4))
+    d = np.einsum("pq,kaq,ka->kp", inv, jk, x)
+    return (k - 1) / k * (d.T @ d)
 
 
 def _gauss_newton_fixed(fun, q, r, jac, iterations):
