@@ -24,6 +24,7 @@ cut with the same threshold and mask and assigned the same way (``SpotExtraction
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -658,6 +659,117 @@ class PhysicalJacobian:
         return np.column_stack(cols)
 
 
+SURFACE_RISE = 0.04  # the quadratic surface spans where the misfit² rises by this share
+SURFACE_SPAN = (1e-3, 0.03)  # its half-width along the line of sight: at least / at most
+SURFACE_ROUNDS = 6  # fits of the surface at most, each recentred on the last one's minimum
+SURFACE_SETTLED = 0.25  # ... settled when that lies within this (half-widths) of its centre
+# the design, in units of the half-widths: centre, axes at ±1 and ±0.5, cube corners at ±0.6
+_DESIGN = np.vstack([np.zeros(3), np.eye(3), -np.eye(3), 0.5 * np.eye(3), -0.5 * np.eye(3),
+                     0.6 * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1)
+                                     for k in (-1, 1)])])
+
+
+def _quadratic_basis(t: np.ndarray) -> np.ndarray:
+    """(N, 10) full quadratic in three variables."""
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    return np.column_stack([np.ones(len(t)), a, b, c, a * a, b * b, c * c, a * b, a * c,
+                            b * c])
+
+
+def _quadratic_vertices(coef: np.ndarray) -> np.ndarray:
+    """Minima of full quadratics (rows of coefficients as :func:`_quadratic_basis`),
+    (K, 10) → (K, 3); NaN rows where a quadratic has no minimum."""
+    coef = np.atleast_2d(coef)
+    h = np.empty((len(coef), 3, 3))
+    h[:, 0, 0], h[:, 1, 1], h[:, 2, 2] = 2 * coef[:, 4], 2 * coef[:, 5], 2 * coef[:, 6]
+    h[:, 0, 1] = h[:, 1, 0] = coef[:, 7]
+    h[:, 0, 2] = h[:, 2, 0] = coef[:, 8]
+    h[:, 1, 2] = h[:, 2, 1] = coef[:, 9]
+    ok = np.linalg.eigvalsh(h).min(axis=1) > 0
+    h[~ok] = np.eye(3)
+    t = -np.linalg.solve(h, coef[:, 1:4, None])[..., 0]
+    t[~ok] = np.nan
+    return t
+
+
+def _surface_minimum(patch, pupil: np.ndarray, source: np.ndarray, f0: float,
+                     curvature: float, block_px: int):
+    """The minimum of the misfit² near ``source`` from a least-squares quadratic surface, and
+    the σ of its distance by the delete-one-block jackknife.
+
+    Coordinates: the scale ``u`` along the line of sight (the source moves by u·(source −
+    pupil)) and the lateral shifts x, y (mm). The design (:data:`_DESIGN`, 21 points) spans
+    half-widths where the misfit² rises by :data:`SURFACE_RISE` of its minimum: started from
+    the polish's curvature (``curvature``, of the misfit along u) and two probes a lateral
+    axis, then rescaled to each fitted surface's own curvature, and recentred on its minimum
+    (at most one half-width a round) until that moves less than :data:`SURFACE_SETTLED`.
+
+    The surface is linear in the misfit² values, and those are sums over pixels: leaving out
+    a block of ``block_px``² pixels (about one lenslet) changes its coefficients by that
+    block's share, so the jackknife of the minimum, ``(K − 1)/K Σ_k δ_k²``, costs one batched
+    3×3 solve (docs/distance.md, "The pixel fit's minimum").
+
+    Returns (source, misfit at the minimum, σ of the distance), or None where a surface has
+    no minimum or the rounds end still moving.
+    """
+    if not (curvature > 0 and f0 > 0):
+        return None
+    axis = source - pupil
+    f02 = f0 * f0
+    widths = [float(np.clip(math.sqrt(SURFACE_RISE * f0 / curvature), *SURFACE_SPAN))]
+    for e in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
+        d = 1e-4 * abs(float(axis[2]))
+        for _ in range(2):
+            rise = 0.5 * (patch.misfit(source + d * e) ** 2 + patch.misfit(source - d * e) ** 2)
+            k = (rise - f02) / (d * d)
+            if not k > 0:
+                return None
+            d = math.sqrt(SURFACE_RISE * f02 / k)
+        widths.append(d)
+    w = np.array(widths)
+
+    def point(p):
+        return source + p[0] * axis + np.array([p[1], p[2], 0.0])
+
+    centre = np.zeros(3)  # (u, x, y) of the design's centre
+    settled = False
+    for _ in range(SURFACE_ROUNDS):
+        res = np.array([patch.residual(point(centre + t * w)) for t in _DESIGN])
+        vals = (res * res).sum(axis=1)
+        lsq = np.linalg.pinv(_quadratic_basis(_DESIGN))  # (10, N)
+        coef = lsq @ vals
+        vertex = _quadratic_vertices(coef)[0]
+        if not np.isfinite(vertex).all():
+            return None
+        reach = float(np.abs(vertex).max())
+        lowest = max(float(_quadratic_basis(vertex[None])[0] @ coef), 1e-300)
+        scale = np.clip(np.sqrt(SURFACE_RISE * lowest / np.maximum(coef[4:7], 1e-300)),
+                        0.5, 2.0)
+        w_next = w * scale
+        w_next[0] = float(np.clip(w_next[0], *SURFACE_SPAN))
+        if reach <= 1.0:
+            if reach < SURFACE_SETTLED and np.all(np.abs(np.log(w_next / w)) < math.log(1.5)):
+                settled = True
+                break
+            centre = centre + vertex * w
+        else:  # trusted within its design only: move to the design's edge, fit again
+            centre = centre + vertex / reach * w
+        w = w_next
+    if not settled:
+        return None
+    h, wd = patch.shape
+    yy, xx = np.divmod(np.arange(h * wd), wd)
+    ids = (yy // block_px) * (-(-wd // block_px)) + xx // block_px
+    nblk = int(ids.max()) + 1
+    share = np.stack([np.bincount(ids, r * r, minlength=nblk) for r in res])  # (N, K)
+    moves = _quadratic_vertices((coef[:, None] - lsq @ share).T)[:, 0] - vertex[0]
+    if not np.isfinite(moves).all():
+        return None
+    best = centre + vertex * w
+    sigma_u = w[0] * math.sqrt((nblk - 1) / nblk * float(moves @ moves))
+    return point(best), math.sqrt(lowest), sigma_u * abs(float(axis[2]))
+
+
 def fit_point_image(
     profile: CameraProfile,
     d_in_mm: float,
@@ -770,11 +882,22 @@ def fit_point_image(
     again = refine(np.array([np.log(z_front - source[2]), source[0], source[1]]))
     if again[0] < f0:
         source, f0, curvature = polish(source_of(again[1]), again[0], span=0.01)
+    surf = _surface_minimum(patch, pupil, source, f0, curvature,
+                            max(2, int(round(profile.mla.pitch_mm
+                                             / profile.sensor.pixel_pitch_mm))))
+    sigma_surface = math.nan
+    if surf is not None:
+        source, f0, sigma_surface = surf
     dist = float(z_front - source[2])
     npix = max(int((patch.data > 0.05 * patch.data.max()).sum()), 1)
     # misfit is an RMS over the patch: its noise is ~ f0/√npix per unit of misfit
-    sigma_scale = np.sqrt(2 * f0 / np.sqrt(npix) / curvature) if curvature > 0 else np.inf
-    sigma_d = float(sigma_scale) * dist
+    if math.isfinite(sigma_surface):
+        # the quadratic surface's jackknife (docs/distance.md, "The pixel fit's minimum")
+        sigma_d = sigma_surface
+    else:
+        # the polish's parabola, with a noise scale that overstates the spread 1.5-7×
+        sigma_scale = np.sqrt(2 * f0 / np.sqrt(npix) / curvature) if curvature > 0 else np.inf
+        sigma_d = float(sigma_scale) * dist
     # the valley couples distance and lateral position: the full normal matrix of the three
     # parameters, with the residual's per-pixel variance, gives the marginal σ of the distance
     q = np.array([np.log(dist), source[0], source[1]])
