@@ -299,6 +299,21 @@ def test_compiled_lenslet_map_equals_the_numpy_stamping(monkeypatch):
     assert (ref.labels >= len(x)).any() and (ref.labels == -1).any()  # ties and gaps occur
 
 
+def _lenslet_lsq(jac, scale):
+    """(JᵀJ)⁻¹, the least-squares map, the within-lenslet noise mixing (correlation 0.5) and
+    the analytic σ of parameter 0, (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹, for noise of size ``scale`` a
+    moment, 4 moments a lenslet."""
+    k = len(jac) // 4
+    mix = np.linalg.cholesky(0.5 * np.eye(4) + 0.5)
+    inv = np.linalg.inv(jac.T @ jac)
+    lsq = inv @ jac.T
+    cov = np.zeros((4 * k, 4 * k))
+    for i in range(k):
+        s = slice(4 * i, 4 * i + 4)
+        cov[s, s] = np.outer(scale[s], scale[s]) * (mix @ mix.T)
+    return inv, lsq, mix, math.sqrt((lsq @ cov @ lsq.T)[0, 0])
+
+
 def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     # a linear least-squares problem shaped like the lenslet fit's: 4 moments per lenslet,
     # noise whose size varies 30× between lenslets and is correlated within one; the true σ of
@@ -311,14 +326,7 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     jac = rng.normal(size=(4 * k, p))
     jac[:, 0] *= np.repeat(np.linspace(0.2, 3.0, k), 4)  # distance is fixed by bright lenslets
     scale = np.repeat(np.geomspace(0.1, 3.0, k), 4)  # … which are also the noisy ones
-    mix = np.linalg.cholesky(0.5 * np.eye(4) + 0.5)  # correlation 0.5 within a lenslet
-    inv = np.linalg.inv(jac.T @ jac)
-    lsq = inv @ jac.T
-    cov = np.zeros((4 * k, 4 * k))
-    for i in range(k):
-        s = slice(4 * i, 4 * i + 4)
-        cov[s, s] = np.outer(scale[s], scale[s]) * (mix @ mix.T)
-    true_sigma = math.sqrt((lsq @ cov @ lsq.T)[0, 0])
+    inv, lsq, mix, true_sigma = _lenslet_lsq(jac, scale)
     est, classical = [], []
     for _ in range(300):
         noise = (rng.normal(size=(k, 4)) @ mix.T).ravel() * scale
@@ -341,14 +349,7 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
     k, p = 40, 3
     jac = rng.normal(size=(4 * k, p)) * np.repeat(np.geomspace(0.02, 3.0, k), 4)[:, None]
     scale = np.repeat(np.geomspace(0.3, 3.0, k), 4)
-    mix = np.linalg.cholesky(0.5 * np.eye(4) + 0.5)
-    inv = np.linalg.inv(jac.T @ jac)
-    lsq = inv @ jac.T
-    cov = np.zeros((4 * k, 4 * k))
-    for i in range(k):
-        s = slice(4 * i, 4 * i + 4)
-        cov[s, s] = np.outer(scale[s], scale[s]) * (mix @ mix.T)
-    true_sigma = math.sqrt((lsq @ cov @ lsq.T)[0, 0])
+    inv, lsq, mix, true_sigma = _lenslet_lsq(jac, scale)
     est, sandwich = [], []
     for _ in range(400):
         noise = (rng.normal(size=(k, 4)) @ mix.T).ravel() * scale
