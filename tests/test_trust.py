@@ -221,11 +221,8 @@ def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
         for ext in (".png", ".profile.toml"):
             shutil.copyfile(DATA / f"{n}{ext}", src / f"{n}{ext}")
     out = tmp_path / "out"
-    # one worker: after the first capture is done five remain, ~1.5 s of work, so the
-    # interrupt lands mid-batch even when a loaded host is slow to schedule this test (with
-    # two workers the six fast captures could all finish between two polls: exit 0)
     cmd = [sys.executable, "-m", "lfcam", "batch", str(src), "--calibration",
-           str(DATA / "calib_system2.json"), "-o", str(out), "--fast", "--workers", "1"]
+           str(DATA / "calib_system2.json"), "-o", str(out), "--fast", "--workers", "2"]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
