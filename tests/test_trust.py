@@ -215,8 +215,10 @@ def test_batch_dangling_symlink_and_unreadable_folder(tmp_path, capture, monkeyp
 def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
-    names = ["point_system2_2000mm_dh0", "point_system2_2500mm_dh5", "point_system2_3000mm_dh10",
-             "point_system2_3500mm_dh0", "point_system2_2200mm_dh5", "point_system2_2800mm_dh0"]
+    # twelve distinct captures (identical ones are not processed twice): after the first is
+    # done, ~10 remain for the interrupt to land among, however late this test is scheduled
+    names = [f"point_system2_{d}mm_dh{h}" for d in (2000, 2200, 2500, 2800, 3000, 3500)
+             for h in (0, 5)]
     for n in names:
         for ext in (".png", ".profile.toml"):
             shutil.copyfile(DATA / f"{n}{ext}", src / f"{n}{ext}")
@@ -230,11 +232,13 @@ def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
     while (not list((out / "captures").rglob("done.json")) if (out / "captures").exists()
            else True) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
+    at_signal = len(list((out / "captures").rglob("done.json")))
+    running = proc.poll() is None
     proc.send_signal(signal.SIGINT)
     t = time.monotonic()
     _, err = proc.communicate(timeout=60)
     assert time.monotonic() - t < 30  # prompt
-    assert proc.returncode == 130
+    assert proc.returncode == 130, (running, at_signal, err[-500:])
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "interrupted" in lines[0] and "Traceback" not in err, err
     import csv
