@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,10 +77,12 @@ def neighbours(geom: Geometry, region: Region) -> np.ndarray:
 
 
 def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_distance_mm: float,
-                      **extra) -> Measurement:
+                      sigma_floor_rel: float = 0.0, **extra) -> Measurement:
     """The measurement of a fitted point source: distance from the front vertex, offset, and
     the exact rim-ray heights at the sensor with the height uncertainty equivalent to
-    ``sigma_distance_mm`` (for the models' error propagation).
+    ``sigma_distance_mm`` (for the models' error propagation), after ``sigma_floor_rel`` of
+    the distance is added to it in quadrature (a fit's floor for the model's and the
+    calibration's share, which its noise σ leaves out).
 
     Parameters
     ----------
@@ -88,6 +91,7 @@ def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_dist
     source_mm : (3,) array
         Fitted source position (lens frame).
     sigma_distance_mm : float
+    sigma_floor_rel : float, optional
     **extra
         Further :class:`Measurement` fields (``misfit``, ``noise_misfit``, …).
 
@@ -99,6 +103,8 @@ def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_dist
     nan = float("nan")
     distance = profile.main_lens.front_vertex_z_mm - float(source_mm[2])
     offset = float(np.hypot(source_mm[0], source_mm[1]))
+    if sigma_floor_rel:
+        sigma_distance_mm = math.hypot(sigma_distance_mm, sigma_floor_rel * distance)
     fw = forward(profile, d_in_mm, distance, offset)
     if fw.status != 0:
         return Measurement(nan, nan, nan, distance, offset, sigma_distance_mm,

@@ -1238,10 +1238,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
-    distance = profile.main_lens.front_vertex_z_mm - float(fit.source_mm[2])
-    return point_measurement(profile, geom.d_in_mm, fit.source_mm,
-                             math.hypot(fit.sigma_distance_mm, SIGMA_FLOOR_REL * distance),
-                             misfit=fit.misfit, noise_misfit=nm)
+    return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
+                             SIGMA_FLOOR_REL, misfit=fit.misfit, noise_misfit=nm)
 
 
 def _line_answer(profile: CameraProfile, geom: Geometry, line: LensletFit, limit: float,

@@ -93,6 +93,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     pad = int(math.ceil(0.5 * geom.pitch_px))
     h, w = image.shape
     box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
+    floor = 0.0  # of the σ (point_measurement): the pixel fit's alone
     if fast:
         if not fit.ok:
             return Measurement.failed(fit.reason, geom.d_in_mm)
@@ -122,11 +123,8 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
                              start)
         if not fi.ok:
             return Measurement.failed(fi.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm)
-        source, misfit = fi.source_mm, float(fi.misfit)
-        # the fit's σ is its noise's; the model's and the calibration's share is a floor
-        sigma_d = math.hypot(fi.sigma_distance_mm,
-                             PIXEL_SIGMA_FLOOR_REL * (profile.main_lens.front_vertex_z_mm
-                                                      - float(source[2])))
+        source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
+        floor = PIXEL_SIGMA_FLOOR_REL  # its σ is its noise's only
     noise_mf = float("nan") if fast else _noise_misfit(image, box, geom)
     if not fast:
         # the gate is relative to the noise: a dim far source leaves mostly photon noise
@@ -141,7 +139,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
                 return replace(line, noise_misfit=noise_mf)
         if not misfit <= limit:
             return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
-    return point_measurement(profile, geom.d_in_mm, source, sigma_d, misfit=misfit,
+    return point_measurement(profile, geom.d_in_mm, source, sigma_d, floor, misfit=misfit,
                              noise_misfit=noise_mf,
                              source_xy_mm=(float(source[0]), float(source[1])))
 

@@ -676,6 +676,11 @@ def _quadratic_basis(t: np.ndarray) -> np.ndarray:
                             b * c])
 
 
+# the least-squares map from the misfit² at the design's points to the surface's coefficients
+# (the design is fixed in units of the half-widths: one pseudo-inverse for every fit)
+_DESIGN_LSQ = np.linalg.pinv(_quadratic_basis(_DESIGN))  # (10, 21)
+
+
 def _quadratic_vertices(coef: np.ndarray) -> np.ndarray:
     """Minima of full quadratics (rows of coefficients as :func:`_quadratic_basis`),
     (K, 10) → (K, 3); NaN rows where a quadratic has no minimum."""
@@ -702,7 +707,8 @@ def _surface_minimum(patch, pupil: np.ndarray, source: np.ndarray, f0: float,
     half-widths where the misfit² rises by :data:`SURFACE_RISE` of its minimum: started from
     the polish's curvature (``curvature``, of the misfit along u) and two probes a lateral
     axis, then rescaled to each fitted surface's own curvature, and recentred on its minimum
-    (at most one half-width a round) until that moves less than :data:`SURFACE_SETTLED`.
+    (at most one half-width a round) until that lies within :data:`SURFACE_SETTLED` of the
+    design's centre and no half-width would change by more than 1.5×.
 
     The surface is linear in the misfit² values, and those are sums over pixels: leaving out
     a block of ``block_px``² pixels (about one lenslet) changes its coefficients by that
@@ -736,8 +742,7 @@ def _surface_minimum(patch, pupil: np.ndarray, source: np.ndarray, f0: float,
     for _ in range(SURFACE_ROUNDS):
         res = np.array([patch.residual(point(centre + t * w)) for t in _DESIGN])
         vals = (res * res).sum(axis=1)
-        lsq = np.linalg.pinv(_quadratic_basis(_DESIGN))  # (10, N)
-        coef = lsq @ vals
+        coef = _DESIGN_LSQ @ vals
         vertex = _quadratic_vertices(coef)[0]
         if not np.isfinite(vertex).all():
             return None
@@ -762,7 +767,7 @@ def _surface_minimum(patch, pupil: np.ndarray, source: np.ndarray, f0: float,
     ids = (yy // block_px) * (-(-wd // block_px)) + xx // block_px
     nblk = int(ids.max()) + 1
     share = np.stack([np.bincount(ids, r * r, minlength=nblk) for r in res])  # (N, K)
-    moves = _quadratic_vertices((coef[:, None] - lsq @ share).T)[:, 0] - vertex[0]
+    moves = _quadratic_vertices((coef[:, None] - _DESIGN_LSQ @ share).T)[:, 0] - vertex[0]
     if not np.isfinite(moves).all():
         return None
     best = centre + vertex * w
