@@ -126,6 +126,12 @@ def _land(out, labels, centres_px, inv_pitch, x0, y0, base, px, py, w, s, inv_s)
     ty = py - cy
     ex = min(max((abs(tx) + 0.5 * s - 0.5) * inv_s, 0.0), 0.5)
     ey = min(max((abs(ty) + 0.5 * s - 0.5) * inv_s, 0.0), 0.5)
+    if ex == 0.0 and ey == 0.0:
+        # the box lies inside one pixel (most rays: with 80 000 rays a blur's box is ~0.05 px):
+        # one branch the processor predicts, not four label reads and a test of them
+        # (deposit 30-43 → 25 ns a ray; the same sums)
+        _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, int(cx), int(cy), w)
+        return
     nx = cx + np.sign(tx)
     ny = cy + np.sign(ty)
     ic, ir, inx, iny = int(cx), int(cy), int(nx), int(ny)
