@@ -105,13 +105,13 @@ def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_dist
     offset = float(np.hypot(source_mm[0], source_mm[1]))
     if sigma_floor_rel:
         sigma_distance_mm = math.hypot(sigma_distance_mm, sigma_floor_rel * distance)
-    fw = forward(profile, d_in_mm, distance, offset)
-    if fw.status != 0:
+    # the source and one 0.1 % further, in one trace
+    fw = forward(profile, d_in_mm, np.array([distance, distance * 1.001]), offset)
+    if fw.status[0] != 0:
         return Measurement(nan, nan, nan, distance, offset, sigma_distance_mm,
                            RegionStatus.OUT_OF_DOMAIN, d_in_mm)
-    y1, y2 = float(fw.y1_mm), float(fw.y2_mm)
-    fw2 = forward(profile, d_in_mm, distance * 1.001, offset)
-    dy = abs(float(fw2.y1_mm - fw2.y2_mm) - (y1 - y2)) / (0.001 * distance)
+    y1, y2 = float(fw.y1_mm[0]), float(fw.y2_mm[0])
+    dy = abs(float(fw.y1_mm[1] - fw.y2_mm[1]) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_distance_mm * dy if np.isfinite(sigma_distance_mm) else nan
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_distance_mm, RegionStatus.OK,
                        d_in_mm, **extra)
