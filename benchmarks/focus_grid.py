@@ -12,7 +12,8 @@ Modes:
 
 * default: one point source a capture, ``--distances`` × ``--fields``;
 * ``--scene12``: 12 point sources in one capture, both sides of focus, off axis;
-* ``--lines``: lines 3 mm long on the MLA, at 0°, 60° and 135°, through the field centre.
+* ``--lines``: lines 3 mm long on the MLA (``--line-mm``), at 0°, 60° and 135°, through the
+  field centre.
 
 ERROR is the seed's eq. 21, |Ad − Ed| / (Ad + T/2). A region with no ``ok`` distance, or a
 source with no region, counts as a miss. ``--truth-centres`` uses the renderer's lenslet
@@ -30,6 +31,8 @@ Run::
     python benchmarks/focus_grid.py --systems system1,system2 --foci 1000,1500,inf
     python benchmarks/focus_grid.py --scene12 --foci 1000
     python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000
+    python benchmarks/focus_grid.py --lines --line-mm 0.75 --systems system2 --size 1024 \
+        --foci 1000 --method lenslet   # short lines: 3 pitches
     python benchmarks/focus_grid.py --quick --method lenslet --renderer independent \
         --white analytic --foci 1000 --csv /tmp/fg_indep.csv
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
@@ -297,14 +300,15 @@ def scene12_distances(cam: Camera) -> tuple[list[float], list[float]]:
                                                           3200.0, 3500.0]
 
 
-def run_lines(cam: Camera, distances, rays: int, emit) -> None:
-    """Lines through the field centre, 2 × LINE_HALF_MM long on the MLA."""
+def run_lines(cam: Camera, distances, rays: int, emit,
+              half_mm: float = LINE_HALF_MM) -> None:
+    """Lines through the field centre, 2 × ``half_mm`` long on the MLA."""
     for ad in distances:
         for ang in LINE_ANGLES_DEG:
             u = np.array([math.cos(math.radians(ang)), math.sin(math.radians(ang))])
             mag = magnification(cam.used)
-            a = cam.position(ad, -LINE_HALF_MM * mag * u)
-            b = cam.position(ad, LINE_HALF_MM * mag * u)
+            a = cam.position(ad, -half_mm * mag * u)
+            b = cam.position(ad, half_mm * mag * u)
             obj = {"type": "line", "distance_mm": ad, "start_mm": a, "end_mm": b, "rays": rays}
             img, truth, t_r = cam.render([obj], seed=3, rays=rays)
             results, counts, wall, cpu = cam.measure(img)
@@ -421,6 +425,9 @@ def main() -> None:
                     help="--method auto: allowed distance error, percent")
     ap.add_argument("--scene12", action="store_true", help="12 point sources in one capture")
     ap.add_argument("--lines", action="store_true", help="lines at 0°, 60°, 135°")
+    ap.add_argument("--line-mm", type=float, default=2 * LINE_HALF_MM,
+                    help="--lines: the line's image length on the MLA, mm (system 2's pitch is "
+                         "0.25 mm: 0.75 is 3 pitches)")
     ap.add_argument("--renderer", default="sim", choices=RENDERERS,
                     help="captures from lfcam.sim or from benchmarks/render_independent.py "
                          "(point sources only)")
@@ -469,7 +476,8 @@ def main() -> None:
                              args.rotation, args.renderer, args.white)
                 if args.lines:
                     dists = args.distances or LINE_DISTANCES
-                    run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit)
+                    run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit,
+                              0.5 * args.line_mm)
                     continue
                 if args.scene12:
                     run_scene12(cam, args.rays, emit)

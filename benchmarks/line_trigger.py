@@ -41,27 +41,38 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     png, cal_path, truth = many_sources.prepare(args.scene, args.workdir)
     records: list[dict] = []
-    point_fit, line_fit, trigger = (fastfit.fit_lenslet_point, fastfit.fit_lenslet_line,
-                                    fastfit.line_trigger)
+    stages, line_fit, trigger = (fastfit.point_fit_stages, fastfit.fit_lenslet_line,
+                                 fastfit.line_trigger)
 
-    def timed_point(profile, geom, image, region):
+    def timed_stages(profile, geom, image, region, *args, **kwargs):
+        # the point fit's stages (measure_lenslet drives the generator; the region's record
+        # was opened by its trigger): CPU and last misfit
+        rec = records[-1]
+        rec["c"] = region.centroid_px
+        gen = stages(profile, geom, image, region, *args, **kwargs)
+        while True:
+            t = time.process_time()
+            try:
+                fit = next(gen)
+            except StopIteration:
+                return
+            finally:
+                rec["pt_s"] += time.process_time() - t
+            rec["pm"] = fit.misfit
+            yield fit
+
+    def seen_trigger(nm, floor, *args):
+        # measure_lenslet computes its trigger first: one record a region from here
+        records.append({"nm": nm, "pm": float("nan"), "pt_s": 0.0, "c": (math.nan, math.nan)})
+        return trigger(nm, floor, *args)
+
+    def timed_line(*args, **kwargs):
         t = time.process_time()
-        fit = point_fit(profile, geom, image, region)
-        records.append({"c": region.centroid_px, "pm": fit.misfit,
-                        "pt_s": time.process_time() - t})
-        return fit
-
-    def seen_trigger(nm, floor):
-        records[-1]["nm"] = nm
-        return trigger(nm, floor)
-
-    def timed_line(profile, geom, image, region, fit):
-        t = time.process_time()
-        line = line_fit(profile, geom, image, region, fit)
+        line = line_fit(*args, **kwargs)
         records[-1].update(lm=line.misfit, line_s=time.process_time() - t)
         return line
 
-    fastfit.fit_lenslet_point, fastfit.fit_lenslet_line = timed_point, timed_line
+    fastfit.point_fit_stages, fastfit.fit_lenslet_line = timed_stages, timed_line
     fastfit.line_trigger = seen_trigger
     try:
         prof = load_profile(png.with_name(png.stem + ".profile.toml"))
@@ -71,7 +82,7 @@ def main(argv=None) -> None:
         run = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom,
                            jobs=1)
     finally:
-        fastfit.fit_lenslet_point, fastfit.fit_lenslet_line = point_fit, line_fit
+        fastfit.point_fit_stages, fastfit.fit_lenslet_line = stages, line_fit
         fastfit.line_trigger = trigger
     sources = truth["sources"]
     nan = float("nan")

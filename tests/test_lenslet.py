@@ -192,3 +192,16 @@ def test_cli_json_reports_region_times(tmp_path):
     assert doc["regions"][0]["time_ms"] > 0
     assert doc["regions"][0]["distance_mm"] == pytest.approx(1100.0, rel=0.003)
     assert len(doc["timings_s"]["region_s"]) == len(doc["regions"])
+
+
+def test_line_beats_rule():
+    """verify.line_beats: without noise the old rule (LINE_GAIN × the point's misfit); a line
+    at or under the noise misfit wins from LINE_NOISE_GAIN × the point's; never more."""
+    from lfcam.measure.verify import LINE_NOISE_GAIN, line_beats
+
+    assert line_beats(0.04, 0.0, 0.5) == pytest.approx(0.02)
+    assert line_beats(0.04, float("nan"), 0.5) == pytest.approx(0.02)
+    # point 1.6 × its noise misfit: a line at the noise (0.025) wins, one at 0.03 does not
+    assert line_beats(0.04, 0.025, 0.5) == pytest.approx(0.025)
+    # the noise above the point's misfit: at most LINE_NOISE_GAIN × the point's
+    assert line_beats(0.02, 0.05, 0.5) == pytest.approx(LINE_NOISE_GAIN * 0.02)

@@ -48,7 +48,7 @@ from lfcam.measure.noise import capture_noise, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.sampling import pixel_boxes, vogel_disc
-from lfcam.measure.verify import line_trigger, poor_fit_limit
+from lfcam.measure.verify import line_beats, line_trigger, poor_fit_limit
 from lfcam.optics.trace import forward, trace_sources_fast
 from lfcam.status import RegionStatus
 
@@ -79,6 +79,8 @@ LINE_POINTS = 12  # points of the line model, at least (and the count the ray bu
 LINE_POINTS_MAX = 48  # ... at most
 LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
 LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
+LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
+LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -94,6 +96,9 @@ LINE_TRIGGER = 0.0015  # a point misfit over this and over twice its noise misfi
 #                        elongated region): also fit a line (lfcam.measure.verify.line_trigger;
 #                        noise-free seed captures: points leave 0.0001-0.0039, 10 mm lines as
 #                        points 0.0018-0.29)
+LINE_NOISE_FACTOR = 1.3  # ... and over this × its noise misfit (verify.line_trigger; 2.0 left
+#                          lines 2 pitches long 2200-2900 mm behind a 1 m focus as points at
+#                          1.6-1.7 ×, 0.4-1.4 % off; real points leave 0.3-1.5 ×)
 LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
 #                  parameters cannot halve a misfit that is noise; a coma-stretched point's
 #                  line fit does not lower it at all)
@@ -1088,6 +1093,30 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
         return np.r_[math.log(d), centre - half, centre + half]
 
+    def oriented(q: np.ndarray) -> np.ndarray:
+        # A short line inside a wide blur (behind focus) barely elongates the footprint: its
+        # axis is then noise (measured 30-90° off on lines 3 pitches long) and its length
+        # short, and the local fit from there stalls. So the start is the best, by the scan
+        # model, of the segment turned through LINE_START_ANGLES and lengthened by
+        # LINE_START_EXTRA_PITCH (docs/distance.md, "Short lines behind focus").
+        centre, half = 0.5 * (q[1:3] + q[3:5]), 0.5 * (q[3:5] - q[1:3])
+        norm = float(np.hypot(*half))
+        axis = half / norm if norm > 0 else evecs[:, 1]
+        d = math.exp(_log_distance(q))
+        g = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
+        gain = abs(chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0])
+        extra = 0.5 * LINE_START_EXTRA_PITCH * profile.mla.pitch_mm * gain / (
+            frame.z_rim - (frame.z_front - d))
+        cands = []
+        for k in range(LINE_START_ANGLES):
+            a = math.pi * k / LINE_START_ANGLES
+            u = np.array([math.cos(a) * axis[0] - math.sin(a) * axis[1],
+                          math.sin(a) * axis[0] + math.cos(a) * axis[1]])
+            for h in (norm, norm + extra):
+                cands.append(np.r_[q[0], centre - h * u, centre + h * u])
+        costs = [_sq(r) for r in many_of(scan_model, n_coarse)(cands)]
+        return cands[int(np.argmin(costs))]
+
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
     n_lit = int(lit.sum())
@@ -1135,16 +1164,20 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
     costs = [_sq(r) for r in many_of(scan_model, n_coarse)(scan)]
     best_scan = scan[int(np.argmin(costs))]
+    # the scan's best node is a start of its own unless it lies in the point's basin (stopping
+    # when the first start is already below the scan's best node put behind-focus lines 1.7 %
+    # off on average: the scan's coarser model reads higher misfits, not a worse basin)
+    starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
+    turned = oriented(q0)
+    if not np.array_equal(turned, q0):
+        starts.append(turned)  # the footprint's own axis stays a start: on small blurs the
+        #                        scan model's few rays misjudge the turn (a seed line, 90° off)
     best = None
-    for start in (q0, best_scan):
+    for start in starts:
         cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
                                     many_of(coarse, n_coarse))
         if best is None or cand[2] < best[2]:
             best = cand
-        if abs(best_scan[0] - q0[0]) < 0.05:
-            break  # the same basin (stopping when the first start is already below the
-            #        scan's best node put behind-focus lines 1.7 % off on average: the scan's
-            #        coarser model reads higher misfits, not a worse basin)
     q, r, f, jac = best
 
     def evaluations() -> int:
@@ -1203,7 +1236,11 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
                                                                            mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
-    trigger = line_trigger(nm, LINE_TRIGGER)
+    trigger = line_trigger(nm, LINE_TRIGGER, LINE_NOISE_FACTOR)
+
+    def beats(point_misfit: float) -> float:  # the misfit a line must stay under to win
+        return line_beats(point_misfit, nm, LINE_GAIN)
+
     stages = point_fit_stages(profile, geom, image, region,
                               polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom)
     fit = next(stages)  # the fine fit, before its polish and σ profile
@@ -1213,11 +1250,11 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (POLISH_MAX_GAIN), the point's polish and σ profile are not needed
         line = fit_lenslet_line(profile, geom, image, region, fit,
-                                useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
-        if line.ok and line.misfit < LINE_GAIN * (1.0 - POLISH_MAX_GAIN) * fit.misfit:
+                                useful_below=min(beats(fit.misfit), limit), mom=mom)
+        if line.ok and line.misfit < beats((1.0 - POLISH_MAX_GAIN) * fit.misfit):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
-        if ((not line.ok or line.misfit >= LINE_GAIN * fit.misfit)
+        if ((not line.ok or line.misfit >= beats(fit.misfit))
                 and (1.0 - POLISH_MAX_GAIN) * fit.misfit > limit):
             # the line cannot win even against the unpolished point (the polish only lowers
             # its misfit), and no polish brings the point under the poor-fit limit
@@ -1233,8 +1270,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         if line is None:
             line = fit_lenslet_line(profile, geom, image, region, fit,
-                                    useful_below=min(LINE_GAIN * fit.misfit, limit), mom=mom)
-        if line.ok and line.misfit < LINE_GAIN * fit.misfit:
+                                    useful_below=min(beats(fit.misfit), limit), mom=mom)
+        if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)

@@ -35,6 +35,7 @@ from lfcam.status import RegionStatus, fragment_of
 MISFIT_FLOOR = 0.12
 NOISE_FACTOR = 3.0
 LINE_NOISE_FACTOR = 2.0  # a point fit within this × its noise misfit: no line is tried ...
+LINE_NOISE_GAIN = 0.7  # a line at or under the noise misfit wins from this × the point's
 LINE_TRIGGER_CAP = 0.1  # ... unless its misfit is over this (a point fit that poor is tried as a
 #                         line whatever the noise bound says; lines fitted as points: 0.11-0.69)
 MIN_EXPLAINED = 0.8
@@ -64,7 +65,20 @@ def poor_fit_limit(noise_misfit_: float, floor: float = MISFIT_FLOOR) -> float:
     return max(floor, NOISE_FACTOR * nm)
 
 
-def line_trigger(noise_misfit_: float, floor: float) -> float:
+def line_beats(point_misfit: float, noise_misfit_: float, gain: float) -> float:
+    """The misfit a line fit must stay under to be the answer instead of a point fit that
+    leaves ``point_misfit``: ``gain`` × that (two more parameters cannot cut a misfit that is
+    noise by that much), or — when the line reaches the region's noise misfit — no more than
+    ``LINE_NOISE_GAIN`` × the point's. A line 2 pitches long inside a blur of ~900 lenslets
+    (system 2, 2900 mm behind a 1 m focus) leaves 0.8 × its noise misfit as a line and 1.6 × as
+    a point, a ratio of 0.50: the line explains all there is, the point does not
+    (docs/distance.md, "Short lines behind focus")."""
+    nm = noise_misfit_ if math.isfinite(noise_misfit_) else 0.0
+    return max(gain * point_misfit, min(nm, LINE_NOISE_GAIN * point_misfit))
+
+
+def line_trigger(noise_misfit_: float, floor: float,
+                 factor: float = LINE_NOISE_FACTOR) -> float:
     """The point misfit above which a region is also fitted as a line: ``floor`` (the point
     model's own sampling noise) or ``LINE_NOISE_FACTOR`` times the misfit the region's noise
     alone leaves, whichever is larger — but never above ``LINE_TRIGGER_CAP``. A point fit that
@@ -75,7 +89,7 @@ def line_trigger(noise_misfit_: float, floor: float) -> float:
     lenslets counts as photon noise), and inside a large blur with structure it reaches
     0.1–0.15 on noise-free data, above the misfit a line leaves as a point."""
     nm = noise_misfit_ if math.isfinite(noise_misfit_) else 0.0
-    return max(floor, min(LINE_NOISE_FACTOR * nm, LINE_TRIGGER_CAP))
+    return max(floor, min(factor * nm, LINE_TRIGGER_CAP))
 
 
 def predicted_lit(profile, d_in_mm: float, distance_mm: float, source_xy_mm, tree: cKDTree,
