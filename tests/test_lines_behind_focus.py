@@ -15,8 +15,10 @@ import lfcam.measure.lightfield as LF
 from lfcam.calibrate.reference import measure_d_in
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
-from lfcam.measure import Measurement
+from lfcam.measure import Measurement, noise_sigma
+from lfcam.measure.lenslets import lenslet_stats
 from lfcam.measure.pointfit import chief_ray_offset
+from lfcam.measure.regions import find_regions
 from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
@@ -47,7 +49,7 @@ def test_triangulated_line_is_not_an_ok_point(monkeypatch):
     geom = truth_geometry(used, (SIZE, SIZE))
     calls = []
 
-    def no_line(profile, geom_, image, box, near):
+    def no_line(profile, geom_, image, box, near, start_mm=None):
         calls.append(box)
         return Measurement.failed("no-solution", geom_.d_in_mm, kind="line")
 
@@ -63,7 +65,7 @@ def test_line_fit_chosen_over_triangulated_point(monkeypatch):
     img, used = _line_capture(2200.0, angle_deg=135.0)
     geom = truth_geometry(used, (SIZE, SIZE))
 
-    def good_line(profile, geom_, image, box, near):
+    def good_line(profile, geom_, image, box, near, start_mm=None):
         nan = float("nan")
         return Measurement(nan, nan, nan, 2200.0, 0.0, 1.0, "ok", geom_.d_in_mm, kind="line",
                            misfit=0.05, endpoints=((0.0, 0.0), (0.0, 0.0)))
@@ -130,3 +132,16 @@ def test_two_pitch_line_at_the_noise_is_a_line():
     best = _lenslet_region(img, used)
     assert best.kind == "line" and best.status == "ok"
     assert abs(best.distance_mm / 2900.0 - 1.0) < 0.006
+
+
+def test_pixel_line_fit_starts_from_the_lenslet_line():
+    """The pixel fit of a short line behind focus starts from the lenslet fit's line as well
+    as from its own distance scan (whose axis, from the footprint's second moments, is noise
+    here): 2200 mm, 3 pitches long, 60°: −0.62 % from the scan alone, +0.08 % now."""
+    img, used = _line_capture(2200.0, angle_deg=60.0, image_len_mm=0.75)
+    geom = truth_geometry(used, (SIZE, SIZE))
+    regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
+    region = max(regions, key=lambda r: len(r.lenslets))
+    m = LF.measure_lightfield(used, geom, img, region, noise_sigma(img))
+    assert m.kind == "line" and m.status == "ok"
+    assert abs(m.distance_mm / 2200.0 - 1.0) < 0.003

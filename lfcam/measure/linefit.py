@@ -70,8 +70,13 @@ def fit_line_image(
     image: np.ndarray,
     box: tuple[int, int, int, int],
     lens_centres_mm: np.ndarray,
+    start_mm: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LineFit:
-    """Fit (distance, endpoint a, endpoint b) of a line source to the pixels in ``box``."""
+    """Fit (distance, endpoint a, endpoint b) of a line source to the pixels in ``box``.
+
+    ``start_mm``: endpoints (two (3,) points, lens frame) of a line found another way (the
+    lenslet fit's), a start beside those of the distance scan.
+    """
     from scipy.optimize import least_squares  # lazily (import cost, as in pointfit)
 
     lens = profile.main_lens
@@ -114,6 +119,14 @@ def fit_line_image(
     for _, q0 in scored[:2]:
         for d in np.exp(q0[0]) * np.linspace(0.9, 1.1, 7):
             q = start_at(d)
+            fine.append((float(np.sqrt((fun(q) ** 2).sum())), q))
+    if start_mm is not None and all(np.isfinite(p).all() for p in start_mm):
+        # the lenslet fit's line: its axis and length come from the light's distribution over
+        # every lenslet, where the footprint's second moments above only see noise for a line
+        # a few pitches long inside a wide blur (docs/distance.md, "Short lines behind focus")
+        a, b = start_mm
+        if a[2] < z_front - 1.05 * lens.focal_length_mm:
+            q = np.array([np.log(z_front - a[2]), a[0], a[1], b[0], b[1]])
             fine.append((float(np.sqrt((fun(q) ** 2).sum())), q))
     scored = sorted(fine + scored, key=lambda s: s[0])
 
