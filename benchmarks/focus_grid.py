@@ -302,7 +302,9 @@ def scene12_distances(cam: Camera) -> tuple[list[float], list[float]]:
 
 def run_lines(cam: Camera, distances, rays: int, emit,
               half_mm: float = LINE_HALF_MM) -> None:
-    """Lines through the field centre, 2 × ``half_mm`` long on the MLA."""
+    """Lines through the field centre, 2 × ``half_mm`` long on the MLA (CSV mode ``line``;
+    another length: ``line-<length>mm``)."""
+    mode = "line" if half_mm == LINE_HALF_MM else f"line-{2 * half_mm:g}mm"
     for ad in distances:
         for ang in LINE_ANGLES_DEG:
             u = np.array([math.cos(math.radians(ang)), math.sin(math.radians(ang))])
@@ -313,7 +315,7 @@ def run_lines(cam: Camera, distances, rays: int, emit,
             img, truth, t_r = cam.render([obj], seed=3, rays=rays)
             results, counts, wall, cpu = cam.measure(img)
             hit = nearest(results, truth["sources"][0]["centroid_px"])
-            emit(cam.row("line", ad, 0.0, 0.0, ang, hit, counts, t_r,
+            emit(cam.row(mode, ad, 0.0, 0.0, ang, hit, counts, t_r,
                          wall / max(1, len(results)), cpu / max(1, len(results))))
 
 

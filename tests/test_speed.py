@@ -130,7 +130,7 @@ def _measured_worst_pct() -> dict:
         with open(res / name, newline="", encoding="utf-8") as fh:
             for row in csv.DictReader(fh):
                 if row["centres"] == "calibrated" and row["status"] == "ok":
-                    note("line" if row["mode"] == "line" else "spot", method,
+                    note("line" if row["mode"].startswith("line") else "spot", method,
                          float(row["error_pct"]))
     return worst
 
