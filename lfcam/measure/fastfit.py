@@ -80,7 +80,8 @@ LINE_POINTS_MAX = 48  # ... at most
 LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
 LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
 LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
-LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer
+LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer,
+LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -1168,10 +1169,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
     # off on average: the scan's coarser model reads higher misfits, not a worse basin)
     starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
-    turned = oriented(q0)
-    if not np.array_equal(turned, q0):
-        starts.append(turned)  # the footprint's own axis stays a start: on small blurs the
-        #                        scan model's few rays misjudge the turn (a seed line, 90° off)
+    # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
+    # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
+    if (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
+        turned = oriented(q0)
+        if not np.array_equal(turned, q0):
+            starts.append(turned)  # the footprint's own axis stays a start: on small blurs
+            #                        the scan model's few rays misjudge the turn (a seed line)
     best = None
     for start in starts:
         cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
