@@ -9,8 +9,12 @@ intensity scale in closed form.
 Start: the footprint of a uniform segment of image length ``Lᵢ`` blurred by a disc of
 diameter ``B`` has second moments ``Lᵢ²/12 + B²/16`` along and ``B²/16`` across its axis, which
 give ``Lᵢ``; a distance scan then maps the image segment back to the object through the chief-
-ray gain (lateral centre matched to the light's centroid through the exact render), and a
-trust-region least-squares refinement with physically sized finite-difference steps finishes.
+ray gain (lateral centre matched to the light's centroid through the exact render); the
+caller's line (the lenslet fit's, whose axis does not depend on the footprint's moments) is a
+start beside the scan's best. A trust-region least-squares refinement with physically sized
+finite-difference steps finishes. Each point's rays sample the pupil quasi-randomly (Vogel):
+a regular grid, the same for every point, aliased with the pixels (docs/distance.md, "Short
+lines behind focus").
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from lfcam.measure.pointfit import (
     chief_ray_offset,
     pupil_pattern,
 )
+from lfcam.measure.sampling import vogel_disc
 from lfcam.status import RegionStatus
 
 LINE_POINTS = 24
@@ -83,7 +88,9 @@ def fit_line_image(
     lens = profile.main_lens
     z_front = lens.front_vertex_z_mm
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
-    pattern = pupil_pattern(LINE_PUPIL)
+    # a quasi-random (Vogel) pupil sample, as the point fit's: a regular grid, the same for
+    # every point of the line, aliases with the pixels
+    pattern = vogel_disc(len(pupil_pattern(LINE_PUPIL)[0]))
     nan3 = np.full(3, np.nan)
     if patch.norm <= 0:
         return LineFit(nan3, nan3, 1.0, np.nan, 0, False, RegionStatus.EMPTY)
