@@ -81,6 +81,8 @@ LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
 LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
 LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
 LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer,
+LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a line 2 pitches
+#                          long at 2900 mm stayed a spot, 1.39 % off)
 LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
@@ -1094,12 +1096,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
         return np.r_[math.log(d), centre - half, centre + half]
 
-    def oriented(q: np.ndarray) -> np.ndarray:
+    def oriented(q: np.ndarray) -> list[np.ndarray]:
         # A short line inside a wide blur (behind focus) barely elongates the footprint: its
         # axis is then noise (measured 30-90° off on lines 3 pitches long) and its length
-        # short, and the local fit from there stalls. So the start is the best, by the scan
-        # model, of the segment turned through LINE_START_ANGLES and lengthened by
-        # LINE_START_EXTRA_PITCH (docs/distance.md, "Short lines behind focus").
+        # short, and the local fit from there stalls. So the starts are the best
+        # LINE_TURNED_STARTS, by the scan model, of the segment turned through
+        # LINE_START_ANGLES and lengthened by LINE_START_EXTRA_PITCH (docs/distance.md,
+        # "Short lines behind focus").
         centre, half = 0.5 * (q[1:3] + q[3:5]), 0.5 * (q[3:5] - q[1:3])
         norm = float(np.hypot(*half))
         axis = half / norm if norm > 0 else evecs[:, 1]
@@ -1116,7 +1119,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             for h in (norm, norm + extra):
                 cands.append(np.r_[q[0], centre - h * u, centre + h * u])
         costs = [_sq(r) for r in many_of(scan_model, n_coarse)(cands)]
-        return cands[int(np.argmin(costs))]
+        return [cands[i] for i in np.argsort(costs)[:LINE_TURNED_STARTS]]
 
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
@@ -1172,10 +1175,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
     # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
     if (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
-        turned = oriented(q0)
-        if not np.array_equal(turned, q0):
-            starts.append(turned)  # the footprint's own axis stays a start: on small blurs
-            #                        the scan model's few rays misjudge the turn (a seed line)
+        # the footprint's own axis stays a start: on small blurs the scan model's few rays
+        # misjudge the turn (a seed line)
+        starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
     best = None
     for start in starts:
         cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,

@@ -183,9 +183,9 @@ def choose(
 # 0.75 and 0.5 mm, 3 and 2 pitches). Spot, ``lenslet``: 0.35 % over the 108 single sources of
 # both systems' full field and both sides of focus; 7.94 % is the faintest source of a
 # 12-source scene (~2 % of the brightest source's light, stated σ 3.8 %; photon-limited,
-# docs/distance.md). Line, ``lenslet``: 1.39 % at 2900 mm behind a 1 m focus, a line 2 pitches
-# long that stays a point (its line fit gets to 1.09 × the noise misfit, the point to 1.59 ×;
-# docs/distance.md, "Short lines behind focus"); 3 mm lines reach 0.61 %. ``lightfield``:
+# docs/distance.md). Line, ``lenslet``: 0.72 % at 3400 mm behind a 1 m focus, a line 3
+# pitches long (docs/distance.md, "Short lines behind focus"); 3 mm lines reach 0.61 %.
+# ``lightfield``:
 # spot 1.27 % (system 2, 3500 mm behind a 1 m focus in a 12-source scene, the pixel fit of
 # ``--method auto``: photon-limited, spread 0.6 % over noise draws, docs/distance.md "The
 # pixel fit's minimum"; the 108 single sources now reach 0.68 %), line 0.93 % (a line 2
@@ -193,7 +193,7 @@ def choose(
 METHOD_COST_ORDER = ("diameter", "lenslet", "lightfield")
 METHOD_MAX_ERROR_PCT = {
     "spot": {"diameter": 46.98, "lenslet": 7.939, "lightfield": 1.267},
-    "line": {"diameter": 38.18, "lenslet": 1.395, "lightfield": 0.926},
+    "line": {"diameter": 38.18, "lenslet": 0.722, "lightfield": 0.926},
 }
 
 
