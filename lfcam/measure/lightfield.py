@@ -48,6 +48,9 @@ PIXEL_SIGMA_FLOOR_REL = 1e-3  # added in quadrature to the pixel fit's σ of a d
 LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this and than twice its noise misfit is also
 #                             tried as a line (verify.line_trigger)
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
+LENSLET_LINE_HINT = 0.8  # ... which a round region tries only when the lenslet fit's line
+#                          leaves under this × its point's misfit (lines 2-12 pitches long:
+#                          0.07-0.5; points whose pixels trigger a line fit: 0.74-1.0)
 POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit"),
 #                         unless the region's own noise leaves more (verify.poor_fit_limit)
 
@@ -133,16 +136,21 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         # point or line is decided from the pixels, on both sides of focus: the region's
         # elongation only forces the line fit to be tried
         if misfit > line_trigger(noise_mf, LINE_TRIGGER_MISFIT) or region.kind == "line":
-            # the lenslet fit's line (~0.1-0.3 s, against the pixel fit's several) is one start
+            # the lenslet fit's line (~0.1-0.3 s, against the pixel fit's 4-15 s) is one start
+            # of the pixel fit's, and says whether it is worth running at all
+            if moments is None:
+                moments = fit_lenslet_point(profile, geom, image, region)
             lens_line = fit_lenslet_line(profile, geom, image, region,
-                                         moments if moments is not None and moments.ok
-                                         else None)
-            line = measure_line(profile, geom, image, box, near,
-                                lens_line.ends_mm if lens_line.ok else None)
-            if line.status == RegionStatus.OK and line.misfit < LINE_GAIN * misfit:
-                if line.misfit > limit:
-                    return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
-                return replace(line, noise_misfit=noise_mf)
+                                         moments if moments.ok else None)
+            if (region.kind == "line" or not (lens_line.ok and moments.ok)
+                    or lens_line.misfit < LENSLET_LINE_HINT * moments.misfit):
+                line = measure_line(profile, geom, image, box, near,
+                                    lens_line.ends_mm if lens_line.ok else None)
+                if line.status == RegionStatus.OK and line.misfit < LINE_GAIN * misfit:
+                    if line.misfit > limit:
+                        return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm,
+                                                  kind="line")
+                    return replace(line, noise_misfit=noise_mf)
         if not misfit <= limit:
             return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     return point_measurement(profile, geom.d_in_mm, source, sigma_d, floor, misfit=misfit,
