@@ -50,7 +50,7 @@ LINE_TRIGGER_MISFIT = 0.08  # a point fit worse than this and than twice its noi
 LINE_GAIN = 0.7  # ... and becomes a line when the line fit's misfit is below this × the point's
 LENSLET_LINE_HINT = 0.8  # ... which a round region tries only when the lenslet fit's line
 #                          leaves under this × its point's misfit (lines 2-12 pitches long:
-#                          0.07-0.5; points whose pixels trigger a line fit: 0.74-1.0)
+#                          0.07-0.5; points whose line fit ran on scene b: 0.74 or more)
 POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status "poor-fit"),
 #                         unless the region's own noise leaves more (verify.poor_fit_limit)
 
