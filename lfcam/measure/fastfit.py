@@ -1083,17 +1083,22 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
     cbar = (c * w[:, None]).sum(0) / w.sum()
 
+    def mla_to_object(d: float, g: float) -> tuple[float, float]:
+        # at a trial distance d (g: the chief ray's gain there): object mm per MLA mm, and the
+        # distance to the stop that turns object mm into the lateral parameters (x/L)
+        gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0]
+        return abs(gain), frame.z_rim - (frame.z_front - d)
+
     def segment(d: float, centre_mm: np.ndarray | None = None,
                 g: float | None = None) -> np.ndarray:
         # the footprint's long axis and length, seen from a trial distance d (g: the chief
         # ray's gain there, when known)
         if g is None:
             g = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
-        gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0]
-        along = frame.z_rim - (frame.z_front - d)
+        gain, along = mla_to_object(d, g)
         centre = (chief_ray_offset(profile, geom.d_in_mm, d, cbar, gain=g) if centre_mm is None
                   else centre_mm) / along
-        half = 0.5 * length_mla * abs(gain) / along * evecs[:, 1]
+        half = 0.5 * length_mla * gain / along * evecs[:, 1]
         return np.r_[math.log(d), centre - half, centre + half]
 
     def oriented(q: np.ndarray) -> list[np.ndarray]:
@@ -1107,10 +1112,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         norm = float(np.hypot(*half))
         axis = half / norm if norm > 0 else evecs[:, 1]
         d = math.exp(_log_distance(q))
-        g = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
-        gain = abs(chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0])
-        extra = 0.5 * LINE_START_EXTRA_PITCH * profile.mla.pitch_mm * gain / (
-            frame.z_rim - (frame.z_front - d))
+        gain, along = mla_to_object(d, float(chief_ray_gains(profile, geom.d_in_mm, d)[0]))
+        extra = 0.5 * LINE_START_EXTRA_PITCH * profile.mla.pitch_mm * gain / along
         cands = []
         for k in range(LINE_START_ANGLES):
             a = math.pi * k / LINE_START_ANGLES

@@ -80,8 +80,9 @@ def line_beats(point_misfit: float, noise_misfit_: float, gain: float) -> float:
 def line_trigger(noise_misfit_: float, floor: float,
                  factor: float = LINE_NOISE_FACTOR) -> float:
     """The point misfit above which a region is also fitted as a line: ``floor`` (the point
-    model's own sampling noise) or ``LINE_NOISE_FACTOR`` times the misfit the region's noise
-    alone leaves, whichever is larger — but never above ``LINE_TRIGGER_CAP``. A point fit that
+    model's own sampling noise) or ``factor`` (default ``LINE_NOISE_FACTOR``; the lenslet fit
+    passes its own, ``fastfit.LINE_NOISE_FACTOR``) times the misfit the region's noise alone
+    leaves, whichever is larger — but never above ``LINE_TRIGGER_CAP``. A point fit that
     already explains the data to within its noise leaves nothing for the line's two extra
     parameters to explain (on the Illum-size scene of docs/distance.md point fits leave
     0.3–1.5× and lines fitted as points 15–18× their noise misfit), and the line fit costs 2–5×
