@@ -90,6 +90,7 @@ LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
 LINE_FINE_PER_LENSLET = 10  # ... and fine model
 LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
+LINE_FINE_MIN_RAYS = POLISH_RAYS // LINE_POINTS  # ... and at least
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
@@ -117,6 +118,10 @@ SIGMA_FLOOR_REL = 3e-4  # added in quadrature to the fit's σ of a distance: the
 # error 0.014-0.026 %). Chosen on the 108 single sources of benchmarks/focus_grid.py (3σ:
 # 92 → 108), checked on the independent renderer's (2σ: 29 → 38 of 40; docs/distance.md)
 POLISH_MAX_GAIN = 0.9  # the polish lowers a point's misfit by at most this share (82 % seen)
+POLISH_GAIN_SAFETY = 5.0  # ... and its misfit² by at most this × a linear step's prediction
+POLISH_GAIN_MIN = 0.1  # ... or by this share of it, whichever is more (docs/distance.md,
+#                         "The polish's reach": measured up to 1.9 × the prediction where it
+#                         matters, 4.3 × where it is under 0.005)
 POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 # The distance profile (docs/distance.md, "Blurs of a few lenslets"). A blur over a 2×2 block
 # of lenslets splits the pupil into four parts whose shapes fix only the ratio of the image
@@ -267,16 +272,25 @@ class LensletModel:
         with np.errstate(over="ignore", invalid="ignore"):
             return self._simulate(src, np.arange(len(src)), len(src)).reshape(len(src), -1, 4)
 
-    def simulate_sets(self, sets: list) -> np.ndarray:
+    def simulate_sets(self, sets: list, evaluations: int | None = None) -> np.ndarray:
         """(S, K, 4) moments of ``S`` source sets (each a point ``(3,)`` or points ``(M, 3)``),
         in one trace: each set's moments equal :meth:`simulate` of that set (the same sums in
-        the same order), without the per-call overhead. Counts ``S`` evaluations."""
+        the same order), without the per-call overhead. Counts ``S`` evaluations, or
+        ``evaluations`` (sets that are parts of fewer sources' evaluations)."""
         pts = [np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in sets]
-        self.evaluations += len(pts)
         group = np.concatenate([np.full(len(v), g, dtype=np.int64) for g, v in enumerate(pts)])
+        return self.simulate_groups(np.concatenate(pts), group, len(pts),
+                                    len(pts) if evaluations is None else evaluations)
+
+    def simulate_groups(self, points: np.ndarray, group: np.ndarray, groups: int,
+                        evaluations: int) -> np.ndarray:
+        """(groups, K, 4) moments of ``points`` (M, 3) summed per ``group`` (M,) (0 …
+        ``groups`` − 1, non-decreasing): :meth:`simulate_sets` with the sets already stacked.
+        Counts ``evaluations``."""
+        self.evaluations += evaluations
         with np.errstate(over="ignore", invalid="ignore"):
-            out = self._simulate(np.concatenate(pts), group, len(pts))
-        return out.reshape(len(pts), -1, 4)
+            out = self._simulate(np.ascontiguousarray(points, dtype=np.float64), group, groups)
+        return out.reshape(groups, -1, 4)
 
     def _simulate(self, sources: np.ndarray, group: np.ndarray | None = None,
                   groups: int = 1) -> np.ndarray:
@@ -505,7 +519,7 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None, jac0=None, broyden=False):
+                         r0=None, jac0=None, broyden=False, jac_of=None):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -519,6 +533,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     Returns (q, residual, cost, Jacobian at the last linearisation: with ``broyden``, the
     last one taken by differences or ``jac0``; the secant updates steer the steps only, as
     they leave the σ of a line 2-3× off).
+
+    ``jac_of`` (optional): ``jac_of(q, r)``, the Jacobian at ``q`` (residual ``r``) by the
+    caller's own rule, instead of differences.
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
@@ -529,7 +546,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     fresh = jac is None
     for _ in range(max_iter):
         if jac is None:
-            jac = _fd_jacobian(fun, fun_many, q, r, steps)
+            jac = jac_of(q, r) if jac_of is not None else _fd_jacobian(fun, fun_many, q, r,
+                                                                        steps)
             last, fresh = jac, True
         jtj = _gram(jac)
         g = _jt(jac, r)
@@ -590,6 +608,7 @@ class LensletFit:
     reason: str = ""
     ends_mm: tuple = ()  # lines: (start (3,), end (3,))
     polished: bool = False  # the POLISH_RAYS model was needed (the fine one had not settled)
+    polish_floor: float = math.nan  # the least misfit a polish of this fit can reach (bound)
 
 
 LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
@@ -822,6 +841,31 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations):
     return q, r, f
 
 
+def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
+                  bound_above: float) -> float:
+    """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
+    of the polishing model) can reach, bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
+
+    Over ``bound_above`` the bound is raised by the Gauss–Newton step on ``r_check`` with the
+    fine model's own Jacobian at ``q``: the polish removes at most ``POLISH_GAIN_SAFETY`` × the
+    misfit² that linear step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md, "The
+    polish's reach").
+    """
+    f = _sq(r_check)
+    floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
+    if not math.sqrt(f) > bound_above:
+        return floor
+    jac_q = _fd_jacobian(fun, fun_many, q, r, COARSE_STEPS)
+    jtj = _gram(jac_q)
+    g = _jt(jac_q, r_check)
+    try:
+        gain = float(g @ np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), g))
+    except np.linalg.LinAlgError:
+        return floor
+    return max(floor, math.sqrt(max(f - max(POLISH_GAIN_SAFETY * gain, POLISH_GAIN_MIN * f),
+                                        0.0)))
+
+
 def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.ndarray,
              r_check: np.ndarray, jac: np.ndarray, steps: np.ndarray) -> tuple[bool, np.ndarray]:
     """Has the fine fit ``q`` (residual ``r`` of ``fun``) settled?
@@ -936,7 +980,8 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, polish_above: float = math.inf,
-                     mom: _Moments | None = None) -> Iterator[LensletFit]:
+                     mom: _Moments | None = None,
+                     bound_above: float = math.inf) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -1004,7 +1049,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)),
                      math.exp(_log_distance(q)) * _log_distance_sigma(jac, r), evaluations(),
-                     not _at_far_bound(q))
+                     not _at_far_bound(q),
+                     polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above))
     # a misfit near a gate is polished whatever the settled test says: do not run it then
     settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else _settled(
         fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, COARSE_STEPS)
@@ -1046,6 +1092,53 @@ def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.n
     a, b = q[1:3] * along, q[3:5] * along
     xy = a[None, :] + t[:, None] * (b - a)[None, :]
     return np.column_stack([xy, np.full(count, z)])
+
+
+def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray):
+    """The line model of ``count`` points (:func:`_line_points`): its residual function
+    ``fun(q)`` and its Jacobian ``jac(q, r)`` (``r = fun(q)``), steps ``steps``.
+
+    The Jacobian is built from the points' own moments: every point shifted at once along x
+    (then y) by the lateral step, each point's change weighted by its share of either
+    endpoint (1 − t, t), gives both endpoints' lateral columns from one trace, and the
+    distance column is a difference. Three traces of the line instead of the five of
+    forward differences, the points' moments at ``q`` kept from the residual
+    (docs/distance.md, "A line's Jacobian from its points").
+    """
+    kept: dict[bytes, np.ndarray] = {}
+
+    def moments(q: np.ndarray) -> np.ndarray:  # (count, K, 4), each point's own
+        key = q.tobytes()
+        if key not in kept:
+            if len(kept) >= 4:
+                kept.pop(next(iter(kept)))
+            kept[key] = model.simulate_groups(_line_points(frame, q, count), each, count, 1)
+        return kept[key]
+
+    t = (np.arange(count) + 0.5) / count
+    shares = (1.0 - t, t)
+    each = np.arange(count, dtype=np.int64)  # every point its own group
+    shifted = np.r_[each, count + each, np.full(count, 2 * count, dtype=np.int64)]
+
+    def jac(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        pts = _line_points(frame, q, count)
+        shift = steps[1] * (frame.z_rim - pts[0, 2])
+        qd = q.copy()
+        qd[0] += steps[0]
+        base = moments(q)
+        m = model.simulate_groups(np.concatenate([pts + [shift, 0.0, 0.0],
+                                                  pts + [0.0, shift, 0.0],
+                                                  _line_points(frame, qd, count)]),
+                                  shifted, 2 * count + 1, 3)
+        m0 = base.sum(0)
+        r0 = model.residual_of(m0)  # = r
+        lateral = [[(model.residual_of(m0 + np.tensordot(w, m[k * count:(k + 1) * count]
+                                                           - base, 1)) - r0) / steps[1]
+                    for k in (0, 1)] for w in shares]  # [[a_x, a_y], [b_x, b_y]]
+        return np.column_stack([(model.residual_of(m[-1]) - r0) / steps[0],
+                                *lateral[0], *lateral[1]])
+
+    return (lambda q: model.residual_of(moments(q).sum(0))), jac
 
 
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -1151,12 +1244,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c)
     coarse = model(np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
                            LINE_MAX_RAYS // 4), share_c)
-    fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, POLISH_RAYS // LINE_POINTS,
+    fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS,
                          LINE_MAX_RAYS))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
-    def fun_of(model, count):
-        return lambda q: model.residual(_line_points(frame, q, count))
 
     def many_of(model, count):
         return lambda qs: [model.residual_of(m) for m in model.simulate_sets(
@@ -1165,7 +1256,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # Starts: the point fit's distance, and the best node of a distance scan of the line
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
-    fun_c = fun_of(coarse, n_coarse)
+    fun_c, jac_c = line_model(coarse, frame, n_coarse, steps)
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
     scan = [segment(float(d), g=float(g)) for d, g in zip(
         distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
@@ -1183,8 +1274,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
     best = None
     for start in starts:
-        cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3,
-                                    many_of(coarse, n_coarse))
+        cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3, jac_of=jac_c)
         if best is None or cand[2] < best[2]:
             best = cand
     q, r, f, jac = best
@@ -1200,12 +1290,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
-    fun = fun_of(fine, n_pts)
+    fun, jac_f = line_model(fine, frame, n_pts, steps)
     q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
-                                             many_of(fine, n_pts), r0=r)
+                                             r0=r, jac_of=jac_f)
     if jac_fine is not None:
         jac = jac_fine
     pts = _line_points(frame, q, 2)
@@ -1251,20 +1341,21 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return line_beats(point_misfit, nm, LINE_GAIN)
 
     stages = point_fit_stages(profile, geom, image, region,
-                              polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom)
+                              polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom,
+                              bound_above=trigger)
     fit = next(stages)  # the fine fit, before its polish and σ profile
     line = None
-    if fit.ok and (1.0 - POLISH_MAX_GAIN) * fit.misfit > trigger:
+    if fit.ok and fit.polish_floor > trigger:
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
-        # take back (POLISH_MAX_GAIN), the point's polish and σ profile are not needed
+        # take back (fit.polish_floor), the point's polish and σ profile are not needed
         line = fit_lenslet_line(profile, geom, image, region, fit,
                                 useful_below=min(beats(fit.misfit), limit), mom=mom)
-        if line.ok and line.misfit < beats((1.0 - POLISH_MAX_GAIN) * fit.misfit):
+        if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
         if ((not line.ok or line.misfit >= beats(fit.misfit))
-                and (1.0 - POLISH_MAX_GAIN) * fit.misfit > limit):
+                and fit.polish_floor > limit):
             # the line cannot win even against the unpolished point (the polish only lowers
             # its misfit), and no polish brings the point under the poor-fit limit
             stages.close()
