@@ -66,6 +66,7 @@ COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
 FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
+LINE_SETTLE_LOG = 2e-5  # the line's fine fit ends on a step under this in log distance
 LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
 POLISH_RAYS = 80000  # rays of the polishing model
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
@@ -84,6 +85,7 @@ LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pi
 LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a line 2 pitches
 #                          long at 2900 mm stayed a spot, 1.39 % off)
 LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
+LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -519,7 +521,7 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None, jac0=None, broyden=False, jac_of=None):
+                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -535,7 +537,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     they leave the σ of a line 2-3× off).
 
     ``jac_of`` (optional): ``jac_of(q, r)``, the Jacobian at ``q`` (residual ``r``) by the
-    caller's own rule, instead of differences.
+    caller's own rule, instead of differences. ``settle_log``: after the first iteration, the
+    fit ends when an iteration's undamped step would move the log distance ``q[0]`` by less
+    than this (its damped trials move it less still).
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
@@ -544,7 +548,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     jac = None if jac0 is None else np.array(jac0, dtype=np.float64)
     last = jac
     fresh = jac is None
-    for _ in range(max_iter):
+    for it in range(max_iter):
         if jac is None:
             jac = jac_of(q, r) if jac_of is not None else _fd_jacobian(fun, fun_many, q, r,
                                                                         steps)
@@ -553,13 +557,15 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
         g = _jt(jac, r)
         improved = False
         dq = np.zeros_like(q)
-        for _ in range(5):
+        for trial in range(5):
             a = jtj + lam * np.diag(np.diag(jtj) + 1e-30)
             try:
                 dq = -np.linalg.solve(a, g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
+            if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
+                break
             r2 = fun(q + dq)
             f2 = _sq(r2)
             if f2 < f:
@@ -1272,12 +1278,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # the footprint's own axis stays a start: on small blurs the scan model's few rays
         # misjudge the turn (a seed line)
         starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
-    best = None
-    for start in starts:
-        cand = _levenberg_marquardt(fun_c, start, steps, COARSE_ITERATIONS, 1e-3, jac_of=jac_c)
-        if best is None or cand[2] < best[2]:
-            best = cand
-    q, r, f, jac = best
+    # the starts race: LINE_RACE_ITERATIONS coarse iterations each, then the leader alone runs
+    # the rest (docs/distance.md, "A line's Jacobian from its points")
+    heats = [_levenberg_marquardt(fun_c, start, steps,
+                                  COARSE_ITERATIONS if len(starts) == 1 else LINE_RACE_ITERATIONS,
+                                  1e-3, jac_of=jac_c) for start in starts]
+    q, r, f, jac = min(heats, key=lambda heat: heat[2])
+    if len(starts) > 1:
+        q, r, f, jac_lead = _levenberg_marquardt(fun_c, q, steps,
+                                                 COARSE_ITERATIONS - LINE_RACE_ITERATIONS, 1e-3,
+                                                 r0=r, jac_of=jac_c)
+        jac = jac if jac_lead is None else jac_lead
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
@@ -1295,7 +1306,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
-                                             r0=r, jac_of=jac_f)
+                                             r0=r, jac_of=jac_f,
+                                             settle_log=LINE_SETTLE_LOG)
     if jac_fine is not None:
         jac = jac_fine
     pts = _line_points(frame, q, 2)
@@ -1391,10 +1403,9 @@ def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) 
     """A line fit as a ``kind="line"`` measurement (rim heights of both endpoints)."""
     nan = float("nan")
     distance = profile.main_lens.front_vertex_z_mm - float(line.source_mm[2])
-    ends = []
-    for pt in line.ends_mm:
-        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
-        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
+    fw = forward(profile, geom.d_in_mm, distance,  # both ends in one trace
+                 np.array([float(np.hypot(pt[0], pt[1])) for pt in line.ends_mm]))
+    ends = [(float(fw.y1_mm[k]), float(fw.y2_mm[k])) for k in range(2)]
     y1 = 0.5 * (ends[0][0] + ends[1][0])
     y2 = 0.5 * (ends[0][1] + ends[1][1])
     return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
