@@ -13,7 +13,7 @@ Modes:
 * default: one point source a capture, ``--distances`` × ``--fields``;
 * ``--scene12``: 12 point sources in one capture, both sides of focus, off axis;
 * ``--lines``: lines 3 mm long on the MLA (``--line-mm``), at 0°, 60° and 135°, through the
-  field centre.
+  field centre, or centred at ``--line-field`` of the half-field (azimuth 30°).
 
 ERROR is the seed's eq. 21, |Ad − Ed| / (Ad + T/2). A region with no ``ok`` distance, or a
 source with no region, counts as a miss. ``--truth-centres`` uses the renderer's lenslet
@@ -301,21 +301,23 @@ def scene12_distances(cam: Camera) -> tuple[list[float], list[float]]:
 
 
 def run_lines(cam: Camera, distances, rays: int, emit,
-              half_mm: float = LINE_HALF_MM) -> None:
-    """Lines through the field centre, 2 × ``half_mm`` long on the MLA (CSV mode ``line``;
-    another length: ``line-<length>mm``)."""
+              half_mm: float = LINE_HALF_MM, field: float = 0.0) -> None:
+    """Lines 2 × ``half_mm`` long on the MLA (CSV mode ``line``; another length:
+    ``line-<length>mm``), centred on the field centre or at ``field`` of the half-field (the
+    CSV's ``field`` and ``r_sensor_mm``)."""
     mode = "line" if half_mm == LINE_HALF_MM else f"line-{2 * half_mm:g}mm"
+    centre = cam.field_xy(field)
     for ad in distances:
         for ang in LINE_ANGLES_DEG:
             u = np.array([math.cos(math.radians(ang)), math.sin(math.radians(ang))])
             mag = magnification(cam.used)
-            a = cam.position(ad, -half_mm * mag * u)
-            b = cam.position(ad, half_mm * mag * u)
+            a = cam.position(ad, centre - half_mm * mag * u)
+            b = cam.position(ad, centre + half_mm * mag * u)
             obj = {"type": "line", "distance_mm": ad, "start_mm": a, "end_mm": b, "rays": rays}
             img, truth, t_r = cam.render([obj], seed=3, rays=rays)
             results, counts, wall, cpu = cam.measure(img)
             hit = nearest(results, truth["sources"][0]["centroid_px"])
-            emit(cam.row(mode, ad, 0.0, 0.0, ang, hit, counts, t_r,
+            emit(cam.row(mode, ad, field, float(np.hypot(*centre)), ang, hit, counts, t_r,
                          wall / max(1, len(results)), cpu / max(1, len(results))))
 
 
@@ -430,6 +432,8 @@ def main() -> None:
     ap.add_argument("--line-mm", type=float, default=2 * LINE_HALF_MM,
                     help="--lines: the line's image length on the MLA, mm (system 2's pitch is "
                          "0.25 mm: 0.75 is 3 pitches)")
+    ap.add_argument("--line-field", type=float, default=0.0,
+                    help="--lines: the lines' centre, a fraction of the half-field (0: axis)")
     ap.add_argument("--renderer", default="sim", choices=RENDERERS,
                     help="captures from lfcam.sim or from benchmarks/render_independent.py "
                          "(point sources only)")
@@ -479,7 +483,7 @@ def main() -> None:
                 if args.lines:
                     dists = args.distances or LINE_DISTANCES
                     run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit,
-                              0.5 * args.line_mm)
+                              0.5 * args.line_mm, args.line_field)
                     continue
                 if args.scene12:
                     run_scene12(cam, args.rays, emit)

@@ -90,8 +90,10 @@ LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this shar
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
-LINE_FINE_PER_LENSLET = 10  # ... and fine model
-LINE_MAX_RAYS = 12000  # rays a point of the line, at most (fine model)
+LINE_FINE_PER_LENSLET = 30  # ... and fine model (10: lines far behind focus and off axis stalled
+#                               1-2 % off on the ripple of the model's own ray sample;
+#                               docs/distance.md, "Lines off axis")
+LINE_MAX_RAYS = 36000  # rays a point of the line, at most (fine model)
 LINE_FINE_MIN_RAYS = POLISH_RAYS // LINE_POINTS  # ... and at least
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011

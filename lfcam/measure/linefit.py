@@ -36,7 +36,9 @@ from lfcam.measure.sampling import vogel_disc
 from lfcam.status import RegionStatus
 
 LINE_POINTS = 24
-LINE_PUPIL = 64  # per side of the pupil grid for each line point (~3.2 k rays)
+LINE_PUPIL = 110  # per side of the pupil grid for each line point (~9.5 k rays; 64 left a line
+#                   60 % off axis far behind focus on a ripple of the sample, −2.5 % at 40 σ:
+#                   docs/distance.md, "Lines off axis")
 SIGMA_STEPS_LOG = (5e-3, 2e-2, 5e-2)  # steps of the σ parabola in log distance, tried in turn
 
 
