@@ -94,6 +94,8 @@ LINE_FINE_PER_LENSLET = 30  # ... and fine model (10: lines far behind focus and
 #                               1-2 % off on the ripple of the model's own ray sample;
 #                               docs/distance.md, "Lines off axis")
 LINE_MAX_RAYS = 36000  # rays a point of the line, at most (fine model)
+LINE_GN_PER_LENSLET = 10  # ... the fine Gauss–Newton steps' model: per lit lenslet
+LINE_GN_MAX_RAYS = 12000  # ... and at most
 LINE_FINE_MIN_RAYS = POLISH_RAYS // LINE_POINTS  # ... and at least
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
@@ -1254,6 +1256,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                            LINE_MAX_RAYS // 4), share_c)
     fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS,
                          LINE_MAX_RAYS))
+    # the fine Gauss–Newton steps and the gate after them: the model of the old budget
+    gn_model = model(np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS,
+                             LINE_GN_MAX_RAYS))
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
 
@@ -1294,7 +1299,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
-                + fine.evaluations)
+                + fine.evaluations + gn_model.evaluations)
 
     def stopped(stage_misfit: float) -> LensletFit:
         return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
@@ -1303,10 +1308,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
-    fun, jac_f = line_model(fine, frame, n_pts, steps)
-    q, r, f = _gauss_newton_fixed(fun, q, fun(q), jac, FINE_ITERATIONS)
+    fun_gn, _ = line_model(gn_model, frame, n_pts, steps)
+    q, r, f = _gauss_newton_fixed(fun_gn, q, fun_gn(q), jac, FINE_ITERATIONS)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
+    fun, jac_f = line_model(fine, frame, n_pts, steps)
+    r = fun(q)
+    f = _sq(r)
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                              r0=r, jac_of=jac_f,
                                              settle_log=LINE_SETTLE_LOG)
