@@ -851,6 +851,19 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations):
     return q, r, f
 
 
+def _linear_step(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The Gauss–Newton step ``−δ`` on residual ``r`` with Jacobian ``jac`` (``δ`` returned, as
+    solved) and the misfit² it would remove by the linear model (``Jᵀr · δ``); ``None`` when
+    ``JᵀJ`` is singular."""
+    jtj = _gram(jac)
+    g = _jt(jac, r)
+    try:
+        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), g)
+    except np.linalg.LinAlgError:
+        return None
+    return step, float(g @ step)
+
+
 def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
                   bound_above: float) -> float:
     """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
@@ -865,13 +878,10 @@ def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarr
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
     if not math.sqrt(f) > bound_above:
         return floor
-    jac_q = _fd_jacobian(fun, fun_many, q, r, COARSE_STEPS)
-    jtj = _gram(jac_q)
-    g = _jt(jac_q, r_check)
-    try:
-        gain = float(g @ np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), g))
-    except np.linalg.LinAlgError:
+    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, COARSE_STEPS), r_check)
+    if step_gain is None:
         return floor
+    gain = step_gain[1]
     return max(floor, math.sqrt(max(f - max(POLISH_GAIN_SAFETY * gain, POLISH_GAIN_MIN * f),
                                         0.0)))
 
@@ -894,11 +904,10 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
     """
     jac_q = _fd_jacobian(fun, fun_many, q, r, steps)
     jtj = _gram(jac_q)
-    try:
-        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), _jt(jac_q, r_check))
-    except np.linalg.LinAlgError:
+    step_gain = _linear_step(jac_q, r_check)
+    if step_gain is None:
         return False, jac_q
-    gain = float(_jt(jac_q, r_check) @ step)  # the misfit² the step would remove (linear)
+    step, gain = step_gain
     if not (abs(step[0]) < 0.5 * SETTLED_LOG and gain < SETTLED_GAIN * _sq(r_check)):
         return False, jac_q
     # a shallow minimum (dim or far sources): the step above is no guide along its valley
@@ -1254,11 +1263,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c)
     coarse = model(np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
                            LINE_MAX_RAYS // 4), share_c)
-    fine = model(np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS,
-                         LINE_MAX_RAYS))
-    # the fine Gauss–Newton steps and the gate after them: the model of the old budget
-    gn_model = model(np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS,
-                             LINE_GN_MAX_RAYS))
+    fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
+    fine = model(fine_rays)
+    # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
+    # fine one itself where both budgets meet at the floor (small blurs)
+    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
+    gn_model = fine if gn_rays == fine_rays else model(gn_rays)
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
 
@@ -1299,7 +1309,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
-                + fine.evaluations + gn_model.evaluations)
+                + fine.evaluations + (gn_model.evaluations if gn_model is not fine else 0))
 
     def stopped(stage_misfit: float) -> LensletFit:
         return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
@@ -1308,13 +1318,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
-    fun_gn, _ = line_model(gn_model, frame, n_pts, steps)
+    fun, jac_f = line_model(fine, frame, n_pts, steps)
+    fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
     q, r, f = _gauss_newton_fixed(fun_gn, q, fun_gn(q), jac, FINE_ITERATIONS)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
-    fun, jac_f = line_model(fine, frame, n_pts, steps)
-    r = fun(q)
-    f = _sq(r)
+    if gn_model is not fine:
+        r = fun(q)
+        f = _sq(r)
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                              r0=r, jac_of=jac_f,
                                              settle_log=LINE_SETTLE_LOG)
