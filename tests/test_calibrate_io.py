@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from lfcam.calibrate import calibrate_white, load_calibration, save_calibration
+from lfcam.calibrate.model import CALIBRATION_TABLES
 from lfcam.calibrate.synthetic import make_white
 from lfcam.cli.main import main
 from lfcam.errors import CalibrationError
 from lfcam.io import load_capture
+from lfcam.validate import parse_json_bytes
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "microscope"
 REAL = REAL if REAL.is_dir() else Path("/work/shared/realdata/microscope")
@@ -51,6 +53,48 @@ def test_invalid_files(tmp_path, small_cal, edit, msg):
     edit(d)
     p.write_text(json.dumps(d))
     with pytest.raises(CalibrationError, match=msg):
+        load_calibration(p)
+
+
+def _compact(d: dict) -> str:
+    return json.dumps(d, separators=(",", ":"))
+
+
+def test_tables_read_by_numpy_equal_json(tmp_path, small_cal):
+    """The numeric tables of a calibration file, read by numpy, are the values ``json.loads``
+    reads, to the bit; the rest of the file is the same mapping."""
+    p = save_calibration(small_cal.with_d_in(104.7, "test"), tmp_path / "c.json")
+    raw = p.read_bytes()
+    fast = parse_json_bytes(raw, CalibrationError, "c", tables=CALIBRATION_TABLES)
+    ref = json.loads(raw)
+    for key in CALIBRATION_TABLES:
+        assert isinstance(fast[key], np.ndarray)  # the numpy path ran
+        assert np.array_equal(fast[key], np.array(ref[key], dtype=float))
+    assert {k: v for k, v in fast.items() if k not in CALIBRATION_TABLES} == {
+        k: v for k, v in ref.items() if k not in CALIBRATION_TABLES}
+    # a key of that name inside a string, and the sentinel itself, change nothing
+    d = dict(ref, diagnostics={"note": '"centres_px":[[1,2]] @lfcam-numeric-table'})
+    p.write_text(_compact(d))
+    back = load_calibration(p)
+    assert np.array_equal(back.centres_px, np.array(ref["centres_px"]))
+
+
+@pytest.mark.parametrize("edit,msg", [
+    (lambda d: d["centres_px"].__setitem__(3, [1.0]), "centres_px"),  # ragged
+    (lambda d: d["centres_px"].__setitem__(3, [1.0, 2.0, 3.0]), "centres_px"),
+    (lambda d: d["indices"].__setitem__(3, [d["indices"][3][0], 0.5]), "integers"),
+])
+def test_malformed_compact_tables(tmp_path, small_cal, edit, msg):
+    p = save_calibration(small_cal, tmp_path / "c.json")
+    d = json.loads(p.read_text())
+    edit(d)
+    p.write_text(_compact(d))
+    with pytest.raises(CalibrationError, match=msg):
+        load_calibration(p)
+    # an empty number in a compact table is not JSON, on either path
+    p.write_text(_compact(json.loads(p.read_text()) | {"indices": [[0, 0]]}).replace(
+        '"indices":[[0,0]]', '"indices":[[0,,0]]'))
+    with pytest.raises(CalibrationError, match="JSON"):
         load_calibration(p)
 
 

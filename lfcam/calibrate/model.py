@@ -47,12 +47,13 @@ from lfcam.atomic import atomic_write_text
 from lfcam.calibrate.grid import RADIAL_NORM_PX, REJECT_REASONS, GridFit, predict_lattice
 from lfcam.errors import CalibrationError, CalibrationQualityError
 from lfcam.optics.mla import lattice_basis, lattice_index, rotation_matrix, row_column
-from lfcam.validate import read_json
+from lfcam.validate import parse_json_bytes, read_json
 
 FORMAT = "lfcam-calibration"
 VERSION = 1
 MAX_LENSES = 5_000_000
 MAX_FILE_BYTES = 2_000_000_000
+CALIBRATION_TABLES = ("centres_px", "indices")  # read by numpy (lfcam.validate.parse_json_bytes)
 MAX_PITCH_PX = 1000.0
 SNAP_TOLERANCE = 0.3  # minimal form: a centre must lie within 0.3 pitch of a lattice site
 MODELS = ("similarity", "affine", "projective", "projective+radial")
@@ -463,14 +464,19 @@ def _array(d: dict, key: str, cols: int, dtype: type, where: str) -> np.ndarray:
     if key not in d:
         raise CalibrationError(f"{where}: missing key {key!r}")
     v = d[key]
-    if not isinstance(v, list):
+    if not isinstance(v, (list, np.ndarray)):  # arrays: tables the JSON reader cut out
         raise CalibrationError(f"{where}: {key} must be a list of [{cols} numbers]")
     if len(v) > MAX_LENSES:
         raise CalibrationError(f"{where}: {key} has {len(v)} rows (limit {MAX_LENSES})")
     try:
-        arr = np.array(v, dtype=dtype)
+        arr = np.array(v, dtype=float)
     except (TypeError, ValueError, OverflowError):
         raise CalibrationError(f"{where}: {key} holds non-numeric entries") from None
+    if dtype is not float and arr.size:
+        if not np.all(np.isfinite(arr)) or np.any(np.abs(arr) > 2.0 ** 53) or np.any(
+                arr != np.rint(arr)):
+            raise CalibrationError(f"{where}: {key} must hold integers")
+        arr = arr.astype(dtype)
     if len(v) == 0:
         arr = arr.reshape(0, cols)
     if arr.ndim != 2 or arr.shape[1] != cols:
@@ -709,7 +715,8 @@ def load_calibration(path: str | Path) -> Calibration:
         Missing file, not JSON, or any invalid field (named in the message, with the path).
     """
     return calibration_from_dict(read_json(path, CalibrationError, "calibration",
-                                           MAX_FILE_BYTES), source=str(path))
+                                           MAX_FILE_BYTES, tables=CALIBRATION_TABLES),
+                                 source=str(path))
 
 
 def calibration_from_bytes(data: bytes, source: str = "calibration") -> Calibration:
@@ -722,12 +729,5 @@ def calibration_from_bytes(data: bytes, source: str = "calibration") -> Calibrat
     """
     if len(data) > MAX_FILE_BYTES:
         raise CalibrationError(f"{source}: larger than {MAX_FILE_BYTES} bytes")
-    try:
-        parsed = json.loads(data.decode("utf-8"))
-    except UnicodeDecodeError:
-        raise CalibrationError(f"{source}: not UTF-8 text") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{source}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-    except RecursionError:
-        raise CalibrationError(f"{source}: JSON nested too deeply") from None
-    return calibration_from_dict(parsed, source=source)
+    return calibration_from_dict(parse_json_bytes(data, CalibrationError, source,
+                                                  tables=CALIBRATION_TABLES), source=source)
