@@ -66,6 +66,12 @@ POLY_DEGREE = 5  # degree of the inverse-map fit q(σ) that starts Newton
 NEWTON_TOL_MM = 1e-8  # |f_x·(σ(q) − σ_target)| at convergence, mm on the sensor
 NEWTON_MAX = 12
 CHUNK = 200_000  # sensor sample points per Newton batch
+# Line sources: nodes of the midpoint rule, and each node's sampling. The sum over nodes
+# smooths the image along the line, and each node's edges are weighted by their exact share,
+# so a node needs less sampling than a lone point (measured in docs/simulate.md).
+LINE_MIN_POINTS = 32
+LINE_N_SUB = 8
+LINE_MIN_ACROSS = 8
 
 
 @dataclass
@@ -550,16 +556,19 @@ def source_xyz(profile: CameraProfile, distance_mm: float,
 def render_capture(profile: CameraProfile, sources: list[dict], seed: int = 0,
                    peak: float = 0.8, full_well_e: float = 20000.0, read_noise_e: float = 3.0,
                    bit_depth: int = 16, noise: bool = True, n_sub: int = 4,
-                   min_across: int = 32) -> tuple[np.ndarray, dict]:
-    """A noisy capture of equally bright point sources, and its truth.
+                   min_across: int = 32,
+                   line_per_pitch: float = 8.0) -> tuple[np.ndarray, dict]:
+    """A noisy capture of point and line sources, and its truth.
 
     Parameters
     ----------
     profile : CameraProfile
         The camera as rendered (d_in known, overrides applied).
     sources : list of dict
-        ``{"distance_mm": Ad, "position_mm": [x, y]}`` each (the scene schema of
-        docs/simulate.md; Ad from the front vertex).
+        ``{"distance_mm": Ad, "position_mm": [x, y]}`` each, or ``{"type": "line",
+        "distance_mm": Ad, "start_mm": [x, y], "end_mm": [x, y]}`` (the scene schema of
+        docs/simulate.md; Ad from the front vertex; a line's ``intensity`` is per mm of line,
+        as ``lfcam.sim``'s). Lines: :func:`render_line`.
     seed : int
         Noise seed.
     peak : float
@@ -571,7 +580,9 @@ def render_capture(profile: CameraProfile, sources: list[dict], seed: int = 0,
     noise : bool
         Photon and read noise (else the scaled expectation, unquantised).
     n_sub, min_across : int
-        Sampling (:class:`IndependentRenderer`).
+        Sampling of point sources (:class:`IndependentRenderer`).
+    line_per_pitch : float
+        Line sources: points a lenslet pitch of the line's image on the MLA.
 
     Returns
     -------
@@ -584,21 +595,26 @@ def render_capture(profile: CameraProfile, sources: list[dict], seed: int = 0,
     """
     t0 = time.perf_counter()
     ren = IndependentRenderer(profile, n_sub=n_sub, min_across=min_across)
+    line_ren = IndependentRenderer(profile, n_sub=LINE_N_SUB, min_across=LINE_MIN_ACROSS)
     total = np.zeros((profile.sensor.height_px, profile.sensor.width_px))
     out = []
     stats: list[dict] = []
     yy, xx = np.indices(total.shape)
     for obj in sources:
-        xyz = source_xyz(profile, obj["distance_mm"], obj.get("position_mm", (0.0, 0.0)))
-        r = ren.render_point(xyz, float(obj.get("intensity", 1.0)))
+        if obj.get("type", "point") == "line":
+            r, entry = render_line(line_ren, obj, line_per_pitch)
+        else:
+            xyz = source_xyz(profile, obj["distance_mm"], obj.get("position_mm", (0.0, 0.0)))
+            r = ren.render_point(xyz, float(obj.get("intensity", 1.0)))
+            entry = {"xyz_mm": list(xyz),
+                     "position_mm": list(map(float, obj.get("position_mm", (0.0, 0.0)))),
+                     "lens_ij": r.lens_ij, "lens_energy": r.lens_energy}
         total += r.signal
         p = float(r.signal.sum())
         cen = ([float((r.signal * xx).sum() / p), float((r.signal * yy).sum() / p)] if p > 0
                else None)
-        out.append({"xyz_mm": list(xyz), "distance_mm": float(obj["distance_mm"]),
-                    "position_mm": list(map(float, obj.get("position_mm", (0.0, 0.0)))),
-                    "power_on_sensor": p, "centroid_px": cen,
-                    "lens_ij": r.lens_ij, "lens_energy": r.lens_energy})
+        out.append({**entry, "distance_mm": float(obj["distance_mm"]), "power_on_sensor": p,
+                    "centroid_px": cen})
         stats.append(r.stats)
     mx = float(total.max())
     scale = peak / mx if mx > 0 else 1.0
@@ -612,6 +628,68 @@ def render_capture(profile: CameraProfile, sources: list[dict], seed: int = 0,
     truth = {"sources": out, "exposure_scale": scale, "signal": total,
              "render_s": time.perf_counter() - t0, "stats": stats}
     return frac, truth
+
+
+def line_points(profile: CameraProfile, obj: dict, per_pitch: float = 8.0
+                ) -> tuple[np.ndarray, float]:
+    """Midpoint-rule nodes of a line source and the weight of each (intensity × length / K).
+
+    K = max(``LINE_MIN_POINTS``, ⌈``per_pitch`` × the line's length on the MLA in pitches⌉),
+    the length on the MLA being that of its chief rays through the lens centre
+    (``length · d_in / (Ad + T/2)``, paraxial).
+    """
+    a = np.asarray(obj["start_mm"], dtype=np.float64)
+    b = np.asarray(obj["end_mm"], dtype=np.float64)
+    length = float(np.hypot(*(b - a)))
+    if length <= 0.0:
+        raise ValueError("a line needs two distinct endpoints")
+    on_mla = length * profile.d_in_mm / (float(obj["distance_mm"])
+                                         + 0.5 * profile.main_lens.thickness_mm)
+    k = max(LINE_MIN_POINTS, math.ceil(per_pitch * on_mla / profile.mla.pitch_mm))
+    t = (np.arange(k) + 0.5) / k
+    xy = a[None, :] + t[:, None] * (b - a)[None, :]
+    z = profile.main_lens.front_vertex_z_mm - float(obj["distance_mm"])
+    nodes = np.column_stack([xy, np.full(k, z)])
+    return nodes, float(obj.get("intensity", 1.0)) * length / k
+
+
+def render_line(ren: IndependentRenderer, obj: dict, per_pitch: float = 8.0
+                ) -> tuple[PointRender, dict]:
+    """Noise-free image of a uniform line source: a sum of point renders at midpoint nodes.
+
+    Each node is rendered exactly (:meth:`IndependentRenderer.render_point`); only the
+    integral along the line is discretised. Between adjacent nodes the chief-ray image moves
+    1/``per_pitch`` of a lenslet pitch; the line's per-lenslet energies are smooth in the node
+    position, so the midpoint rule converges as 1/K² on them (the convergence is measured in
+    docs/simulate.md).
+
+    Returns
+    -------
+    PointRender
+        Summed signal; ``lens_ij``/``lens_energy`` merged over the nodes; ``stats`` summed
+        with ``points``.
+    dict
+        Truth entry: ``xyz_mm`` (midpoint), ``start_mm``, ``end_mm``, ``points``.
+    """
+    nodes, w = line_points(ren.profile, obj, per_pitch)
+    signal = np.zeros((ren.height, ren.width))
+    energy: dict[tuple[int, int], float] = {}
+    stats = {"samples": 0, "traced_rays": 0, "not_converged": 0, "lenslets": 0,
+             "points": int(len(nodes))}
+    for node in nodes:
+        r = ren.render_point(tuple(node), w)
+        signal += r.signal
+        for (i, j), e in zip(r.lens_ij.tolist(), r.lens_energy.tolist(), strict=True):
+            energy[(i, j)] = energy.get((i, j), 0.0) + e
+        for key in ("samples", "traced_rays", "not_converged"):
+            stats[key] += r.stats[key]
+    stats["lenslets"] = len(energy)
+    ij = np.array(sorted(energy), dtype=np.int64).reshape(-1, 2)
+    lens = PointRender(signal, ij, np.array([energy[tuple(k)] for k in ij.tolist()]), stats)
+    entry = {"xyz_mm": list(map(float, nodes[len(nodes) // 2])),
+             "start_mm": list(map(float, obj["start_mm"])),
+             "end_mm": list(map(float, obj["end_mm"])), "points": int(len(nodes))}
+    return lens, entry
 
 
 def main() -> None:

@@ -9,6 +9,9 @@ line, and a region neither model explains is ``poor-fit`` (docs/distance.md).
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 
 import lfcam.measure.lightfield as LF
@@ -23,6 +26,7 @@ from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # focus_grid
 SIZE = 1024
 CAMERA = {"mla": {"focus_mm": 1000.0, "rotation_rad": 0.012},
           "sensor": {"width_px": SIZE, "height_px": SIZE}}
@@ -200,3 +204,27 @@ def test_line_off_axis_far_behind_focus():
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
     assert best.kind == "line" and best.status == "ok"
     assert abs(best.distance_mm / 3400.0 - 1.0) < 0.008
+
+
+def test_line_across_the_field_stretch(tmp_path):
+    """System 1, a 3 mm line image at 1500 mm (focus 1 m) centred at 60 % of the half-field
+    and turned 135°, across the radius along which vignetting stretches a point's footprint
+    (``benchmarks/focus_grid.py --lines --line-field 0.6``'s capture and calibration): the
+    line fit started only along the footprint's (radial) axis and ended as a spot 23.7 % long
+    with status ``ok``. Started also along the footprint less the point's own it is a line at
+    −0.03 % (docs/distance.md, "Lines across the field's stretch")."""
+    import focus_grid as fg
+
+    cam = fg.Camera("system1", 1000.0, None, tmp_path, False)
+    u = np.array([np.cos(np.radians(135.0)), np.sin(np.radians(135.0))])
+    centre = cam.field_xy(0.6)
+    mag = fg.magnification(cam.used)
+    a = cam.position(1500.0, centre - fg.LINE_HALF_MM * mag * u)
+    b = cam.position(1500.0, centre + fg.LINE_HALF_MM * mag * u)
+    img, _, _ = cam.render([{"type": "line", "distance_mm": 1500.0, "start_mm": a,
+                             "end_mm": b, "rays": 1_000_000}], seed=3, rays=1_000_000)
+    run = run_distance(img, cam.used, None, model="exact", method="lenslet",
+                       geometry=cam.geom)
+    best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
+    assert best.kind == "line" and best.status == "ok"
+    assert abs(best.distance_mm / 1500.0 - 1.0) < 0.003

@@ -85,6 +85,7 @@ LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pi
 LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a line 2 pitches
 #                          long at 2900 mm stayed a spot, 1.39 % off)
 LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
+LINE_FIELD_TURN_DEG = 20.0  # the footprint less the point's turns the axis by more: a start
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
@@ -1160,6 +1161,18 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
     return (lambda q: model.residual_of(moments(q).sum(0))), jac
 
 
+def _footprint(geom: Geometry, mom: _Moments, energy: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Energy-weighted centre (2,) and covariance (2, 2) of the lenslet centres (MLA mm) of a
+    region's lenslets that hold over 5 % of the brightest one's ``energy``."""
+    lit = energy > 0.05 * energy.max()
+    c = geom.lens_centres_mm[mom.ids[lit]]
+    w = energy[lit]
+    cbar = (c * w[:, None]).sum(0) / w.sum()
+    dc = c - cbar
+    return cbar, (dc.T * w) @ dc / w.sum()
+
+
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
                      useful_below: float = math.inf, mom: _Moments | None = None) -> LensletFit:
@@ -1185,15 +1198,22 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if not point.ok:
         return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
     frame = _Frame(profile)
-    e = mom.data[:, 0]
-    lit = e > 0.05 * e.max()
-    c = geom.lens_centres_mm[mom.ids[lit]]
-    w = e[lit]
-    dc = c - (c * w[:, None]).sum(0) / w.sum()
-    cov = (dc.T * w) @ dc / w.sum()
+    cbar, cov = _footprint(geom, mom, mom.data[:, 0])
+    # the line adds L²/12 along its axis to a point's footprint (MLA plane)
     evals, evecs = np.linalg.eigh(cov)
     length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
-    cbar = (c * w[:, None]).sum(0) / w.sum()
+    # A point's own footprint is round only near the axis: off axis, vignetting and coma
+    # stretch it radially (2.3 : 1 at 80 % of system 1's half-field). A line across that
+    # stretch (60 % off axis, at 135° to the radius) was started along the radius only and
+    # ended in a wrong basin as a spot, 24 % off. The footprint less the point fit's own
+    # (its model at COARSE_RAYS) gives the line's axis there; where it turns the start by
+    # over LINE_FIELD_TURN_DEG it is a start of its own (docs/distance.md, "Lines across the
+    # field's stretch"). On axis it is the data's axis: subtracting a small blur's footprint,
+    # which the lattice leaves square or hexagonal, alone put seed lines up to 3.4 % off.
+    _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
+                              .simulate(point.source_mm)[:, 0])
+    evals_c, evecs_c = np.linalg.eigh(cov - cov_point)
+    length_c = math.sqrt(max(12.0 * (evals_c[1] - evals_c[0]), 0.0))
 
     def mla_to_object(d: float, g: float) -> tuple[float, float]:
         # at a trial distance d (g: the chief ray's gain there): object mm per MLA mm, and the
@@ -1201,16 +1221,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         gain = chief_ray_offset(profile, geom.d_in_mm, d, np.array([1.0, 0.0]), gain=g)[0]
         return abs(gain), frame.z_rim - (frame.z_front - d)
 
-    def segment(d: float, centre_mm: np.ndarray | None = None,
-                g: float | None = None) -> np.ndarray:
-        # the footprint's long axis and length, seen from a trial distance d (g: the chief
-        # ray's gain there, when known)
+    def segment(d: float, centre_mm: np.ndarray | None = None, g: float | None = None,
+                axis: np.ndarray = evecs[:, 1], length: float = length_mla) -> np.ndarray:
+        # the footprint's long axis and length (or ``axis``, ``length`` on the MLA), seen from
+        # a trial distance d (g: the chief ray's gain there, when known)
         if g is None:
             g = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
         gain, along = mla_to_object(d, g)
         centre = (chief_ray_offset(profile, geom.d_in_mm, d, cbar, gain=g) if centre_mm is None
                   else centre_mm) / along
-        half = 0.5 * length_mla * gain / along * evecs[:, 1]
+        half = 0.5 * length * gain / along * axis
         return np.r_[math.log(d), centre - half, centre + half]
 
     def oriented(q: np.ndarray) -> list[np.ndarray]:
@@ -1238,7 +1258,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
-    n_lit = int(lit.sum())
+    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     # points along the segment at most LINE_SPACING_PITCH apart on the MLA: 12 points 2
     # pitches apart left lines behind focus up to 1.7 % long (their sum of blurs is combed
     # at the spacing); the rays a point shrink in proportion (the total stays) down to
@@ -1289,6 +1309,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
     # off on average: the scan's coarser model reads higher misfits, not a worse basin)
     starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
+    if abs(float(evecs[:, 1] @ evecs_c[:, 1])) < math.cos(math.radians(LINE_FIELD_TURN_DEG)):
+        starts.append(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1], length=length_c))
     # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
     # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
     if (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
