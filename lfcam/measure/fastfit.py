@@ -85,7 +85,8 @@ LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pi
 LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a line 2 pitches
 #                          long at 2900 mm stayed a spot, 1.39 % off)
 LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
-LINE_FIELD_TURN_DEG = 20.0  # the footprint less the point's turns the axis by more: a start
+LINE_STRETCHED = 0.1  # a point footprint elongated more (off axis): the line's starts turn
+LINE_STRETCH_MIN_LIT = 40  # ... on blurs of this many lit lenslets or more
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
@@ -1203,15 +1204,21 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     evals, evecs = np.linalg.eigh(cov)
     length_mla = math.sqrt(max(12.0 * (evals[1] - evals[0]), 0.0))
     # A point's own footprint is round only near the axis: off axis, vignetting and coma
-    # stretch it radially (2.3 : 1 at 80 % of system 1's half-field). A line across that
-    # stretch (60 % off axis, at 135° to the radius) was started along the radius only and
-    # ended in a wrong basin as a spot, 24 % off. The footprint less the point fit's own
-    # (its model at COARSE_RAYS) gives the line's axis there; where it turns the start by
-    # over LINE_FIELD_TURN_DEG it is a start of its own (docs/distance.md, "Lines across the
-    # field's stretch"). On axis it is the data's axis: subtracting a small blur's footprint,
-    # which the lattice leaves square or hexagonal, alone put seed lines up to 3.4 % off.
+    # stretch it radially (elongation (λ₁ − λ₂)/(λ₁ + λ₂) of the point fit's model: 0.2 at
+    # 60 %, 0.3 at 80 % of system 1's half-field; 0.04-0.06 on system 2 there). A line
+    # across that stretch (60 % off axis, at 135° to the radius) was started along the
+    # radius and ended in a wrong basin as a spot, 24 % off; at 80 %, 6 of 12 lines behind
+    # focus. Where the point's footprint is stretched by over LINE_STRETCHED, the starts
+    # are turned (docs/distance.md, "Lines across the field's stretch"). The footprint less
+    # the point's own is the turns' first axis: alone, on axis, it put seed lines up to
+    # 3.4 % off (a small blur's footprint is square or hexagonal on the lattice).
     _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
                               .simulate(point.source_mm)[:, 0])
+    ev_point = np.linalg.eigvalsh(cov_point)
+    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    # (a footprint of a few lenslets is square or hexagonal, not round: 0.06-0.1 on axis)
+    stretched = (n_lit >= LINE_STRETCH_MIN_LIT and (ev_point[1] - ev_point[0])
+                 > LINE_STRETCHED * (ev_point[1] + ev_point[0]))
     evals_c, evecs_c = np.linalg.eigh(cov - cov_point)
     length_c = math.sqrt(max(12.0 * (evals_c[1] - evals_c[0]), 0.0))
 
@@ -1233,7 +1240,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         half = 0.5 * length * gain / along * axis
         return np.r_[math.log(d), centre - half, centre + half]
 
-    def oriented(q: np.ndarray) -> list[np.ndarray]:
+    def oriented(q: np.ndarray, lengths: tuple[float, ...] = ()) -> list[np.ndarray]:
         # A short line inside a wide blur (behind focus) barely elongates the footprint: its
         # axis is then noise (measured 30-90° off on lines 3 pitches long) and its length
         # short, and the local fit from there stalls. So the starts are the best
@@ -1246,19 +1253,21 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         d = math.exp(_log_distance(q))
         gain, along = mla_to_object(d, float(chief_ray_gains(profile, geom.d_in_mm, d)[0]))
         extra = 0.5 * LINE_START_EXTRA_PITCH * profile.mla.pitch_mm * gain / along
+        # ``lengths`` (MLA mm): more lengths to try, each also lengthened
+        halves = [norm] + [0.5 * v * gain / along for v in lengths]
         cands = []
         for k in range(LINE_START_ANGLES):
             a = math.pi * k / LINE_START_ANGLES
             u = np.array([math.cos(a) * axis[0] - math.sin(a) * axis[1],
                           math.sin(a) * axis[0] + math.cos(a) * axis[1]])
-            for h in (norm, norm + extra):
-                cands.append(np.r_[q[0], centre - h * u, centre + h * u])
+            for h in halves:
+                for hh in (h, h + extra):
+                    cands.append(np.r_[q[0], centre - hh * u, centre + hh * u])
         costs = [_sq(r) for r in many_of(scan_model, n_coarse)(cands)]
         return [cands[i] for i in np.argsort(costs)[:LINE_TURNED_STARTS]]
 
     d0 = float(frame.z_front - point.source_mm[2])
     q0 = segment(d0, point.source_mm[:2])
-    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     # points along the segment at most LINE_SPACING_PITCH apart on the MLA: 12 points 2
     # pitches apart left lines behind focus up to 1.7 % long (their sum of blurs is combed
     # at the spacing); the rays a point shrink in proportion (the total stays) down to
@@ -1309,11 +1318,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
     # off on average: the scan's coarser model reads higher misfits, not a worse basin)
     starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
-    if abs(float(evecs[:, 1] @ evecs_c[:, 1])) < math.cos(math.radians(LINE_FIELD_TURN_DEG)):
-        starts.append(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1], length=length_c))
+    if stretched:
+        # the footprint's axis is the field's: turned starts about the axis of the footprint
+        # less the point's, at that length and the footprint's own
+        starts += oriented(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1],
+                                   length=length_c), (length_mla,))
     # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
     # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
-    if (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
+    elif (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
         # the footprint's own axis stays a start: on small blurs the scan model's few rays
         # misjudge the turn (a seed line)
         starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
