@@ -1,5 +1,7 @@
-"""Point-source captures from a second rendering path: per-pixel irradiance by the Jacobian of
-the exact ray map (no random ray binning, no :mod:`lfcam.sim`, no :mod:`lfcam.measure`).
+"""Point- and line-source captures from a second rendering path: per-pixel irradiance by the
+Jacobian of the exact ray map (no random ray binning, no :mod:`lfcam.sim`, no
+:mod:`lfcam.measure`). A line is the midpoint rule over point renders along it
+(:func:`render_line`, docs/simulate.md).
 
 Camera model (the contract of ``lfcam.sim`` and of the lenslet fit, docs/simulate.md): a point
 source S sends rays toward points ``q`` of the aperture plane ``z = rim_z`` (the front rim of

@@ -12,6 +12,7 @@ over a grid of slopes, then invert ``r_white = r + f_x·g(r)`` by interpolation.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING
@@ -240,9 +241,14 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
     check_profile_pitch(profile, calibration, d_in)  # a wrong profile, before any heavy work
     radius_px = 0.5 * calibration.pitch_px * 1.08
     centres, indices, n_measured = sensor_lenses(calibration, shape, radius_px)
-    lmap = build_lenslet_map(centres, shape, radius_px)
-    # measured and edge-placed lenses in one call: one white-offset table (one trace)
-    lens_mm = lenslet_centres_mm(profile, d_in, centres)
+    # the lenslet map (a compiled loop that releases the GIL) and the lenslet centres (numpy
+    # traces) are independent: on a large frame they run side by side (Illum size: the map
+    # 1.2 s, the white-offset table 0.6 s)
+    with ThreadPoolExecutor(1) as side:
+        # measured and edge-placed lenses in one call: one white-offset table (one trace)
+        lens_job = side.submit(lenslet_centres_mm, profile, d_in, centres)
+        lmap = build_lenslet_map(centres, shape, radius_px)
+        lens_mm = lens_job.result()
     lens_mm, _ = regularise_to_lattice(lens_mm, indices, profile.mla.pitch_mm,
                                        fit_mask=np.arange(len(centres)) < n_measured)
     return Geometry(lmap, lens_mm, float(calibration.pitch_px), d_in)
