@@ -212,7 +212,7 @@ def test_line_across_the_field_stretch(tmp_path):
     (``benchmarks/focus_grid.py --lines --line-field 0.6``'s capture and calibration): the
     line fit started only along the footprint's (radial) axis and ended as a spot 23.7 % long
     with status ``ok``. Started also along the footprint less the point's own it is a line at
-    −0.03 % (docs/distance.md, "Lines across the field's stretch")."""
+    −0.014 % (docs/distance.md, "Lines across the field's stretch")."""
     import focus_grid as fg
 
     cam = fg.Camera("system1", 1000.0, None, tmp_path, False)
