@@ -1212,15 +1212,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # are turned (docs/distance.md, "Lines across the field's stretch"). The footprint less
     # the point's own is the turns' first axis: alone, on axis, it put seed lines up to
     # 3.4 % off (a small blur's footprint is square or hexagonal on the lattice).
-    _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
-                              .simulate(point.source_mm)[:, 0])
-    ev_point = np.linalg.eigvalsh(cov_point)
     n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    stretched = False
     # (a footprint of a few lenslets is square or hexagonal, not round: 0.06-0.1 on axis)
-    stretched = (n_lit >= LINE_STRETCH_MIN_LIT and (ev_point[1] - ev_point[0])
-                 > LINE_STRETCHED * (ev_point[1] + ev_point[0]))
-    evals_c, evecs_c = np.linalg.eigh(cov - cov_point)
-    length_c = math.sqrt(max(12.0 * (evals_c[1] - evals_c[0]), 0.0))
+    if n_lit >= LINE_STRETCH_MIN_LIT:
+        _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
+                                  .simulate(point.source_mm)[:, 0])
+        ev_point = np.linalg.eigvalsh(cov_point)
+        stretched = bool((ev_point[1] - ev_point[0])
+                         > LINE_STRETCHED * (ev_point[1] + ev_point[0]))
+        evals_c, evecs_c = np.linalg.eigh(cov - cov_point)
+        length_c = math.sqrt(max(12.0 * (evals_c[1] - evals_c[0]), 0.0))
 
     def mla_to_object(d: float, g: float) -> tuple[float, float]:
         # at a trial distance d (g: the chief ray's gain there): object mm per MLA mm, and the
