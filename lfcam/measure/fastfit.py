@@ -87,6 +87,7 @@ LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a
 LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/(λ₁ + λ₂) is under this
 LINE_STRETCHED = 0.1  # a point footprint elongated more (off axis): the line's starts turn
 LINE_STRETCH_MIN_LIT = 40  # ... on blurs of this many lit lenslets or more
+LINE_STRETCH_AXIS_DEG = 20.0  # ... whose footprint's axis is within this of the stretch's
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
@@ -1218,9 +1219,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if n_lit >= LINE_STRETCH_MIN_LIT:
         _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
                                   .simulate(point.source_mm)[:, 0])
-        ev_point = np.linalg.eigvalsh(cov_point)
+        ev_point, axes_point = np.linalg.eigh(cov_point)
+        # ... and only where the data's axis is the stretch's (else it is the line's own)
         stretched = bool((ev_point[1] - ev_point[0])
-                         > LINE_STRETCHED * (ev_point[1] + ev_point[0]))
+                         > LINE_STRETCHED * (ev_point[1] + ev_point[0])
+                         and abs(float(evecs[:, 1] @ axes_point[:, 1]))
+                         > math.cos(math.radians(LINE_STRETCH_AXIS_DEG)))
         evals_c, evecs_c = np.linalg.eigh(cov - cov_point)
         length_c = math.sqrt(max(12.0 * (evals_c[1] - evals_c[0]), 0.0))
 

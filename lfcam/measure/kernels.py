@@ -67,17 +67,7 @@ def _nearest_two(ex, ey, inv, b, rect, la, lb, seps):
     best2 = np.inf
     k1 = 0
     k2 = 0
-    # A hexagonal cell (u, v ∈ [0, 1)) is two equilateral triangles split by its short
-    # diagonal; a point's two nearest nodes are corners of its own triangle (the fourth corner
-    # lies beyond the diagonal, the perpendicular bisector between it and the opposite one),
-    # so three corners are tried, in the order of the four (the same ties).
-    if seps[2, 0] < seps[2, 2]:  # short diagonal (1, 0)–(0, 1)
-        skip = 3 if ru + rv < 1.0 else 0
-    else:  # short diagonal (0, 0)–(1, 1)
-        skip = 2 if ru > rv else 1
     for k in range(4):
-        if k == skip:
-            continue
         di = float(k & 1)
         dj = float(k >> 1)
         gx = b[0, 0] * (ru - di) + b[0, 1] * (rv - dj)
