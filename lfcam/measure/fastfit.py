@@ -376,7 +376,8 @@ class LensletModel:
         if rows.size == 0:
             return out
         spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
-        tag = group[rows] if group is not None else np.zeros(rows.size, dtype=np.int64)
+        if group is None:
+            group = np.zeros(len(points), dtype=np.int64)
         lat = self.lattice
         la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
         ax, ay = p.sensor.axis_xy_px
@@ -384,7 +385,8 @@ class LensletModel:
         # one argument signature for every call: the compiled code is cached on disk per
         # signature, and a new one would compile again (~3 s)
         return deposit_moments(
-            x, y, sx, sy, wt, spacing[rows], tag.astype(np.int64, copy=False), int(groups),
+            x, y, sx, sy, wt, rows.astype(np.int64, copy=False), spacing,
+            np.asarray(group, dtype=np.int64), int(groups),
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
             float(ax), float(ay), int(x0), int(y0), float(self.s_px), self.mom.labels,
             self.mom.centres_px, float(self.geom.pitch_px))

@@ -164,13 +164,15 @@ def _land(out, labels, centres_px, inv_pitch, x0, y0, base, px, py, w, s, inv_s)
 
 
 @njit(cache=True, nogil=True)
-def deposit_moments(x, y, sx, sy, wt, spacing, tag, groups, origin, basis, inverse, rect,
-                    la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px):
+def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basis, inverse,
+                    rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px):
     """Moments ``(groups·K, 4)`` of rays hitting the MLA at ``(x, y)`` mm with sensor offsets
-    ``(sx, sy)`` mm (``f_x`` × slope), weights ``wt``, MLA-plane spacing ``spacing`` and
-    group ``tag`` (module docstring). ``labels`` is the region box's compact lenslet map
-    (−1 none), ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the
-    pixel pitch (mm)."""
+    ``(sx, sy)`` mm (``f_x`` × slope) and weights ``wt``, ray ``r`` from source point
+    ``rows[r]``, whose rays are ``spacing[rows[r]]`` apart on the MLA and go to group
+    ``group[rows[r]]`` (module docstring; per point, so that no ray-sized copy of either is
+    made for each call). ``labels`` is the region box's compact lenslet map (−1 none),
+    ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the pixel pitch
+    (mm)."""
     n_k = centres_px.shape[0]
     out = np.zeros((groups * n_k, 4))
     inv_pitch = 1.0 / pitch_px
@@ -180,8 +182,9 @@ def deposit_moments(x, y, sx, sy, wt, spacing, tag, groups, origin, basis, inver
     for r in range(x.size):
         i, j, i2, j2, gap = _nearest_two(x[r] - origin[0], y[r] - origin[1], inverse, basis,
                                          rect, la, lb, seps)
-        share = min(max(0.5 - gap / spacing[r], 0.0), 0.5)
-        base = tag[r] * n_k
+        pt = rows[r]
+        share = min(max(0.5 - gap / spacing[pt], 0.0), 0.5)
+        base = group[pt] * n_k
         c1x = origin[0] + basis[0, 0] * i + basis[0, 1] * j
         c1y = origin[1] + basis[1, 0] * i + basis[1, 1] * j
         _land(out, labels, centres_px, inv_pitch, x0, y0, base,
@@ -204,7 +207,8 @@ def warm_up() -> None:
     eye = np.eye(2)
     box_moments(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 2)), 0, 0, 1.0,
                 0.0, 1)
-    deposit_moments(one, one, one, one, one, np.ones(1), np.zeros(1, dtype=np.int64), 1,
+    deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
+                    np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
                     np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
     table = np.zeros((1, 8))
