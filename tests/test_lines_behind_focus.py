@@ -53,7 +53,7 @@ def test_triangulated_line_is_not_an_ok_point(monkeypatch):
     geom = truth_geometry(used, (SIZE, SIZE))
     calls = []
 
-    def no_line(profile, geom_, image, box, near, start_mm=None):
+    def no_line(profile, geom_, image, box, near, start_mm=None, sigma_floor_mm=None):
         calls.append(box)
         return Measurement.failed("no-solution", geom_.d_in_mm, kind="line")
 
@@ -69,7 +69,7 @@ def test_line_fit_chosen_over_triangulated_point(monkeypatch):
     img, used = _line_capture(2200.0, angle_deg=135.0)
     geom = truth_geometry(used, (SIZE, SIZE))
 
-    def good_line(profile, geom_, image, box, near, start_mm=None):
+    def good_line(profile, geom_, image, box, near, start_mm=None, sigma_floor_mm=None):
         nan = float("nan")
         return Measurement(nan, nan, nan, 2200.0, 0.0, 1.0, "ok", geom_.d_in_mm, kind="line",
                            misfit=0.05, endpoints=((0.0, 0.0), (0.0, 0.0)))
