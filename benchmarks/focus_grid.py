@@ -20,9 +20,9 @@ source with no region, counts as a miss. ``--truth-centres`` uses the renderer's
 centres instead of the calibration (separates calibration from fit). Writes one row a case
 to ``--csv`` and prints the table by side of focus × field bin.
 
-``--renderer independent`` takes the point-source captures (default mode and ``--scene12``)
-from ``benchmarks/render_independent.py`` instead of ``lfcam.sim`` (per-pixel irradiance by
-the Jacobian of the exact ray map: no ray binning, docs/simulate.md); ``--white analytic``
+``--renderer independent`` takes the captures (every mode; a line is the midpoint rule over
+exact point renders) from ``benchmarks/render_independent.py`` instead of ``lfcam.sim``
+(per-pixel irradiance by the Jacobian of the exact ray map: no ray binning, docs/simulate.md); ``--white analytic``
 calibrates on ``benchmarks/whites_analytic.py``'s per-pixel white instead of ``lfcam.sim``'s.
 The CSV's ``renderer`` and ``white`` columns tell the rows apart.
 
