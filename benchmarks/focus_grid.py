@@ -22,8 +22,9 @@ to ``--csv`` and prints the table by side of focus × field bin.
 
 ``--renderer independent`` takes the captures (every mode; a line is the midpoint rule over
 exact point renders) from ``benchmarks/render_independent.py`` instead of ``lfcam.sim``
-(per-pixel irradiance by the Jacobian of the exact ray map: no ray binning, docs/simulate.md); ``--white analytic``
-calibrates on ``benchmarks/whites_analytic.py``'s per-pixel white instead of ``lfcam.sim``'s.
+(per-pixel irradiance by the Jacobian of the exact ray map: no ray binning, docs/simulate.md);
+``--white analytic`` calibrates on ``benchmarks/whites_analytic.py``'s per-pixel white
+instead of ``lfcam.sim``'s.
 The CSV's ``renderer`` and ``white`` columns tell the rows apart.
 
 Run::
