@@ -22,7 +22,7 @@ from lfcam.measure.base import (
     point_measurement,
     region_pixels_mask,
 )
-from lfcam.measure.fastfit import fit_lenslet_line, fit_lenslet_point
+from lfcam.measure.fastfit import LINE_SIGMA_FLOOR_REL, fit_lenslet_line, fit_lenslet_point
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.noise import capture_noise
@@ -178,7 +178,8 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     Its σ is the larger of the pixel fit's (the curvature of its misfit: noise only) and
     ``sigma_floor_mm``, the lenslet line fit's (a jackknife over lenslets, which sees the
     model's mismatch): off axis the pixel σ alone fell to 0.03 % while the fits missed by
-    0.2–1.1 %, up to 46σ (docs/distance.md, "Lines across the field's stretch").
+    0.2–1.1 %, up to 46σ (docs/distance.md, "Lines across the field's stretch"); and
+    ``LINE_SIGMA_FLOOR_REL`` of the distance in quadrature, the line model's share.
 
     Parameters
     ----------
@@ -216,6 +217,7 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sigma = float(lf.sigma_distance_mm)
     if sigma_floor_mm is not None and np.isfinite(sigma_floor_mm):
         sigma = max(sigma, float(sigma_floor_mm))
+    sigma = math.hypot(sigma, LINE_SIGMA_FLOOR_REL * distance)  # the model's share
     return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
                        sigma, RegionStatus.OK, geom.d_in_mm, kind="line",
                        misfit=lf.misfit, endpoints=tuple(ends))
