@@ -129,7 +129,8 @@ SIGMA_FLOOR_REL = 3e-4  # added in quadrature to the fit's σ of a distance: the
 LINE_SIGMA_FLOOR_REL = 1e-3  # ... and to a line's, either method's: behind focus the line fits
 # come out long by 0.1-0.4 % on the independent renderer's captures (system 2, through the centre
 # +0.17 % mean, at 60 % of the half-field +0.25 %) at a statistical σ of 0.04-0.06 %, whatever
-# the centres (calibrated or true) or the model's sampling (twice the points, 3x the rays); with
+# the centres (calibrated or true) or the model's sampling (twice the points, 3x the rays; about
+# 0.07 % of it is that renderer's line sampling, the rest as on lfcam.sim's captures); with
 # it 334 of 336 measured lines fall within 3σ (docs/distance.md, "Lines on the
 # independent renderer")
 POLISH_MAX_GAIN = 0.9  # the polish lowers a point's misfit by at most this share (82 % seen)
