@@ -76,6 +76,15 @@ def neighbours(geom: Geometry, region: Region) -> np.ndarray:
     return np.unique(np.concatenate([np.asarray(v, dtype=np.int64) for v in lists]))
 
 
+LINE_SIGMA_FLOOR_REL = 1e-3  # added in quadrature to a line's σ of a distance, either
+# method's: behind focus the line fits come out long by 0.1-0.4 % on the independent renderer's
+# captures (system 2, through the centre +0.17 % mean, at 60 % of the half-field +0.25 %) at a
+# statistical σ of 0.04-0.06 %, whatever the centres (calibrated or true) or the model's
+# sampling (twice the points, 3x the rays; about 0.07 % of it is that renderer's line
+# sampling, the rest as on lfcam.sim's captures); with it 334 of 336 measured lines fall within
+# 3σ (docs/distance.md, "Lines on the independent renderer")
+
+
 def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_distance_mm: float,
                       sigma_floor_rel: float = 0.0, **extra) -> Measurement:
     """The measurement of a fitted point source: distance from the front vertex, offset, and
@@ -115,3 +124,35 @@ def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_dist
     sigma_y = sigma_distance_mm * dy if np.isfinite(sigma_distance_mm) else nan
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_distance_mm, RegionStatus.OK,
                        d_in_mm, **extra)
+
+
+def line_measurement(profile, d_in_mm: float, ends_mm, sigma_distance_mm: float,
+                     **extra) -> Measurement:
+    """The measurement of a fitted line source (``kind="line"``): distance from the front
+    vertex, the offset of its midpoint, the exact rim-ray heights at the sensor of both
+    endpoints (``endpoints``) and their mean, and ``sigma_distance_mm`` with
+    :data:`LINE_SIGMA_FLOOR_REL` of the distance added in quadrature.
+
+    Parameters
+    ----------
+    profile : CameraProfile
+    d_in_mm : float
+    ends_mm : pair of (3,) arrays
+        The line's endpoints (lens frame), both at the line's z.
+    sigma_distance_mm : float
+    **extra
+        Further :class:`Measurement` fields (``misfit``, ``noise_misfit``, …).
+
+    Returns
+    -------
+    Measurement
+    """
+    distance = profile.main_lens.front_vertex_z_mm - float(ends_mm[0][2])
+    fw = forward(profile, d_in_mm, distance,  # both ends in one trace
+                 np.array([float(np.hypot(pt[0], pt[1])) for pt in ends_mm]))
+    ends = tuple((float(fw.y1_mm[k]), float(fw.y2_mm[k])) for k in range(2))
+    mid = 0.5 * (np.asarray(ends_mm[0], dtype=float) + np.asarray(ends_mm[1], dtype=float))
+    return Measurement(0.5 * (ends[0][0] + ends[1][0]), 0.5 * (ends[0][1] + ends[1][1]),
+                       float("nan"), distance, float(np.hypot(mid[0], mid[1])),
+                       math.hypot(sigma_distance_mm, LINE_SIGMA_FLOOR_REL * distance),
+                       RegionStatus.OK, d_in_mm, kind="line", endpoints=ends, **extra)

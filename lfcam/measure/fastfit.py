@@ -35,13 +35,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from lfcam.camera import CameraProfile
-from lfcam.measure.base import Measurement, point_measurement
+from lfcam.measure.base import Measurement, line_measurement, point_measurement
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moment_noise_sums
@@ -49,7 +49,7 @@ from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offs
 from lfcam.measure.regions import Region
 from lfcam.measure.sampling import pixel_boxes, vogel_disc
 from lfcam.measure.verify import line_beats, line_trigger, poor_fit_limit
-from lfcam.optics.trace import forward, trace_sources_fast
+from lfcam.optics.trace import trace_sources_fast
 from lfcam.status import RegionStatus
 
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
@@ -126,13 +126,6 @@ SIGMA_FLOOR_REL = 3e-4  # added in quadrature to the fit's σ of a distance: the
 # calibration and the model that the statistical σ leaves out (bright blurs: σ 0.002-0.003 %,
 # error 0.014-0.026 %). Chosen on the 108 single sources of benchmarks/focus_grid.py (3σ:
 # 92 → 108), checked on the independent renderer's (2σ: 29 → 38 of 40; docs/distance.md)
-LINE_SIGMA_FLOOR_REL = 1e-3  # ... and to a line's, either method's: behind focus the line fits
-# come out long by 0.1-0.4 % on the independent renderer's captures (system 2, through the centre
-# +0.17 % mean, at 60 % of the half-field +0.25 %) at a statistical σ of 0.04-0.06 %, whatever
-# the centres (calibrated or true) or the model's sampling (twice the points, 3x the rays; about
-# 0.07 % of it is that renderer's line sampling, the rest as on lfcam.sim's captures); with
-# it 334 of 336 measured lines fall within 3σ (docs/distance.md, "Lines on the
-# independent renderer")
 POLISH_MAX_GAIN = 0.9  # the polish lowers a point's misfit by at most this share (82 % seen)
 POLISH_GAIN_SAFETY = 5.0  # ... and its misfit² by at most this × a linear step's prediction
 POLISH_GAIN_MIN = 0.1  # ... or by this share of it, whichever is more (docs/distance.md,
@@ -1466,19 +1459,5 @@ def _line_answer(profile: CameraProfile, geom: Geometry, line: LensletFit, limit
     """The measurement of a line that won over the point: ``poor-fit`` over ``limit``."""
     if not line.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
-    return replace(_line_measurement(profile, geom, line), noise_misfit=noise_misfit)
-
-
-def _line_measurement(profile: CameraProfile, geom: Geometry, line: LensletFit) -> Measurement:
-    """A line fit as a ``kind="line"`` measurement (rim heights of both endpoints)."""
-    nan = float("nan")
-    distance = profile.main_lens.front_vertex_z_mm - float(line.source_mm[2])
-    fw = forward(profile, geom.d_in_mm, distance,  # both ends in one trace
-                 np.array([float(np.hypot(pt[0], pt[1])) for pt in line.ends_mm]))
-    ends = [(float(fw.y1_mm[k]), float(fw.y2_mm[k])) for k in range(2)]
-    y1 = 0.5 * (ends[0][0] + ends[1][0])
-    y2 = 0.5 * (ends[0][1] + ends[1][1])
-    return Measurement(y1, y2, nan, distance, float(np.hypot(*line.source_mm[:2])),
-                       math.hypot(line.sigma_distance_mm, LINE_SIGMA_FLOOR_REL * distance),
-                       RegionStatus.OK, geom.d_in_mm, kind="line",
-                       misfit=line.misfit, endpoints=tuple(ends))
+    return line_measurement(profile, geom.d_in_mm, line.ends_mm, line.sigma_distance_mm,
+                            misfit=line.misfit, noise_misfit=noise_misfit)

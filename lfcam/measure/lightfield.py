@@ -18,11 +18,12 @@ import numpy as np
 from lfcam.camera import CameraProfile
 from lfcam.measure.base import (
     Measurement,
+    line_measurement,
     neighbours,
     point_measurement,
     region_pixels_mask,
 )
-from lfcam.measure.fastfit import LINE_SIGMA_FLOOR_REL, fit_lenslet_line, fit_lenslet_point
+from lfcam.measure.fastfit import fit_lenslet_line, fit_lenslet_point
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.noise import capture_noise
@@ -36,7 +37,6 @@ from lfcam.measure.pointfit import (
 )
 from lfcam.measure.regions import Region
 from lfcam.measure.verify import line_trigger, poor_fit_limit
-from lfcam.optics.trace import forward
 from lfcam.status import RegionStatus
 
 TRIANGULATION_ENOUGH = 300  # lenslets: above this the triangulation alone is used
@@ -179,7 +179,8 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``sigma_floor_mm``, the lenslet line fit's (a jackknife over lenslets, which sees the
     model's mismatch): off axis the pixel σ alone fell to 0.03 % while the fits missed by
     0.2–1.1 %, up to 46σ (docs/distance.md, "Lines across the field's stretch"); and
-    ``LINE_SIGMA_FLOOR_REL`` of the distance in quadrature, the line model's share.
+    :data:`lfcam.measure.base.LINE_SIGMA_FLOOR_REL` of the distance in quadrature, the line
+    model's share.
 
     Parameters
     ----------
@@ -200,24 +201,12 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     Measurement
         ``kind="line"``, with the rim heights of both endpoints in ``endpoints``.
     """
-    nan = float("nan")
     lf = fit_line_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
                         start_mm)
     if not lf.ok:
         return Measurement.failed(lf.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm, kind="line")
-    z_front = profile.main_lens.front_vertex_z_mm
-    distance = z_front - float(lf.start_mm[2])
-    ends = []
-    for pt in (lf.start_mm, lf.end_mm):
-        fw = forward(profile, geom.d_in_mm, distance, float(np.hypot(pt[0], pt[1])))
-        ends.append((float(fw.y1_mm), float(fw.y2_mm)))
-    mid = 0.5 * (lf.start_mm + lf.end_mm)
-    y1 = 0.5 * (ends[0][0] + ends[1][0])
-    y2 = 0.5 * (ends[0][1] + ends[1][1])
     sigma = float(lf.sigma_distance_mm)
     if sigma_floor_mm is not None and np.isfinite(sigma_floor_mm):
         sigma = max(sigma, float(sigma_floor_mm))
-    sigma = math.hypot(sigma, LINE_SIGMA_FLOOR_REL * distance)  # the model's share
-    return Measurement(y1, y2, nan, distance, float(np.hypot(mid[0], mid[1])),
-                       sigma, RegionStatus.OK, geom.d_in_mm, kind="line",
-                       misfit=lf.misfit, endpoints=tuple(ends))
+    return line_measurement(profile, geom.d_in_mm, (lf.start_mm, lf.end_mm), sigma,
+                            misfit=lf.misfit)
