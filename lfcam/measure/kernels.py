@@ -56,34 +56,52 @@ def _nearest_two(ex, ey, inv, b, rect, la, lb, seps):
         fv = u1 - j
         gu = (0.5 - abs(fu)) * la
         gv = (0.5 - abs(fv)) * lb
-        if gu <= gv:
-            return i, j, i + np.sign(fu), j, gu
-        return i, j, i, j + np.sign(fv), gv
+        # across u or across v, as arithmetic rather than a branch (a coin toss a ray)
+        across_u = int(gu <= gv)
+        su = float(int(fu > 0.0) - int(fu < 0.0))  # np.sign
+        sv = float(int(fv > 0.0) - int(fv < 0.0))
+        return i, j, i + across_u * su, j + (1 - across_u) * sv, min(gu, gv)
     fu = math.floor(u0)
     fv = math.floor(u1)
     ru = u0 - fu
     rv = u1 - fv
-    best1 = np.inf
-    best2 = np.inf
-    k1 = 0
-    k2 = 0
-    for k in range(4):
-        di = float(k & 1)
-        dj = float(k >> 1)
-        gx = b[0, 0] * (ru - di) + b[0, 1] * (rv - dj)
-        gy = b[1, 0] * (ru - di) + b[1, 1] * (rv - dj)
-        d2 = gx * gx + gy * gy
-        if d2 < best1:
-            best2, k2 = best1, k1
-            best1, k1 = d2, k
-        elif d2 < best2:
-            best2, k2 = d2, k
-    i = fu + float(k1 & 1)
-    j = fv + float(k1 >> 1)
-    i2 = fu + float(k2 & 1)
-    j2 = fv + float(k2 >> 1)
-    sep = seps[int(i2 - i) + 1, int(j2 - j) + 1]
-    return i, j, i2, j2, (best2 - best1) / (2.0 * sep)
+    # squared distances to the cell's corners (0, 0), (1, 0), (0, 1), (1, 1)
+    gx0 = b[0, 0] * ru + b[0, 1] * rv
+    gy0 = b[1, 0] * ru + b[1, 1] * rv
+    gx1 = gx0 - b[0, 0]
+    gy1 = gy0 - b[1, 0]
+    gx2 = gx0 - b[0, 1]
+    gy2 = gy0 - b[1, 1]
+    gx3 = gx1 - b[0, 1]
+    gy3 = gy1 - b[1, 1]
+    d0 = gx0 * gx0 + gy0 * gy0
+    d1 = gx1 * gx1 + gy1 * gy1
+    d2 = gx2 * gx2 + gy2 * gy2
+    d3 = gx3 * gx3 + gy3 * gy3
+    # The two smallest, ties to the lower corner index (as argmin), by min/max and integer
+    # arithmetic on comparisons, not branches: which corner is nearest is a coin toss from ray
+    # to ray, and the mispredicted branches of a sorting loop cost ~15 ns a ray (the deposit
+    # of scene b's blurs 83 → 68 ns a ray; docs/distance.md, "Speed at stop 33").
+    c01 = int(d1 < d0)  # pair (0, 1) sorted, then pair (2, 3)
+    c23 = int(d3 < d2)
+    a_lo, a_hi, ka_lo, ka_hi = min(d0, d1), max(d0, d1), c01, 1 - c01
+    b_lo, b_hi, kb_lo, kb_hi = min(d2, d3), max(d2, d3), 2 + c23, 3 - c23
+    fb = int(b_lo < a_lo)  # the nearest is in the second pair
+    best1 = min(a_lo, b_lo)
+    k1 = ka_lo + fb * (kb_lo - ka_lo)
+    # the second: the other pair's lower or the winning pair's higher (ties: lower index)
+    c_lo = max(a_lo, b_lo)
+    kc_lo = kb_lo + fb * (ka_lo - kb_lo)
+    c_hi = a_hi * (1 - fb) + b_hi * fb  # exact: one term is × 0, the other × 1
+    kc_hi = ka_hi + fb * (kb_hi - ka_hi)
+    s2 = int(c_hi < c_lo) | (int(c_hi == c_lo) & (1 - fb))
+    best2 = min(c_lo, c_hi)
+    k2 = kc_lo + s2 * (kc_hi - kc_lo)
+    di = (k2 & 1) - (k1 & 1)
+    dj = (k2 >> 1) - (k1 >> 1)
+    i = float(fu + (k1 & 1))
+    j = float(fv + (k1 >> 1))
+    return i, j, i + di, j + dj, (best2 - best1) / (2.0 * seps[di + 1, dj + 1])
 
 
 @njit(cache=True, nogil=True)
@@ -126,20 +144,18 @@ def _land(out, labels, centres_px, inv_pitch, x0, y0, base, px, py, w, s, inv_s)
     ty = py - cy
     ex = min(max((abs(tx) + 0.5 * s - 0.5) * inv_s, 0.0), 0.5)
     ey = min(max((abs(ty) + 0.5 * s - 0.5) * inv_s, 0.0), 0.5)
-    if ex == 0.0 and ey == 0.0:
-        # the box lies inside one pixel (most rays: with 80 000 rays a blur's box is ~0.05 px):
-        # one branch the processor predicts, not four label reads and a test of them
-        # (deposit 30-43 → 25 ns a ray; the same sums)
-        _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, int(cx), int(cy), w)
-        return
-    nx = cx + np.sign(tx)
-    ny = cy + np.sign(ty)
-    ic, ir, inx, iny = int(cx), int(cy), int(nx), int(ny)
+    ic, ir = int(cx), int(cy)
+    # the neighbour across the nearer pixel border, or the pixel itself where the box does not
+    # reach over it (ex = 0): whether it does is a coin toss from ray to ray (s ~ 0.1-0.5 px),
+    # so it is integer arithmetic, not a branch; `&`, not `and`, for the same reason (a share
+    # of 0 adds 0: the same sums)
+    inx = ic + int(ex > 0.0) * (int(tx > 0.0) - int(tx < 0.0))
+    iny = ir + int(ey > 0.0) * (int(ty > 0.0) - int(ty < 0.0))
     h, wd = labels.shape
-    if 0 <= min(ic, inx) and max(ic, inx) < wd and 0 <= min(ir, iny) and max(ir, iny) < h:
+    if (0 <= min(ic, inx)) & (max(ic, inx) < wd) & (0 <= min(ir, iny)) & (max(ir, iny) < h):
         k = labels[ir, ic]
-        if (k >= 0 and (ex == 0 or labels[ir, inx] == k) and (ey == 0 or labels[iny, ic] == k)
-                and (ex == 0 or ey == 0 or labels[iny, inx] == k)):
+        if ((k >= 0) & (labels[ir, inx] == k) & (labels[iny, ic] == k)
+                & (labels[iny, inx] == k)):
             # the (up to) four pixels belong to one lenslet: their shares summed in one update
             cxk = centres_px[k, 0]
             cyk = centres_px[k, 1]
