@@ -1,12 +1,19 @@
-"""A/B of the lenslet fit: this checkout's ``lfcam.measure.fastfit`` against another's, region
-by region in one process (each region measured by both in turn), on the seed grid.
+"""A/B of the lenslet fit: this checkout's ``lfcam.measure.fastfit`` (or its compiled kernels)
+against another's, region by region in one process (each region measured by both in turn), on
+the seed grid or a many-source scene.
 
 Run: ``python benchmarks/ab_lenslet.py --baseline OTHER/lfcam/measure/fastfit.py
 [--sets system1:point,system2:point,system1:line]`` (``OTHER``: e.g. a ``git worktree`` of an
-earlier commit). Prints, per set, each side's mean and worst CPU ms a region and mean / max
-ERROR %, and the ratio of the means. The two sides share everything but ``fastfit`` (kernels,
-geometry, regions, noise model), so the ratio is that module's alone, free of the machine's
-drift between runs.
+earlier commit, or ``git show REV:lfcam/measure/fastfit.py > /tmp/fastfit_old.py``). Prints,
+per set, each side's mean and worst CPU ms a region and mean / max ERROR %, and the ratio of
+the means. The two sides share everything but ``fastfit`` (kernels, geometry, regions, noise
+model), so the ratio is that module's alone, free of the machine's drift between runs.
+
+``--kernels OTHER/lfcam/measure/kernels.py`` instead: both sides run this ``fastfit``, the
+baseline with the other file's ray trace and moment deposit (the compiled kernels).
+``--scene a|b``: the regions of ``benchmarks/many_sources.py``'s scene (rendered into
+``--workdir`` on first use) instead of the seed grid; ERROR against the nearest source, and the
+largest change of a distance between the sides.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import tradeoff as tr  # noqa: E402
 
 from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.distance import _apply_model  # noqa: E402
-from lfcam.measure import fastfit, prepare_geometry  # noqa: E402
+from lfcam.measure import fastfit, noise_sigma, prepare_geometry  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.noise import capture_noise  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
@@ -44,14 +51,101 @@ def load_baseline(path: Path):
     return module
 
 
+def load_kernels(path: Path):
+    """A ``measure_lenslet`` that runs this ``fastfit`` with the other file's compiled trace
+    and deposit (``fastfit`` looks them up in ``lfcam.measure.kernels`` at each call)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    from lfcam.measure import kernels
+
+    # a fresh copy: numba's on-disk cache beside an earlier copy would name another module
+    copy = Path(tempfile.mkdtemp(prefix="lfcam_ab_")) / "kernels_baseline.py"
+    shutil.copyfile(path, copy)
+    atexit.register(shutil.rmtree, copy.parent, True)
+    spec = importlib.util.spec_from_file_location("lfcam.measure.kernels_baseline", copy)
+    other = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = other  # numba's on-disk cache finds the module by its name
+    spec.loader.exec_module(other)
+    swap = {"deposit_moments": other.deposit_moments,
+            "trace_model_rays": other.trace_model_rays}
+
+    def measure(*args):
+        mine = {k: getattr(kernels, k) for k in swap}
+        for k, v in swap.items():
+            setattr(kernels, k, v)
+        try:
+            return fastfit.measure_lenslet(*args)
+        finally:
+            for k, v in mine.items():
+                setattr(kernels, k, v)
+
+    return measure
+
+
+def run_scene(name: str, workdir: Path, sides: dict) -> None:
+    """Both sides on every region of a many-source scene; per region kind, mean / median /
+    worst CPU ms, and the largest relative change of an ``ok`` distance between the sides."""
+    import many_sources as ms
+
+    from lfcam.camera import load_profile
+    from lfcam.io import load_capture
+
+    png, cal_path, truth = ms.prepare(name, workdir)
+    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
+    img = load_capture(png, prof).grey()
+    geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
+    stats = lenslet_stats(img, geom.lmap)
+    capture_noise(img, geom.lmap, geom.pitch_px, stats)  # the gates' noise model (cached)
+    noise = noise_sigma(img)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    for measure in sides.values():  # load the compiled code on both sides
+        measure(prof, geom, img, regions[0], noise)
+    times = {k: [] for k in sides}
+    dist = {k: [] for k in sides}
+    kinds = []
+    for reg in regions:
+        for side, measure in sides.items():
+            t0 = time.process_time()
+            m = measure(prof, geom, img, reg, noise)
+            times[side].append(1e3 * (time.process_time() - t0))
+            _, ed, _, _, _ = _apply_model(prof, m, "exact", None)
+            dist[side].append(ed if m.status == "ok" else np.nan)
+        kinds.append(m.kind)
+    kinds = np.array(kinds)
+    for kind in sorted(set(kinds)):
+        sel = kinds == kind
+        for side in sides:
+            t = np.array(times[side])[sel]
+            print(f"scene {name} {kind:6s} {side:8s}: {t.mean():7.1f} ms a region (median "
+                  f"{np.median(t):6.1f}, worst {t.max():7.1f}; {sel.sum()} regions)")
+        ratio = np.sum(np.array(times["this"])[sel]) / np.sum(np.array(times["baseline"])[sel])
+        print(f"scene {name} {kind:6s} this / baseline: {ratio:.3f}")
+    a, b = np.array(dist["baseline"]), np.array(dist["this"])
+    same = np.isnan(a) == np.isnan(b)
+    print(f"scene {name}: ok in both {int((~np.isnan(a) & ~np.isnan(b)).sum())}, status "
+          f"differs {int((~same).sum())}, largest distance change "
+          f"{np.nanmax(np.abs(b / a - 1.0)):.2e} (relative)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", type=Path, required=True, help="the other fastfit.py")
+    which = ap.add_mutually_exclusive_group(required=True)
+    which.add_argument("--baseline", type=Path, help="the other fastfit.py")
+    which.add_argument("--kernels", type=Path, help="the other kernels.py")
     ap.add_argument("--sets", default="system1:point,system2:point,system1:line",
                     help="system:source pairs of the seed grid")
+    ap.add_argument("--scene", choices=("a", "b"), help="a many_sources.py scene instead")
+    ap.add_argument("--workdir", type=Path, default=Path(__file__).resolve().parent / ".cache",
+                    help="--scene: where the scene is rendered (as many_sources.py)")
     args = ap.parse_args()
-    sides = {"baseline": load_baseline(args.baseline).measure_lenslet,
+    sides = {"baseline": (load_baseline(args.baseline).measure_lenslet if args.baseline
+                          else load_kernels(args.kernels)),
              "this": fastfit.measure_lenslet}
+    if args.scene:
+        run_scene(args.scene, args.workdir, sides)
+        return
     for pair in args.sets.split(","):
         system, source = pair.split(":")
         cal = load_calibration(tr.DATA / f"calib_{system}.json")

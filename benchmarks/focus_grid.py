@@ -37,6 +37,13 @@ Run::
     python benchmarks/focus_grid.py --quick --method lenslet --renderer independent \
         --white analytic --foci 1000 --csv /tmp/fg_indep.csv
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
+    python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000 \
+        --distances 1500,2200,2900,3400 --method lenslet --truth-centres --noise-free \
+        --rays 16000000 --fastfit LINE_FINE_PER_LENSLET=120   # the line fit's own bias
+
+``--fastfit NAME=VALUE,...`` sets numeric constants of ``lfcam.measure.fastfit`` for the run
+(those read when a fit runs, not default arguments): experiments on the fit's budgets.
+``--noise-free`` renders without photon or read noise (the render cache keeps them apart).
 
 Measured CPU per region: 1–4 s a point (up to ~11 s near the field edge), 6–9 s a line;
 wall time grows with the machine's load. ``--quick``: first and last distance on each side,
@@ -60,6 +67,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))  # render_independent, whites_analytic
 
+import lfcam.measure.fastfit as FF  # noqa: E402
 import lfcam.measure.lightfield as LF  # noqa: E402
 from lfcam.calibrate import calibrate_white, load_calibration, save_calibration  # noqa: E402
 from lfcam.camera import CameraProfile, load_profile  # noqa: E402
@@ -71,6 +79,7 @@ from lfcam.sim.geometry import truth_geometry  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
+DEFAULT_NOISE = dict(NOISE)
 AZIMUTH_DEG = 30.0
 LINE_HALF_MM = 1.5  # half length of a line's image on the MLA
 LINE_ANGLES_DEG = (0, 60, 135)
@@ -197,9 +206,11 @@ class Camera:
             import hashlib
             import json
 
+            made = [self.renderer, self.system, self.cam, objects, seed, rays]
+            if NOISE != DEFAULT_NOISE:  # (the default is not in the key: older caches hold)
+                made.append(NOISE)
             key = RENDER_CACHE[0] / (hashlib.sha256(json.dumps(
-                [self.renderer, self.system, self.cam, objects, seed, rays],
-                sort_keys=True).encode()).hexdigest()[:24] + ".npz")
+                made, sort_keys=True).encode()).hexdigest()[:24] + ".npz")
             if key.exists():
                 with np.load(key) as z:
                     cen = z["centroids"]
@@ -477,7 +488,21 @@ def main() -> None:
     ap.add_argument("--append", action="store_true", help="append to --csv")
     ap.add_argument("--table", nargs="+", type=Path, metavar="CSV",
                     help="only print the tables of these CSVs")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="no photon or read noise in the captures (--renderer sim)")
+    ap.add_argument("--fastfit", default="", metavar="NAME=VALUE,...",
+                    help="experiments: override constants of lfcam.measure.fastfit (e.g. "
+                         "LINE_FINE_PER_LENSLET=120); printed in the log")
     args = ap.parse_args()
+    if args.noise_free:
+        NOISE.update({"photon_noise": False, "read_noise_e": 0.0})
+    for item in filter(None, args.fastfit.split(",")):
+        name, _, value = item.partition("=")
+        old = getattr(FF, name, None)
+        if not isinstance(old, (int, float)) or isinstance(old, bool) or not value:
+            ap.error(f"--fastfit: {name!r} is not a numeric constant of lfcam.measure.fastfit")
+        setattr(FF, name, type(old)(float(value)))
+        print(f"# fastfit {name}: {old} -> {getattr(FF, name)}", flush=True)
     METHOD[0] = args.method
     if args.render_cache:
         args.render_cache.mkdir(parents=True, exist_ok=True)
