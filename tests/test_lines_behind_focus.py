@@ -206,6 +206,21 @@ def test_line_off_axis_far_behind_focus():
     assert abs(best.distance_mm / 3400.0 - 1.0) < 0.008
 
 
+def _field_line(cam, distance_mm: float, field: float, angle_deg: float, rays: int):
+    """``benchmarks/focus_grid.py --lines``' capture: a line image 3 mm long on the MLA at
+    ``distance_mm``, centred at ``field`` of the half-field, turned ``angle_deg``."""
+    import focus_grid as fg
+
+    u = np.array([np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))])
+    centre = cam.field_xy(field)
+    mag = fg.magnification(cam.used)
+    a = cam.position(distance_mm, centre - fg.LINE_HALF_MM * mag * u)
+    b = cam.position(distance_mm, centre + fg.LINE_HALF_MM * mag * u)
+    img, _, _ = cam.render([{"type": "line", "distance_mm": distance_mm, "start_mm": a,
+                             "end_mm": b, "rays": rays}], seed=3, rays=rays)
+    return img
+
+
 def test_line_across_the_field_stretch(tmp_path):
     """System 1, a 3 mm line image at 1500 mm (focus 1 m) centred at 60 % of the half-field
     and turned 135°, across the radius along which vignetting stretches a point's footprint
@@ -216,13 +231,7 @@ def test_line_across_the_field_stretch(tmp_path):
     import focus_grid as fg
 
     cam = fg.Camera("system1", 1000.0, None, tmp_path, False)
-    u = np.array([np.cos(np.radians(135.0)), np.sin(np.radians(135.0))])
-    centre = cam.field_xy(0.6)
-    mag = fg.magnification(cam.used)
-    a = cam.position(1500.0, centre - fg.LINE_HALF_MM * mag * u)
-    b = cam.position(1500.0, centre + fg.LINE_HALF_MM * mag * u)
-    img, _, _ = cam.render([{"type": "line", "distance_mm": 1500.0, "start_mm": a,
-                             "end_mm": b, "rays": 1_000_000}], seed=3, rays=1_000_000)
+    img = _field_line(cam, 1500.0, 0.6, 135.0, 1_000_000)
     run = run_distance(img, cam.used, None, model="exact", method="lenslet",
                        geometry=cam.geom)
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
@@ -245,13 +254,7 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     monkeypatch.setitem(fg.NOISE, "photon_noise", False)
     monkeypatch.setitem(fg.NOISE, "read_noise_e", 0.0)
     cam = fg.Camera("system1", 1000.0, 1024, tmp_path, True)
-    u = np.array([np.cos(np.radians(135.0)), np.sin(np.radians(135.0))])
-    centre = cam.field_xy(0.8)
-    mag = fg.magnification(cam.used)
-    a = cam.position(3400.0, centre - fg.LINE_HALF_MM * mag * u)
-    b = cam.position(3400.0, centre + fg.LINE_HALF_MM * mag * u)
-    img, _, _ = cam.render([{"type": "line", "distance_mm": 3400.0, "start_mm": a,
-                             "end_mm": b, "rays": 16_000_000}], seed=3, rays=16_000_000)
+    img = _field_line(cam, 3400.0, 0.8, 135.0, 16_000_000)
 
     def line_error() -> tuple[float, float]:
         run = run_distance(img, cam.used, None, model="exact", method="lenslet",
