@@ -12,8 +12,8 @@ model), so the ratio is that module's alone, free of the machine's drift between
 ``--kernels OTHER/lfcam/measure/kernels.py`` instead: both sides run this ``fastfit``, the
 baseline with the other file's ray trace and moment deposit (the compiled kernels).
 ``--scene a|b``: the regions of ``benchmarks/many_sources.py``'s scene (rendered into
-``--workdir`` on first use) instead of the seed grid; ERROR against the nearest source, and the
-largest change of a distance between the sides.
+``--workdir`` on first use) instead of the seed grid; per region kind the CPU ms of both sides,
+and the largest change of a distance between them (the scene's errors: ``many_sources.py``).
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def run_scene(name: str, workdir: Path, sides: dict) -> None:
     from lfcam.camera import load_profile
     from lfcam.io import load_capture
 
-    png, cal_path, truth = ms.prepare(name, workdir)
+    png, cal_path, _ = ms.prepare(name, workdir)
     prof = load_profile(png.with_name(png.stem + ".profile.toml"))
     img = load_capture(png, prof).grey()
     geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)

@@ -179,6 +179,18 @@ class Camera:
         xy = chief_ray_offset(self.used, self.used.d_in_mm, distance_mm, target)
         return [float(xy[0]), float(xy[1])]
 
+    def line(self, distance_mm: float, angle_deg: float, field: float, rays: int,
+             half_mm: float = LINE_HALF_MM) -> dict:
+        """Scene object of a line whose image on the MLA is ``2 × half_mm`` long, turned
+        ``angle_deg``, centred at ``field`` of the half-field (each end placed by its chief
+        ray)."""
+        u = np.array([math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))])
+        centre = self.field_xy(field)
+        mag = magnification(self.used)
+        return {"type": "line", "distance_mm": distance_mm,
+                "start_mm": self.position(distance_mm, centre - half_mm * mag * u),
+                "end_mm": self.position(distance_mm, centre + half_mm * mag * u), "rays": rays}
+
     def field_xy(self, fraction: float, azimuth_deg: float = AZIMUTH_DEG) -> np.ndarray:
         """Sensor position (mm from the axis) at ``fraction`` of the half-field."""
         az = math.radians(azimuth_deg)
@@ -347,12 +359,8 @@ def run_lines(cam: Camera, distances, rays: int, emit,
     centre = cam.field_xy(field)
     for ad in distances:
         for ang in LINE_ANGLES_DEG:
-            u = np.array([math.cos(math.radians(ang)), math.sin(math.radians(ang))])
-            mag = magnification(cam.used)
-            a = cam.position(ad, centre - half_mm * mag * u)
-            b = cam.position(ad, centre + half_mm * mag * u)
-            obj = {"type": "line", "distance_mm": ad, "start_mm": a, "end_mm": b, "rays": rays}
-            img, truth, t_r = cam.render([obj], seed=3, rays=rays)
+            img, truth, t_r = cam.render([cam.line(ad, ang, field, rays, half_mm)], seed=3,
+                                         rays=rays)
             results, counts, wall, cpu = cam.measure(img)
             hit = nearest(results, truth["sources"][0]["centroid_px"])
             emit(cam.row(mode, ad, field, float(np.hypot(*centre)), ang, hit, counts, t_r,

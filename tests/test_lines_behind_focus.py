@@ -207,17 +207,8 @@ def test_line_off_axis_far_behind_focus():
 
 
 def _field_line(cam, distance_mm: float, field: float, angle_deg: float, rays: int):
-    """``benchmarks/focus_grid.py --lines``' capture: a line image 3 mm long on the MLA at
-    ``distance_mm``, centred at ``field`` of the half-field, turned ``angle_deg``."""
-    import focus_grid as fg
-
-    u = np.array([np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))])
-    centre = cam.field_xy(field)
-    mag = fg.magnification(cam.used)
-    a = cam.position(distance_mm, centre - fg.LINE_HALF_MM * mag * u)
-    b = cam.position(distance_mm, centre + fg.LINE_HALF_MM * mag * u)
-    img, _, _ = cam.render([{"type": "line", "distance_mm": distance_mm, "start_mm": a,
-                             "end_mm": b, "rays": rays}], seed=3, rays=rays)
+    """``benchmarks/focus_grid.py --lines``' capture (:meth:`focus_grid.Camera.line`)."""
+    img, _, _ = cam.render([cam.line(distance_mm, angle_deg, field, rays)], seed=3, rays=rays)
     return img
 
 
