@@ -97,6 +97,8 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     h, w = image.shape
     box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
     floor = 0.0  # of the σ (point_measurement): the pixel fit's alone
+    # the noise a clipped capture cuts at zero: the pixel fits model its floor
+    floor_sigma = capture_noise(image, geom.lmap, geom.pitch_px).floor_sigma
     moments = None  # the lenslet fit's point, where it runs
     if fast:
         if not fit.ok:
@@ -110,7 +112,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         source = fit.source_mm
         sigma_d = float(np.sqrt(max(fit.covariance_mm2[2, 2], 0.0)))
         misfit = _Patch(profile, geom.d_in_mm, image, box,
-                        geom.lens_centres_mm[near]).misfit(source)
+                        geom.lens_centres_mm[near], floor_sigma).misfit(source)
     else:
         # start from the lenslet-moment fit (0.1-0.4 s, within ~0.5 %): the triangulation
         # start can lie 3-4 % off in a side basin whose misfit already looks good (system 2,
@@ -124,7 +126,7 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
             # same lenslets carry no more of it (docs/distance.md, "Blurs of a few lenslets")
             return Measurement.failed(RegionStatus.NEAR_FOCUS, geom.d_in_mm)
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
-                             start)
+                             start, floor_sigma)
         if not fi.ok:
             return Measurement.failed(fi.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm)
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)
@@ -202,7 +204,7 @@ def measure_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         ``kind="line"``, with the rim heights of both endpoints in ``endpoints``.
     """
     lf = fit_line_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
-                        start_mm)
+                        start_mm, capture_noise(image, geom.lmap, geom.pitch_px).floor_sigma)
     if not lf.ok:
         return Measurement.failed(lf.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm, kind="line")
     sigma = float(lf.sigma_distance_mm)

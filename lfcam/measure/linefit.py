@@ -79,17 +79,19 @@ def fit_line_image(
     box: tuple[int, int, int, int],
     lens_centres_mm: np.ndarray,
     start_mm: tuple[np.ndarray, np.ndarray] | None = None,
+    floor_sigma: float = 0.0,
 ) -> LineFit:
     """Fit (distance, endpoint a, endpoint b) of a line source to the pixels in ``box``.
 
     ``start_mm``: endpoints (two (3,) points, lens frame) of a line found another way (the
-    lenslet fit's), a start beside those of the distance scan.
+    lenslet fit's), a start beside those of the distance scan. ``floor_sigma``: as
+    :func:`lfcam.measure.pointfit.fit_point_image`'s.
     """
     from scipy.optimize import least_squares  # lazily (import cost, as in pointfit)
 
     lens = profile.main_lens
     z_front = lens.front_vertex_z_mm
-    patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm)
+    patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm, floor_sigma)
     # a quasi-random (Vogel) pupil sample, as the point fit's: a regular grid, the same for
     # every point of the line, aliases with the pixels
     pattern = vogel_disc(len(pupil_pattern(LINE_PUPIL)[0]))

@@ -7,6 +7,10 @@ pedestal removed) has variance ``σ_r² + g·I``:
 * ``σ_r`` (:func:`dark_sigma`): the σ of the pixels that see no source. Taken from the upper
   quartile over the median: an unsigned raw with a black level of 0 clips the noise below zero,
   so that most dark pixels read exactly 0 and a median absolute deviation reads 0 too.
+* ``clipped`` (:func:`clips_at_zero`): the capture's noise is cut at zero (an unsigned raw with
+  a black level of 0, a processed image): a dark pixel then reads ``E[max(0, n)] = σ_r/√(2π)``
+  on average, not 0, and a dim one more than its signal (:func:`clipped_mean`). The pixel fit
+  models that floor (docs/distance.md, "The clipped dark floor").
 * ``g`` (:func:`photon_gain`, image units per photo-electron): from the lenslet sums inside
   the capture's blurs. A defocused blur lights its interior lenslets smoothly (the pupil's
   image on the MLA), so a lenslet differs from the mean of its ``n`` lit neighbours by its
@@ -23,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.special import ndtr
 
 from lfcam.measure.base import frame_sample
 from lfcam.measure.cache import ObjectCache
@@ -35,6 +40,10 @@ INTERIOR_SIGMAS = 5.0  # ... and it lies ≥ this many read-noise σ of its sum 
 NEIGHBOUR_SLOTS = 13  # nearest centres looked up per lenslet (itself + up to 12 neighbours)
 MIN_INTERIOR = 20  # fewer interior lenslets: no gain estimate (photon noise not counted)
 CHI2_MEDIAN = 0.4549364231195724  # median of χ² with one degree of freedom
+CLIPPED_SHARE = 0.1  # a capture whose frame sample reads exactly 0 this often, and never
+# below, clips its noise at zero (a dark pixel of an unclipped one reads 0 with probability
+# ~q/(2.5 σ_r) at quantum q; of a clipped one ≥ 0.5)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -43,6 +52,13 @@ class NoiseModel:
 
     read_sigma: float
     gain: float  # image units per photo-electron (0 when not measurable)
+    clipped: bool = False  # the noise is cut at zero (:func:`clips_at_zero`)
+
+    @property
+    def floor_sigma(self) -> float:
+        """The σ of the noise a clipped capture cuts at zero (:func:`clipped_mean`); 0 when
+        the capture does not clip."""
+        return self.read_sigma if self.clipped else 0.0
 
     def moments_misfit_of(self, sums: tuple[float, float], norm: float) -> float:
         """:func:`moments_misfit` from the region's :func:`moment_noise_sums`."""
@@ -123,6 +139,34 @@ def dark_sigma(image: np.ndarray) -> float:
     quartile."""
     med, upper = np.percentile(np.asarray(frame_sample(image), dtype=np.float64), [50.0, 75.0])
     return float(upper - med) / 0.6745
+
+
+def clips_at_zero(image: np.ndarray) -> bool:
+    """Whether ``image`` clips its noise at zero: its :func:`frame_sample` has no value below
+    0 and reads exactly 0 at least ``CLIPPED_SHARE`` of the time (an unsigned raw with a black
+    level of 0; a raw with a black level above 0 keeps the values below it negative,
+    :mod:`lfcam.io`)."""
+    s = np.asarray(frame_sample(image))
+    return bool(s.size and s.min() >= 0 and np.count_nonzero(s == 0) >= CLIPPED_SHARE * s.size)
+
+
+def clipped_mean(mu: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean reading ``E[max(0, μ + n)]`` of a pixel of signal ``μ`` under Gaussian noise
+    ``n`` of σ ``sigma`` cut at zero, and its slope in ``μ``:
+
+    ``E = μ·Φ(μ/σ) + σ·φ(μ/σ)``, ``dE/dμ = Φ(μ/σ)``
+
+    (0.399 σ at μ = 0; within 0.01 σ of μ from μ = 2 σ). Read noise only: the photon noise
+    of the dim pixels where the cut matters is below it on the captures measured, and the
+    capture's gain estimate is an upper bound (:func:`photon_gain`). Quantisation is not
+    modelled (rounding to steps of q ≤ σ moves the mean by < 0.02 σ; of q ≤ σ/2, < 0.005 σ).
+    """
+    mu = np.asarray(mu, dtype=np.float64)
+    if not sigma > 0:
+        return mu, np.ones_like(mu)
+    t = mu / sigma
+    cdf = ndtr(t)
+    return mu * cdf + sigma * _INV_SQRT_2PI * np.exp(-0.5 * t * t), cdf
 
 
 def photon_gain(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> float:
@@ -207,7 +251,8 @@ def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float,
         if known is not None:
             return known
         st = lenslet_stats(image, lmap) if stats is None else stats
-        return NoiseModel(dark_sigma(image), photon_gain(st, lmap, pitch_px))
+        return NoiseModel(dark_sigma(image), photon_gain(st, lmap, pitch_px),
+                          clips_at_zero(image))
 
     # per image, then per lenslet map (one capture measured on two geometries: two models)
     return _CACHE.get(image, ObjectCache).get(lmap, model)
