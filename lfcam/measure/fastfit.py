@@ -68,7 +68,6 @@ FINE_ITERATIONS = 4
 FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
 LINE_SETTLE_LOG = 2e-5  # the line's fine fit ends on a step under this in log distance
 LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
-LINE_KEEP_JAC = 0
 POLISH_RAYS = 80000  # rays of the polishing model
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
@@ -101,7 +100,6 @@ LINE_MAX_RAYS = 36000  # rays a point of the line, at most (fine model)
 LINE_GN_PER_LENSLET = 10  # ... the fine Gauss–Newton steps' model: per lit lenslet
 LINE_GN_MAX_RAYS = 12000  # ... and at most
 LINE_FINE_MIN_RAYS = POLISH_RAYS // LINE_POINTS  # ... and at least
-LINE_GN_MIN_RAYS = LINE_FINE_MIN_RAYS  # ... the Gauss–Newton steps' model, at least
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
@@ -537,8 +535,7 @@ def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
-                         keep_jac=False):
+                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -599,9 +596,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             continue
         if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
             break
-        if keep_jac:
-            fresh = False
-        elif not broyden:
+        if not broyden:
             jac = None
     return q, r, f, last
 
@@ -1314,7 +1309,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fine = model(fine_rays)
     # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
     # fine one itself where both budgets meet at the floor (small blurs)
-    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_GN_MIN_RAYS, LINE_GN_MAX_RAYS)
+    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
     gn_model = fine if gn_rays == fine_rays else model(gn_rays)
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
@@ -1383,8 +1378,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         f = _sq(r)
     q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                              r0=r, jac_of=jac_f,
-                                             settle_log=LINE_SETTLE_LOG,
-                                             keep_jac=bool(LINE_KEEP_JAC))
+                                             settle_log=LINE_SETTLE_LOG)
     if jac_fine is not None:
         jac = jac_fine
     if math.sqrt(f) < useful_below:
