@@ -2,7 +2,8 @@
 
 Truth: Monte-Carlo means of clipped Gaussian noise; the infinite-draw mean of a clipped capture
 computed from a noise-free render with read *and* photon noise (the fit's floor model has read
-noise only); the renderer's source distance (docs/distance.md, "The clipped dark floor").
+noise only); the renderer's source distance (docs/distance.md, "The clipped dark floor, and
+the pixel fit's own rays behind focus").
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ pedestal removed) has variance ``σ_r² + g·I``:
 * ``clipped`` (:func:`clips_at_zero`): the capture's noise is cut at zero (an unsigned raw with
   a black level of 0, a processed image): a dark pixel then reads ``E[max(0, n)] = σ_r/√(2π)``
   on average, not 0, and a dim one more than its signal (:func:`clipped_mean`). The pixel fit
-  models that floor (docs/distance.md, "The clipped dark floor").
+  models that floor (docs/distance.md, "The clipped dark floor, and the pixel fit's own rays
+  behind focus").
 * ``g`` (:func:`photon_gain`, image units per photo-electron): from the lenslet sums inside
   the capture's blurs. A defocused blur lights its interior lenslets smoothly (the pupil's
   image on the MLA), so a lenslet differs from the mean of its ``n`` lit neighbours by its

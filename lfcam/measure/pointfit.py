@@ -582,7 +582,8 @@ class _Patch:
         """The blurred model image of the clipped capture, ``B(E[max(0, a·m + n)])``, at the
         best scale ``a`` (least squares against the data): the dark pixels' floor (0.4 σ) and
         the dim ones' excess are in the model, not left in the residual, where they widened
-        and lengthened dim blurs (docs/distance.md, "The clipped dark floor").
+        and lengthened dim blurs (docs/distance.md, "The clipped dark floor, and the pixel
+        fit's own rays behind focus").
 
         The scale starts from the linear fit to the data less the floor and takes
         ``CLIP_SCALE_STEPS`` Gauss–Newton steps (the model is linear in ``a`` where the
@@ -950,7 +951,7 @@ def fit_point_image(
     # 0.25 % at 4×, 0.12 % at 16×; in front of focus by under 0.03 %. A turned sample, or a
     # Gauss–Newton step towards the 4× model, predicts none of it (≤ 0.07 %). So behind focus
     # the polish and the surface are redone from the minimum with BEHIND_FOCUS_RAYS × the rays
-    # (docs/distance.md, "The pixel fit's own ray sample").
+    # (docs/distance.md, "The clipped dark floor, and the pixel fit's own rays behind focus").
     if z_front - source[2] > lens.focus_for_d_in(d_in_mm):
         patch.pattern = vogel_disc(BEHIND_FOCUS_RAYS * len(patch.pattern[0]))
         model.forget()
