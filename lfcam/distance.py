@@ -60,6 +60,7 @@ from lfcam.measure import (
     prepare_geometry,
 )
 from lfcam.measure.noise import capture_noise
+from lfcam.measure.regions import nearby_regions
 from lfcam.measure.verify import verify_regions
 from lfcam.models import POINT_MODELS, auto, check_distance_model
 from lfcam.models import line as line_model
@@ -147,9 +148,9 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
 
 def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, reg: Region,
               noise: float, model: str, method: str, tolerance_pct: float | None,
-              fast: bool) -> tuple:
+              fast: bool, nearby: tuple[Region, ...] = ()) -> tuple:
     """(kind, model name, distance, offset, diameter, sigma, status, Measurement or None) of
-    one region."""
+    one region (``nearby``: the regions whose blur may reach into its box)."""
     nan = float("nan")
     if reg.kind not in ("spot", "line"):
         return reg.kind, model, nan, nan, nan, nan, unsupported(reg.kind), None
@@ -174,7 +175,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
             method = "lightfield"
     if meas is None:
         if method == "lightfield":
-            meas = measure_lightfield(profile, geom, img, reg, noise, fast)
+            meas = measure_lightfield(profile, geom, img, reg, noise, fast, nearby)
         elif method == "lenslet":
             meas = measure_lenslet(profile, geom, img, reg, noise)
         else:
@@ -275,8 +276,10 @@ def run_distance(
                                       progress, noise_model)
         else:
             estimates = []
+            near = nearby_regions(regions)
             for i, reg in enumerate(regions):
-                estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args))
+                estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args,
+                                                 near[i]))
                 if progress:
                     progress("regions", i + 1, len(regions))
     finally:
@@ -317,13 +320,13 @@ def run_distance(
                                        "region_s": [t for _, t in estimates]}, checks)
 
 
-def _timed_estimate(profile, geom, img, stats, reg, noise, args) -> tuple:
+def _timed_estimate(profile, geom, img, stats, reg, noise, args, nearby=()) -> tuple:
     """(estimate of :func:`_estimate` or its failure, CPU seconds of this region)."""
     model, method, tolerance_pct, fast = args
     t = time.process_time()
     try:
         est = _estimate(profile, geom, img, stats, reg, noise, model, method, tolerance_pct,
-                        fast)
+                        fast, nearby)
     except _REGION_FAILURES as exc:
         nan = float("nan")
         est = (reg.kind, model, nan, nan, nan, nan, failed(type(exc).__name__), None)
@@ -392,10 +395,11 @@ def _worker_attach(names: tuple[str, str, str], shape: tuple[int, int]) -> dict:
     return _WORKER
 
 
-def _worker_region(names: tuple[str, str, str], shape: tuple[int, int], reg: Region) -> tuple:
+def _worker_region(names: tuple[str, str, str], shape: tuple[int, int], reg: Region,
+                   nearby: tuple[Region, ...] = ()) -> tuple:
     w = _worker_attach(names, shape)
     return _timed_estimate(w["profile"], w["geom"], w["img"], w["stats"], reg, w["noise"],
-                           w["args"])
+                           w["args"], nearby)
 
 
 class _RegionPool:
@@ -463,7 +467,9 @@ class _RegionPool:
             names = tuple(s.name for s in shms)
             # the largest regions first, so that no worker is left with a long tail
             order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
-            futures = {self.pool.submit(_worker_region, names, img.shape, regions[i]): i
+            near = nearby_regions(regions)
+            futures = {self.pool.submit(_worker_region, names, img.shape, regions[i],
+                                        near[i]): i
                        for i in order}
             out: list = [None] * len(regions)
             for done, fut in enumerate(as_completed(futures), start=1):

@@ -105,7 +105,7 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
         kind = "line" if reg.region_id == 2 else "spot"
         return replace(ok, sigma_distance_mm=sigma, kind=kind)
 
-    def lightfield(profile, geom, img, reg, noise, fast):
+    def lightfield(profile, geom, img, reg, noise, fast, nearby=()):
         calls.append(("lightfield", reg.region_id))
         return replace(ok, sigma_distance_mm=2.0, distance_mm=1001.0)
 

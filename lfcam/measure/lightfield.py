@@ -56,7 +56,8 @@ POOR_FIT_MISFIT = 0.25  # neither model explains the pixels: no distance (status
 
 
 def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                       region: Region, noise: float, fast: bool = False) -> Measurement:
+                       region: Region, noise: float, fast: bool = False,
+                       nearby: tuple[Region, ...] = ()) -> Measurement:
     """Exact forward-model fit of a point-like region (module docstring).
 
     Parameters
@@ -72,6 +73,10 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         Pixel noise σ (:func:`lfcam.measure.noise_sigma`).
     fast : bool, optional
         Keep the triangulation of lenslet spots, skip the per-pixel fit.
+    nearby : tuple of Region, optional
+        Regions whose blur may reach into this one's box
+        (:func:`lfcam.measure.regions.nearby_regions`): the pixel fit models their light too
+        (their lenslet fits' points, each at its own free intensity).
 
     Returns
     -------
@@ -125,8 +130,14 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
             # the distance profile is flat (a blur within 2×2 lenslets): the pixels of the
             # same lenslets carry no more of it (docs/distance.md, "Blurs of a few lenslets")
             return Measurement.failed(RegionStatus.NEAR_FOCUS, geom.d_in_mm)
+        others = []
+        for other in nearby:
+            # a touching blur's light in this box, where its lenslet fit puts it
+            fit_other = fit_lenslet_point(profile, geom, image, other)
+            if fit_other.ok:
+                others.append(fit_other.source_mm)
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
-                             start, floor_sigma)
+                             start, floor_sigma, others)
         if not fi.ok:
             return Measurement.failed(fi.reason or RegionStatus.NO_SOLUTION, geom.d_in_mm)
         source, sigma_d, misfit = fi.source_mm, fi.sigma_distance_mm, float(fi.misfit)

@@ -493,6 +493,8 @@ class _Patch:
 
     def __init__(self, profile, d_in_mm, image, box, lens_centres_mm, floor_sigma=0.0):
         x0, y0, x1, y1 = box
+        # other sources' light in the box, unit intensity, before the blur (add_others)
+        self.others: list[np.ndarray] = []
         # a capture that clips its noise at zero reads E[max(0, s + n)] (σ of n: this), not s
         # (lfcam.measure.noise.clipped_mean); 0: it does not clip
         self.floor_sigma = float(floor_sigma)
@@ -570,43 +572,75 @@ class _Patch:
         capture that clips its noise at zero, the model's pixels ``a·m`` read as the clipped
         mean ``E[max(0, a·m + n)]`` and ``a`` by Gauss–Newton (:meth:`_clipped_model`)."""
         self.evaluations += 1
+        pixels = [self.render_pixels(source_mm, pattern)] + self.others
         if self.floor_sigma > 0:
-            return ((self.data - self._clipped_model(self.render_pixels(source_mm, pattern)))
-                    / self.norm).ravel()
-        m = self.render(source_mm, pattern)
-        mm = float((m * m).sum())
-        a = float((m * self.data).sum()) / mm if mm > 0 else 0.0
-        return ((self.data - a * m) / self.norm).ravel()
+            model = self._clipped_model(pixels)
+        else:
+            model = self._linear_model(pixels)
+        return ((self.data - model) / self.norm).ravel()
 
-    def _clipped_model(self, pixels: np.ndarray) -> np.ndarray:
-        """The blurred model image of the clipped capture, ``B(E[max(0, a·m + n)])``, at the
-        best scale ``a`` (least squares against the data): the dark pixels' floor (0.4 σ) and
-        the dim ones' excess are in the model, not left in the residual, where they widened
-        and lengthened dim blurs (docs/distance.md, "The clipped dark floor, and the pixel
-        fit's own rays behind focus").
+    def add_others(self, sources_mm: list[np.ndarray]) -> None:
+        """Model the light of other sources (points) in the box as well, each at its own free
+        intensity: a touching blur's edge lenslets that the region took in are explained, not
+        fitted by moving this source (docs/distance.md, "Touching blurs fitted together").
+        Rendered once, with 4× the rays of a model evaluation; a source that puts no light in
+        the box is left out."""
+        dense = vogel_disc(4 * len(self.pattern[0]))
+        for src in sources_mm:
+            img = self.render_pixels(np.asarray(src, dtype=np.float64), dense)
+            if img.sum() > 0:
+                self.others.append(img)
 
-        The scale starts from the linear fit to the data less the floor and takes
-        ``CLIP_SCALE_STEPS`` Gauss–Newton steps (the model is linear in ``a`` where the
-        signal is over ~2 σ: a step or two settles it)."""
+    def _linear_model(self, pixels: list[np.ndarray]) -> np.ndarray:
+        """Σ aₖ·B(pₖ) at the least-squares scales (the others' at ≥ 0)."""
+        cols = [cv2.GaussianBlur(p, (0, 0), MATCH_BLUR_PX) for p in pixels]
+        if len(cols) == 1:
+            m = cols[0]
+            mm = float((m * m).sum())
+            return m * (float((m * self.data).sum()) / mm if mm > 0 else 0.0)
+        a = np.stack([c.ravel() for c in cols], axis=1)
+        use = np.ones(len(cols), dtype=bool)
+        full = np.zeros(len(cols))
+        for _ in range(len(cols)):
+            full[:] = 0.0
+            full[use] = np.linalg.lstsq(a[:, use], self.data.ravel(), rcond=None)[0]
+            negative = use & (full < 0)
+            negative[0] = False  # this source's own scale is free
+            if not negative.any():
+                break
+            use &= ~negative
+        return (a @ full).reshape(self.data.shape)
+
+    def _clipped_model(self, pixels: list[np.ndarray]) -> np.ndarray:
+        """The blurred model image of the clipped capture, ``B(E[max(0, Σ aₖ·pₖ + n)])``, at
+        the best scales ``aₖ`` (least squares against the data; ``pₖ``: this source's pixels,
+        then the others'): the dark pixels' floor (0.4 σ) and the dim ones' excess are in the
+        model, not left in the residual, where they widened and lengthened dim blurs
+        (docs/distance.md, "The clipped dark floor, and the pixel fit's own rays behind
+        focus").
+
+        The scales start from the linear fit to the data less the floor and take
+        ``CLIP_SCALE_STEPS`` Gauss–Newton steps (the model is linear in them where the
+        signal is over ~2 σ: a step or two settles them)."""
         sigma = self.floor_sigma
-        m = cv2.GaussianBlur(pixels, (0, 0), MATCH_BLUR_PX)
-        mm = float((m * m).sum())
-        if not mm > 0:
-            return np.full_like(self.data, clipped_mean(np.zeros(1), sigma)[0][0])
         floor = float(clipped_mean(np.zeros(1), sigma)[0][0])
-        a = max(float((m * (self.data - floor)).sum()) / mm, 0.0)
+        cols = np.stack([cv2.GaussianBlur(p, (0, 0), MATCH_BLUR_PX).ravel() for p in pixels],
+                        axis=1)
+        if not float((cols * cols).sum()) > 0:
+            return np.full_like(self.data, floor)
+        a = np.clip(np.linalg.lstsq(cols, self.data.ravel() - floor, rcond=None)[0], 0.0,
+                    None)
+        stack = np.stack(pixels)
         for _ in range(CLIP_SCALE_STEPS):
-            value, slope = clipped_mean(a * pixels, sigma)
+            value, slope = clipped_mean(np.tensordot(a, stack, 1), sigma)
             model = cv2.GaussianBlur(value, (0, 0), MATCH_BLUR_PX)
-            j = cv2.GaussianBlur(slope * pixels, (0, 0), MATCH_BLUR_PX)
-            jj = float((j * j).sum())
-            if not jj > 0:
+            jac = np.stack([cv2.GaussianBlur(slope * p, (0, 0), MATCH_BLUR_PX).ravel()
+                            for p in pixels], axis=1)
+            step = np.linalg.lstsq(jac, (self.data - model).ravel(), rcond=None)[0]
+            a = np.clip(a + step, 0.0, None)
+            if np.all(np.abs(step) <= 1e-6 * np.maximum(np.abs(a), 1e-300)):
                 break
-            step = float((j * (self.data - model)).sum()) / jj
-            a = max(a + step, 0.0)
-            if abs(step) <= 1e-6 * a:
-                break
-        value, _ = clipped_mean(a * pixels, sigma)
+        value, _ = clipped_mean(np.tensordot(a, stack, 1), sigma)
         return cv2.GaussianBlur(value, (0, 0), MATCH_BLUR_PX)
 
     def misfit(self, source_mm, pattern=None) -> float:
@@ -832,11 +866,14 @@ def fit_point_image(
     lens_centres_mm: np.ndarray,
     start_mm: np.ndarray | None = None,
     floor_sigma: float = 0.0,
+    others_mm: list[np.ndarray] | None = None,
 ) -> ImageFit:
     """Match the exact forward model of a point source to the pixels inside ``box``.
 
     ``floor_sigma``: the σ of the noise the capture clips at zero (0: it does not clip;
-    :attr:`lfcam.measure.noise.NoiseModel.floor_sigma`).
+    :attr:`lfcam.measure.noise.NoiseModel.floor_sigma`). ``others_mm``: points of other
+    sources whose blurs may reach into the box: their light is modelled with them, each at
+    its own free intensity (:meth:`_Patch.add_others`).
 
     Without a start, a coarse scan over distance (lateral position from the chief ray through
     the light's centroid) picks the basin; a trust-region least-squares fit
@@ -845,6 +882,8 @@ def fit_point_image(
     """
     lens = profile.main_lens
     patch = _Patch(profile, d_in_mm, image, box, lens_centres_mm, floor_sigma)
+    if others_mm:
+        patch.add_others(others_mm)
     if patch.norm <= 0:
         return ImageFit(np.full(3, np.nan), 1.0, np.nan, 0, False, RegionStatus.EMPTY)
     pp = profile.sensor.pixel_pitch_mm

@@ -80,6 +80,24 @@ class Region:
     parts: int = 1  # connected clusters merged into this region (halo fragments included)
 
 
+def nearby_regions(regions: list[Region]) -> list[tuple[Region, ...]]:
+    """For each region, the other regions whose blur may reach into its box: their boxes
+    grown by their own width and height overlap it. A dim blur's edge lenslets can sit in
+    its neighbour's region while its own region holds only its core (docs/distance.md,
+    "Touching blurs fitted together")."""
+    boxes = np.array([r.box_px for r in regions], dtype=np.float64).reshape(-1, 4)
+    w = boxes[:, 2] - boxes[:, 0]
+    h = boxes[:, 3] - boxes[:, 1]
+    grown = np.column_stack([boxes[:, 0] - w, boxes[:, 1] - h, boxes[:, 2] + w, boxes[:, 3] + h])
+    out = []
+    for i, b in enumerate(boxes):
+        hit = ((grown[:, 0] < b[2]) & (grown[:, 2] > b[0]) & (grown[:, 1] < b[3])
+               & (grown[:, 3] > b[1]))
+        hit[i] = False
+        out.append(tuple(regions[j] for j in np.flatnonzero(hit)))
+    return out
+
+
 def _neighbour_components(points: np.ndarray, pitch_px: float) -> tuple[int, np.ndarray]:
     """Connected groups of lenslet centres ``points`` (K, 2), neighbours being closer than
     1.6 pitches: (count, label of each point)."""
