@@ -42,7 +42,7 @@ import lfcam.measure.lightfield as lightfield  # noqa: E402
 import lfcam.measure.pointfit as pointfit  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.noise import NoiseModel, clipped_mean  # noqa: E402
-from lfcam.measure.regions import find_regions  # noqa: E402
+from lfcam.measure.regions import find_regions, nearby_regions  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
 
@@ -118,6 +118,7 @@ def main() -> None:
         draw = noisy(mu, dn_per_e, top, 100, True)
         regions = find_regions(lenslet_stats(draw, cam.geom.lmap), cam.geom.lmap,
                                cam.geom.pitch_px)
+        nearby = dict(zip((r.region_id for r in regions), nearby_regions(regions), strict=True))
         print("| image, model | " + " | ".join(f"{s['distance_mm']:.0f}" for s in sources)
               + " |")
         print("|---" * (len(sources) + 1) + "|")
@@ -133,7 +134,8 @@ def main() -> None:
                 if not hit:
                     row.append("—")
                     continue
-                m = lightfield.measure_lightfield(cam.used, cam.geom, img, hit[0], read)
+                m = lightfield.measure_lightfield(cam.used, cam.geom, img, hit[0], read, False,
+                                                  nearby[hit[0].region_id])
                 row.append(f"{100 * (m.distance_mm / s['distance_mm'] - 1):+.3f}")
             print(f"| {name} | " + " | ".join(row) + " |", flush=True)
     if args.draws:
