@@ -140,3 +140,21 @@ def test_touching_blur_fitted_together():
     print(errors)
     assert abs(errors["together"]) < 0.3
     assert abs(errors["alone"]) > 2.0 * abs(errors["together"]) + 0.3
+
+
+def test_pixel_fit_knows_every_lenslet_of_its_box():
+    """Every lenslet with a pixel in a fit's box is in the model's lattice: where a region is
+    not convex its bounding box reaches past the three pitches around its lenslets, and rays
+    landing on a lenslet the model does not know were dropped while the data kept their light
+    (the 12-source capture's 3500 mm source: +0.60 % on its noise-free mean in one draw's
+    region, −0.06 % with the box's lenslets)."""
+    from lfcam.measure.lightfield import _lenslets_in
+
+    prof = apply_overrides(load_profile("system2"), CAMERA)
+    geom = truth_geometry(prof, (SIZE, SIZE))
+    rng = np.random.default_rng(10)
+    for _ in range(20):
+        x0, y0 = (int(v) for v in rng.integers(0, SIZE - 200, 2))
+        box = (x0, y0, x0 + int(rng.integers(20, 200)), y0 + int(rng.integers(20, 200)))
+        labels = np.unique(geom.lmap.labels[box[1]:box[3], box[0]:box[2]])
+        assert np.isin(labels[labels >= 0], _lenslets_in(geom, box)).all()

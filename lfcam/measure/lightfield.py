@@ -97,10 +97,11 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     # A blur spread over hundreds of lenslets is triangulated to a few 0.01 % (docs/distance.md);
     # the per-pixel fit would only re-render a huge patch a hundred times.
     triangulated = not fast and fit.ok and fit.spots >= TRIANGULATION_ENOUGH
-    near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region)]))
     pad = int(math.ceil(0.5 * geom.pitch_px))
     h, w = image.shape
     box = (max(0, x0 - pad), max(0, y0 - pad), min(w, x1 + pad), min(h, y1 + pad))
+    near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region),
+                                     _lenslets_in(geom, box)]))
     floor = 0.0  # of the σ (point_measurement): the pixel fit's alone
     # the noise a clipped capture cuts at zero: the pixel fits model its floor
     floor_sigma = capture_noise(image, geom.lmap, geom.pitch_px).floor_sigma
@@ -170,6 +171,18 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     return point_measurement(profile, geom.d_in_mm, source, sigma_d, floor, misfit=misfit,
                              noise_misfit=noise_mf,
                              source_xy_mm=(float(source[0]), float(source[1])))
+
+
+def _lenslets_in(geom: Geometry, box: tuple[int, int, int, int]) -> np.ndarray:
+    """Lenslets whose micro-image reaches into ``box`` (centre within a pitch of it): the
+    model must know every lenslet of the pixels it is compared with, or the rays that land on
+    one are dropped while the data keep their light (a region's bounding box reaches past
+    three pitches from its lenslets where the region is not convex)."""
+    x0, y0, x1, y1 = box
+    c = geom.lmap.centres_px
+    r = geom.pitch_px
+    return np.flatnonzero((c[:, 0] > x0 - r) & (c[:, 0] < x1 + r) & (c[:, 1] > y0 - r)
+                          & (c[:, 1] < y1 + r))
 
 
 def _noise_misfit(image: np.ndarray, box: tuple[int, int, int, int], geom: Geometry) -> float:
