@@ -493,8 +493,10 @@ class _Patch:
 
     def __init__(self, profile, d_in_mm, image, box, lens_centres_mm, floor_sigma=0.0):
         x0, y0, x1, y1 = box
-        # other sources' light in the box, unit intensity, before the blur (add_others)
+        # other sources' light in the box, unit intensity, before the blur and after it (fixed:
+        # blurred once, add_others)
         self.others: list[np.ndarray] = []
+        self.others_blurred: list[np.ndarray] = []
         # a capture that clips its noise at zero reads E[max(0, s + n)] (σ of n: this), not s
         # (lfcam.measure.noise.clipped_mean); 0: it does not clip
         self.floor_sigma = float(floor_sigma)
@@ -572,11 +574,12 @@ class _Patch:
         capture that clips its noise at zero, the model's pixels ``a·m`` read as the clipped
         mean ``E[max(0, a·m + n)]`` and ``a`` by Gauss–Newton (:meth:`_clipped_model`)."""
         self.evaluations += 1
-        pixels = [self.render_pixels(source_mm, pattern)] + self.others
+        own = self.render_pixels(source_mm, pattern)
+        blurred = [cv2.GaussianBlur(own, (0, 0), MATCH_BLUR_PX)] + self.others_blurred
         if self.floor_sigma > 0:
-            model = self._clipped_model(pixels)
+            model = self._clipped_model([own] + self.others, blurred)
         else:
-            model = self._linear_model(pixels)
+            model = self._linear_model(blurred)
         return ((self.data - model) / self.norm).ravel()
 
     def add_others(self, sources_mm: list[np.ndarray]) -> None:
@@ -590,10 +593,11 @@ class _Patch:
             img = self.render_pixels(np.asarray(src, dtype=np.float64), dense)
             if img.sum() > 0:
                 self.others.append(img)
+                self.others_blurred.append(cv2.GaussianBlur(img, (0, 0), MATCH_BLUR_PX))
 
-    def _linear_model(self, pixels: list[np.ndarray]) -> np.ndarray:
-        """Σ aₖ·B(pₖ) at the least-squares scales (the others' at ≥ 0)."""
-        cols = [cv2.GaussianBlur(p, (0, 0), MATCH_BLUR_PX) for p in pixels]
+    def _linear_model(self, cols: list[np.ndarray]) -> np.ndarray:
+        """Σ aₖ·cₖ at the least-squares scales (the others' at ≥ 0); ``cols``: the blurred
+        components, this source's first."""
         if len(cols) == 1:
             m = cols[0]
             mm = float((m * m).sum())
@@ -611,7 +615,7 @@ class _Patch:
             use &= ~negative
         return (a @ full).reshape(self.data.shape)
 
-    def _clipped_model(self, pixels: list[np.ndarray]) -> np.ndarray:
+    def _clipped_model(self, pixels: list[np.ndarray], blurred: list[np.ndarray]) -> np.ndarray:
         """The blurred model image of the clipped capture, ``B(E[max(0, Σ aₖ·pₖ + n)])``, at
         the best scales ``aₖ`` (least squares against the data; ``pₖ``: this source's pixels,
         then the others'): the dark pixels' floor (0.4 σ) and the dim ones' excess are in the
@@ -619,13 +623,13 @@ class _Patch:
         (docs/distance.md, "The clipped dark floor, and the pixel fit's own rays behind
         focus").
 
-        The scales start from the linear fit to the data less the floor and take
+        ``blurred``: the components ``pₖ`` after the blur. The scales start from the linear
+        fit to the data less the floor and take
         ``CLIP_SCALE_STEPS`` Gauss–Newton steps (the model is linear in them where the
         signal is over ~2 σ: a step or two settles them)."""
         sigma = self.floor_sigma
         floor = float(clipped_mean(np.zeros(1), sigma)[0][0])
-        cols = np.stack([cv2.GaussianBlur(p, (0, 0), MATCH_BLUR_PX).ravel() for p in pixels],
-                        axis=1)
+        cols = np.stack([b.ravel() for b in blurred], axis=1)
         if not float((cols * cols).sum()) > 0:
             return np.full_like(self.data, floor)
         a = np.clip(np.linalg.lstsq(cols, self.data.ravel() - floor, rcond=None)[0], 0.0,
