@@ -77,7 +77,7 @@ def main() -> None:
         for n in RAYS:
             fast = LensletModel(prof, geom, mom, n, kernel="compiled")
             ref = LensletModel(prof, geom, mom, n, kernel="numpy")
-            kargs = (src[None], maps, fast.rx, fast.ry, table, coef,
+            kargs = (src[None], maps, fast.turns(1), fast.rx, fast.ry, table, coef,
                      float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(geom.d_in_mm),
                      float(prof.mla.focal_length_mm))
             t_np = _best(partial(trace_sources_fast, lens, src[None], ref.rx, ref.ry,

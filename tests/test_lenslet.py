@@ -207,8 +207,8 @@ def test_line_beats_rule():
     assert line_beats(0.02, 0.05, 0.5) == pytest.approx(LINE_NOISE_GAIN * 0.02)
 
 
-@pytest.mark.parametrize("dist", [300, 2800])
-def test_line_jacobian_from_points_matches_differences(dist):
+@pytest.mark.parametrize(("dist", "turns"), [(300, 0), (2800, 0), (2800, 12)])
+def test_line_jacobian_from_points_matches_differences(dist, turns):
     # fastfit.line_model's Jacobian (every point shifted at once, each point's change weighted
     # by its share of either endpoint) against forward differences of the same model, at the
     # fitted line: the distance column is the same difference; the endpoints' lateral columns
@@ -228,7 +228,8 @@ def test_line_jacobian_from_points_matches_differences(dist):
     q = np.r_[math.log(frame.z_front - z), fit.ends_mm[0][:2] / along,
               fit.ends_mm[1][:2] / along]
     steps = np.r_[ff.COARSE_STEPS[0], np.full(4, ff.COARSE_STEPS[1])]
-    fun, jac = ff.line_model(ff.LensletModel(prof, geom, mom, 6667), frame, 12, steps)
+    fun, jac = ff.line_model(ff.LensletModel(prof, geom, mom, 6667, turn_every=turns), frame,
+                             12, steps)
     r = fun(q)
     got, ref = jac(q, r), ff._fd_jacobian(fun, None, q, r, steps)
     np.testing.assert_allclose(got[:, 0], ref[:, 0], rtol=1e-9, atol=1e-12)
@@ -240,3 +241,35 @@ def test_line_jacobian_from_points_matches_differences(dist):
     def sigma(j):
         return math.sqrt(np.linalg.inv(j.T @ j)[0, 0])
     assert sigma(got) == pytest.approx(sigma(ref), rel=0.05)
+
+
+@pytest.mark.parametrize("dist", [2500, 2800, 3500])
+def test_turned_line_points_sample_the_pupil_better(dist):
+    # a line model's 12 points, each with the same pupil sample, make the same sampling error
+    # 12 times over; turning the k-th point's sample by 2πk/12 lets the errors cancel. Against
+    # a 400 000-ray reference (its own error 1e-5 of the moments, 50× under those compared),
+    # averaged over six turns of the whole sample, at equal rays (the line fit's floor, 6 666
+    # a point) the turned model is closer (measured 0.41, 0.45, 0.48 × the shared model's
+    # error; 0.68 on the 1800 mm line's smaller blur)
+    from lfcam.measure import fastfit as ff
+    from lfcam.measure.lenslets import lenslet_stats
+    from lfcam.measure.regions import find_regions
+
+    img, prof, cal, geom, truth = _capture(f"line_system1_{dist}mm", "system1")
+    reg = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)[0]
+    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    fit = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
+    a, b = fit.ends_mm
+    pts = a + ((np.arange(12) + 0.5) / 12)[:, None] * (b - a)
+    ref = ff.LensletModel(prof, geom, mom, 400_000).simulate(pts)
+
+    def error(rays, turns):
+        out = []
+        for phase in np.linspace(0.0, 2 * math.pi, 6, endpoint=False):
+            m = ff.LensletModel(prof, geom, mom, rays, phase=phase,
+                                turn_every=turns).simulate(pts)
+            scale = float((m * ref).sum() / (m * m).sum())
+            out.append(np.linalg.norm(scale * m - ref) / np.linalg.norm(ref))
+        return float(np.mean(out))
+
+    assert error(6666, 12) < 0.6 * error(6666, 0)

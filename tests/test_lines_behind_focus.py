@@ -237,7 +237,12 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     it +1.90 % long at a σ of 0.43 % (4.4σ): far behind focus the blur grows by ~0.4 % for
     1 % of distance, and the model's own ray sample moved the minimum. A Gauss–Newton step
     through a turned pupil sample measures that shift (0.015 in log distance here) and the
-    line is refitted with 4× the rays: −0.05 % (docs/distance.md, "A line's settled test")."""
+    line is refitted with 4× the rays: −0.05 % (docs/distance.md, "A line's settled test").
+
+    Since each point of the line turns its own pupil sample (half the rays: 3 333 a point),
+    the same fit is −0.12 % with the settled test, +0.32 % without it, and +6.5 % with
+    neither (docs/distance.md, "A line's points, each with its own turn of the pupil
+    sample")."""
     import focus_grid as fg
 
     import lfcam.measure.fastfit as ff
@@ -257,5 +262,8 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     err, sigma = line_error()
     assert abs(err) < 0.003 and abs(err) < 3.0 * sigma
     monkeypatch.setattr(ff, "LINE_SETTLED_LOG", np.inf)  # without the settled test
+    err_turned, _ = line_error()
+    assert abs(err_turned) < 0.005  # the points' turned samples alone: measured +0.32 %
+    monkeypatch.setattr(ff, "LINE_TURNS", False)  # ... and one pupil sample for every point
     err_unsettled, sigma_unsettled = line_error()
-    assert err_unsettled > 0.01 and err_unsettled > 3.0 * sigma_unsettled
+    assert err_unsettled > 0.01 and err_unsettled > 3.0 * sigma_unsettled  # measured +6.5 %

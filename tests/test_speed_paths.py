@@ -134,15 +134,15 @@ def test_settled_fit_agrees_with_the_polished_one(system, dist, dh):
     assert auto.misfit == pytest.approx(full.misfit, rel=0.1)
 
 
-def _model_pair(profile, geom, shape, rays):
+def _model_pair(profile, geom, shape, rays, turn_every=0):
     """The compiled and the numpy lenslet model of a box round the sensor centre."""
     from lfcam.measure.fastfit import LensletModel, data_moments
 
     h, w = shape
     box = (w // 2 - 150, h // 2 - 150, w // 2 + 150, h // 2 + 150)
     mom = data_moments(geom, np.zeros(shape), box)
-    return (LensletModel(profile, geom, mom, rays, kernel="compiled"),
-            LensletModel(profile, geom, mom, rays, kernel="numpy"))
+    return (LensletModel(profile, geom, mom, rays, kernel="compiled", turn_every=turn_every),
+            LensletModel(profile, geom, mom, rays, kernel="numpy", turn_every=turn_every))
 
 
 def _ideal_lens_profile(base):
@@ -198,6 +198,12 @@ def test_compiled_moments_equal_the_numpy_chain(grid, lens):
     a, b = fast.simulate_sets(sources + [line]), ref.simulate_sets(sources + [line])
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
     assert total > 0
+    # a line's points each with their own turn of the pupil sample (three a run)
+    fast, ref = _model_pair(prof, geom, shape, 6000, turn_every=3)
+    three = np.stack(sources[:3])
+    a, b = fast.simulate_sets([three, three + 0.1]), ref.simulate_sets([three, three + 0.1])
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
+    assert not np.allclose(a[0], fast.__class__(prof, fast.geom, fast.mom, 6000).simulate(three))
 
 
 def test_compiled_trace_drops_the_rays_the_lens_stops():
@@ -218,7 +224,8 @@ def test_compiled_trace_drops_the_rays_the_lens_stops():
     pts = np.array([[0.0, 0.0, fv - 800.0], [40.0, -25.0, fv - 300.0], [0.0, 0.0, fv + 5.0]])
     ref = trace_sources_fast(lens, pts, rx, ry, prof.d_in_mm, map_pupil=False)
     maps = np.tile([0.0, 0.0, 1.0, 1.0], (3, 1))
-    x, y, sx, sy, wt, rows, foot = trace_model_rays(pts, maps, rx, ry, table, coef, fv,
+    x, y, sx, sy, wt, rows, foot = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (3, 1)),
+                                                   rx, ry, table, coef, fv,
                                                    lens.rim_z_mm, prof.d_in_mm, 1.0)
     ok = ref.ok
     assert 0 < ok[1].sum() < ok[0].sum() < rx.size and not ok[2].any()

@@ -76,6 +76,7 @@ SETTLED_GAIN = 0.05  # ... and lower the misfit² by less than this share, on a 
 SETTLED_SIGMA = 1e-3  # statistical σ (log distance) is under this: a shallower one is polished
 POLISH_NEAR_GATE = 0.7  # settled point fits are polished all the same when their misfit is
 # over this share of the line trigger or the poor-fit limit (the decision reads the misfit)
+LINE_TURNS = True  # each point of a line model turns its pupil sample (LensletModel.turns)
 LINE_POINTS = 12  # points of the line model, at least (and the count the ray budgets are for)
 LINE_POINTS_MAX = 48  # ... at most
 LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
@@ -93,18 +94,21 @@ LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this shar
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
-LINE_FINE_PER_LENSLET = 30  # ... and fine model (10: lines far behind focus and off axis stalled
-#                               1-2 % off on the ripple of the model's own ray sample;
-#                               docs/distance.md, "Lines off axis")
-LINE_MAX_RAYS = 36000  # rays a point of the line, at most (fine model)
-LINE_GN_PER_LENSLET = 10  # ... the fine Gauss–Newton steps' model: per lit lenslet
-LINE_GN_MAX_RAYS = 12000  # ... and at most
-LINE_FINE_MIN_RAYS = POLISH_RAYS // LINE_POINTS  # ... and at least
+LINE_FINE_PER_LENSLET = 15  # ... and fine model (with every point's pupil sample turned,
+#                               LINE_TURNS; 10 with one shared sample: lines far behind focus
+#                               and off axis stalled 1-2 % off on the ripple of the model's own
+#                               ray sample; docs/distance.md, "Lines off axis" and "A line's
+#                               points, each with its own turn of the pupil sample")
+LINE_MAX_RAYS = 18000  # rays a point of the line, at most (fine model)
+LINE_GN_PER_LENSLET = 5  # ... the fine Gauss–Newton steps' model: per lit lenslet
+LINE_GN_MAX_RAYS = 6000  # ... and at most
+LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 12 points' turned
+#                                                        samples: half the point polish's rays)
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
 LINE_REFINE = 4.0  # ... it is refitted with this × the fine model's rays a point ...
-LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line's settled test")
+LINE_REFINE_MAX_RAYS = 20000  # ... at most this many (docs/distance.md, "A line's settled test")
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
@@ -244,8 +248,13 @@ class LensletModel:
     """Forward model of a region's lenslet moments for point (or line) sources."""
 
     def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
-                 phase: float = 0.0, kernel: str | None = None):
+                 phase: float = 0.0, kernel: str | None = None, turn_every: int = 0):
         self.profile, self.geom, self.mom = profile, geom, mom
+        # turn_every = c > 0: the k-th point of each run of c stacked points (a line's k-th
+        # point, in every set of a Jacobian or a scan) has its pupil sample turned by
+        # 2πk / c, so that the points' sampling errors cancel instead of adding up
+        # (docs/distance.md, "A line's points, each with its own turn of the pupil sample")
+        self.turn_every = int(turn_every)
         # "compiled" (lfcam.measure.kernels) or "numpy" (the reference it is tested against)
         self.kernel = KERNEL if kernel is None else kernel
         lens = profile.main_lens
@@ -306,6 +315,15 @@ class LensletModel:
             out = self._simulate(np.ascontiguousarray(points, dtype=np.float64), group, groups)
         return out.reshape(groups, -1, 4)
 
+    def turns(self, m: int) -> np.ndarray:
+        """(m, 2) cos and sin of each of ``m`` stacked points' pupil-sample turn."""
+        out = np.zeros((m, 2))
+        out[:, 0] = 1.0
+        if self.turn_every > 1:
+            a = 2.0 * math.pi / self.turn_every * (np.arange(m) % self.turn_every)
+            out[:, 0], out[:, 1] = np.cos(a), np.sin(a)
+        return out
+
     def _simulate(self, sources: np.ndarray, group: np.ndarray | None = None,
                   groups: int = 1) -> np.ndarray:
         """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
@@ -321,13 +339,17 @@ class LensletModel:
         x0, y0 = self.mom.box[:2]
         h, w = self.mom.labels.shape
         s_px = self.s_px
+        # each point's aperture points, turned by its own angle (none: the same for all)
+        cs = self.turns(len(points))
+        rx = cs[:, :1] * self.rx[None, :] - cs[:, 1:] * self.ry[None, :]
+        ry = cs[:, 1:] * self.rx[None, :] + cs[:, :1] * self.ry[None, :]
         # every point's rays in one trace (lines: LINE_POINTS points)
-        tr = trace_sources_fast(lens, points, self.rx, self.ry, self.geom.d_in_mm)
+        tr = trace_sources_fast(lens, points, rx, ry, self.geom.d_in_mm)
         ok = tr.ok
         if not ok.any():
             return out
         along = lens.rim_z_mm - points[:, 2:3]
-        rho2 = (self.rx[None, :] - points[:, :1]) ** 2 + (self.ry[None, :] - points[:, 1:2]) ** 2
+        rho2 = (rx - points[:, :1]) ** 2 + (ry - points[:, 1:2]) ** 2
         wt = ((along * along / (rho2 + along * along)) ** 1.5)[ok]
         # MLA-plane ray spacing: each footprint's extent over the pupil's, times the pupil
         # spacing (rays of one point are contiguous: per-point extremes by reduceat)
@@ -375,7 +397,8 @@ class LensletModel:
         # the real stop's image on the aperture plane, per point (identity for the singlet)
         maps = compiled_pupil_maps(lens, points, self.packed)
         x, y, sx, sy, wt, rows, foot = trace_model_rays(
-            np.ascontiguousarray(points, dtype=np.float64), maps, self.rx, self.ry, table, coef,
+            np.ascontiguousarray(points, dtype=np.float64), maps, self.turns(len(points)),
+            self.rx, self.ry, table, coef,
             float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
             float(p.mla.focal_length_mm))
         if rows.size == 0:
@@ -1294,17 +1317,18 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
     # The fine model has at least the point polish's rays in all: on small noise-free blurs a
     # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
-    def model(rays_12: float, share: float = share) -> LensletModel:
-        # the 12 points' rays a point, shared
-        return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS))
+    def model(rays_12: float, share: float = share, count: int = n_pts) -> LensletModel:
+        # the 12 points' rays a point, shared; each of the ``count`` points its own turn
+        return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS),
+                            turn_every=count if LINE_TURNS else 0)
 
     # the scan and the coarse stage find the basin: at most LINE_COARSE_POINTS points (a long
     # line's 48 points with half the rays each cost twice the 12 points' rays)
     n_coarse = min(n_pts, LINE_COARSE_POINTS)
     share_c = max(LINE_POINTS / n_coarse, LINE_MIN_SHARE)
-    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c)
+    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c, n_coarse)
     coarse = model(np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
-                           LINE_MAX_RAYS // 4), share_c)
+                           LINE_MAX_RAYS // 4), share_c, n_coarse)
     fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
     fine = model(fine_rays)
     # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
@@ -1389,12 +1413,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # residual of a turned pupil sample measures that shift (as the point fit's settled
         # test does); a line that moves by more than LINE_SETTLED_LOG is refitted with
         # LINE_REFINE × the rays (docs/distance.md, "A line's settled test").
-        turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0)
+        turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0,
+                              turn_every=fine.turn_every)
         settling.append(turned)
         shift = _linear_step(jac, line_model(turned, frame, n_pts, steps)[0](q))
         if shift is None or abs(float(shift[0][0])) > LINE_SETTLED_LOG:
             refined = LensletModel(profile, geom, mom,
-                                   min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS))
+                                   min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS),
+                                   turn_every=fine.turn_every)
             settling.append(refined)
             fun_r, jac_r = line_model(refined, frame, n_pts, steps)
             q, r, f, jac_ref = _levenberg_marquardt(fun_r, q, steps, LINE_FINE_LM_ITERATIONS,

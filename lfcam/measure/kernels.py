@@ -229,7 +229,8 @@ def warm_up() -> None:
                     np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
-    trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]), one, one,
+    trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
+                     np.array([[1.0, 0.0]]), one, one,
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
     pupil_maps(np.array([[0.0, 0.0, -10.0]]), np.zeros(1), table, np.zeros((1, 1)), 0, 1.0, 1.0,
                0.0, 1.0)
@@ -501,10 +502,11 @@ def _surface(x, y, z, dx, dy, dz, ok, i, table, coef, clip=True, refract=True) -
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane, fx):
+def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z_plane, fx):
     """The lenslet model's rays: every point source ``points`` (M, 3) (lens frame) through
     the aperture points ``(rx, ry)`` (on the plane ``rim_z``; per point mapped by ``maps``
-    (M, 4) ``= (cx, cy, sx, sy)`` onto the real stop's image) through the prescription
+    (M, 4) ``= (cx, cy, sx, sy)`` onto the real stop's image; each point's aperture points
+    first turned by ``turns`` (M, 2) ``= (cos, sin)`` of its angle) through the prescription
     (``table``, ``coef`` from :func:`pack_prescription`, front vertex at ``front_z``) to the
     MLA plane ``z_plane``.
 
@@ -539,12 +541,16 @@ def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane,
         pz = points[p, 2]
         along = rim_z - pz
         a2 = along * along
+        tc = turns[p, 0]
+        ts = turns[p, 1]
         for lo in range(0, n, block):
             k = min(block, n - lo)
             for b in range(k):
                 j = lo + b
-                ex = maps[p, 0] + maps[p, 2] * rx[j] - px
-                ey = maps[p, 1] + maps[p, 3] * ry[j] - py
+                ax = tc * rx[j] - ts * ry[j]  # (1, 0): rx, ry unchanged, bit for bit
+                ay = ts * rx[j] + tc * ry[j]
+                ex = maps[p, 0] + maps[p, 2] * ax - px
+                ey = maps[p, 1] + maps[p, 3] * ay - py
                 norm = 1.0 / math.sqrt(ex * ex + ey * ey + along * along)
                 x[b] = px
                 y[b] = py
@@ -553,8 +559,8 @@ def trace_model_rays(points, maps, rx, ry, table, coef, front_z, rim_z, z_plane,
                 dy[b] = ey * norm
                 dz[b] = along * norm
                 ok[b] = along * norm > 0.0
-                ux = rx[j] - px
-                uy = ry[j] - py
+                ux = ax - px
+                uy = ay - py
                 cos2 = a2 / (ux * ux + uy * uy + a2)
                 wt[b] = cos2 * math.sqrt(cos2)  # (cos² θ)^1.5, without pow
             for i in range(table.shape[0]):

@@ -266,13 +266,13 @@ def trace_sources_fast(
     map_pupil: bool = True,
 ) -> FastTrace:
     """:func:`trace_source_fast` for ``M`` point sources in one trace: each source's rays aim
-    at the same aperture points (the pupil map applied per source).
+    at the same aperture points, or at its own (the pupil map applied per source).
 
     Parameters
     ----------
     sources_mm : (M, 3) array
-    rim_x_mm, rim_y_mm : (n,) arrays
-        Aim points on the paraxial aperture disk.
+    rim_x_mm, rim_y_mm : (n,) or (M, n) arrays
+        Aim points on the paraxial aperture disk (per source: one row each).
 
     Returns
     -------
@@ -280,8 +280,10 @@ def trace_sources_fast(
         Arrays of shape ``(M, n)``.
     """
     src = np.asarray(sources_mm, dtype=np.float64).reshape(-1, 3)
-    rim_x = np.asarray(rim_x_mm, dtype=np.float64).ravel()[None, :]
-    rim_y = np.asarray(rim_y_mm, dtype=np.float64).ravel()[None, :]
+    rim_x = np.asarray(rim_x_mm, dtype=np.float64)
+    rim_y = np.asarray(rim_y_mm, dtype=np.float64)
+    rim_x = rim_x.reshape(len(src), -1) if rim_x.ndim == 2 else rim_x.ravel()[None, :]
+    rim_y = rim_y.reshape(len(src), -1) if rim_y.ndim == 2 else rim_y.ravel()[None, :]
     if map_pupil and lens.as_prescription.stop_index != 0:
         maps = np.array([pupil_map(lens, tuple(pt)) for pt in src])
         rim_x = maps[:, :1] + maps[:, 2:3] * rim_x
