@@ -500,14 +500,14 @@ def main() -> None:
                     help="no photon or read noise in the captures (--renderer sim)")
     ap.add_argument("--fastfit", default="", metavar="NAME=VALUE,...",
                     help="experiments: override constants of lfcam.measure.fastfit (e.g. "
-                         "LINE_FINE_PER_LENSLET=120); printed in the log")
+                         "LINE_FINE_PER_LENSLET=120, LINE_TURNS=0); printed in the log")
     args = ap.parse_args()
     if args.noise_free:
         NOISE.update({"photon_noise": False, "read_noise_e": 0.0})
     for item in filter(None, args.fastfit.split(",")):
         name, _, value = item.partition("=")
         old = getattr(FF, name, None)
-        if not isinstance(old, (int, float)) or isinstance(old, bool) or not value:
+        if not isinstance(old, (int, float)) or not value:  # (bool: 0 or 1)
             ap.error(f"--fastfit: {name!r} is not a numeric constant of lfcam.measure.fastfit")
         setattr(FF, name, type(old)(float(value)))
         print(f"# fastfit {name}: {old} -> {getattr(FF, name)}", flush=True)

@@ -239,10 +239,10 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     through a turned pupil sample measures that shift (0.015 in log distance here) and the
     line is refitted with 4× the rays: −0.05 % (docs/distance.md, "A line's settled test").
 
-    Since each point of the line turns its own pupil sample (half the rays: 3 333 a point),
-    the same fit is −0.12 % with the settled test, +0.32 % without it, and +6.5 % with
-    neither (docs/distance.md, "A line's points, each with its own turn of the pupil
-    sample")."""
+    Since each point of the line turns its own pupil sample (half the rays: 3 333 a point;
+    a refit with 8× them), the same fit is −0.005 % with the settled test, +0.32 % without
+    it, and +6.5 % with neither (docs/distance.md, "A line's points, each with its own turn
+    of the pupil sample")."""
     import focus_grid as fg
 
     import lfcam.measure.fastfit as ff

@@ -107,8 +107,10 @@ LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 1
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
-LINE_REFINE = 4.0  # ... it is refitted with this × the fine model's rays a point ...
-LINE_REFINE_MAX_RAYS = 20000  # ... at most this many (docs/distance.md, "A line's settled test")
+LINE_REFINE = 8.0  # ... it is refitted with this × the fine model's rays a point (4× the
+#                      fine model's of before its budget was halved) ...
+LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line's settled test",
+#                               "A line's points, each with its own turn of the pupil sample")
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
