@@ -273,3 +273,40 @@ def test_turned_line_points_sample_the_pupil_better(dist):
         return float(np.mean(out))
 
     assert error(6666, 12) < 0.6 * error(6666, 0)
+
+
+def test_polish_ends_when_its_step_is_nothing():
+    # fastfit._levenberg_marquardt with secant (Broyden) updates, as the point polish runs it,
+    # on a linear residual that is flat below 1e-7 in q (as a model's own ray sample is at its
+    # minimum): once at the minimum the next undamped step is ~1e-9. Without ``settle_log`` the
+    # fit tries it five times (each no better) and then takes the Jacobian again by
+    # differences; with it, it ends there, at the same point
+    from lfcam.measure.fastfit import _levenberg_marquardt
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(40, 3))
+    truth = np.array([0.3, -0.2, 0.1])
+    b = a @ truth + 1e-3 * rng.normal(size=40)
+
+    def counted(log):
+        def fun(q):
+            log.append(1)
+            return a @ (np.round(q / 1e-7) * 1e-7) - b
+
+        def many(qs):
+            return [fun(q) for q in qs]
+        return fun, many
+
+    q0 = np.zeros(3)
+    runs = {}
+    for settle in (0.0, 1e-6):
+        log: list = []
+        fun, many = counted(log)
+        q, r, f, _ = _levenberg_marquardt(fun, q0, np.full(3, 1e-4), 4, 1e-9, many, r0=fun(q0),
+                                          jac0=a, broyden=True, settle_log=settle)
+        runs[settle] = (q, len(log))
+    best = np.linalg.lstsq(a, b, rcond=None)[0]
+    for q, _ in runs.values():
+        np.testing.assert_allclose(q, best, atol=1e-6)
+    assert runs[1e-6][1] <= 3  # the start and the steps that reached the minimum (measured 3)
+    assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 16)

@@ -69,6 +69,9 @@ FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its ow
 LINE_SETTLE_LOG = 2e-5  # the line's fine fit ends on a step under this in log distance
 LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
 POLISH_RAYS = 80000  # rays of the polishing model
+POLISH_SETTLE_LOG = 2e-5  # the polish ends when its next undamped step moves the log distance
+#                           by less than this (0.002 %; docs/distance.md, "A polish that
+#                           stops when its step is nothing")
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
 # move it by less than half of it
@@ -594,7 +597,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             last, fresh = jac, True
         jtj = _gram(jac)
         g = _jt(jac, r)
-        improved = False
+        improved = settled = False
         dq = np.zeros_like(q)
         for trial in range(5):
             a = jtj + lam * np.diag(np.diag(jtj) + 1e-30)
@@ -604,6 +607,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 lam *= 10
                 continue
             if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
+                settled = True
                 break
             r2 = fun(q + dq)
             f2 = _sq(r2)
@@ -616,6 +620,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 improved = True
                 break
             lam *= 10
+        if settled:  # (a secant Jacobian is not taken again by differences to confirm it)
+            break
         if not improved and not fresh:
             jac = None  # the updated Jacobian found no descent: take it by differences
             continue
@@ -1114,7 +1120,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     else:
         q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, COARSE_STEPS, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(polish), r0=r_p, jac0=jac_q,
-                                                 broyden=True)
+                                                 broyden=True, settle_log=POLISH_SETTLE_LOG)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -1317,8 +1323,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # Every point of a line lights most of the blur: each needs about as many rays per lit
     # lenslet as a point source does, or the model's own sampling noise (misfit 0.10 at the
     # truth with 250 rays a point on an 800-lenslet blur, 0.017 with 4000) hides the minimum.
-    # The fine model has at least the point polish's rays in all: on small noise-free blurs a
-    # far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
+    # The fine model has at least half the point polish's rays in all (the full polish's with
+    # one shared pupil sample; the points' turned samples do as well with half: docs/distance.md,
+    # "A line's points, each with its own turn of the pupil sample"): on small noise-free blurs
+    # a far line leaves 0.002-0.004 as a point, and 12 000 rays left the line fit no lower.
     def model(rays_12: float, share: float = share, count: int = n_pts) -> LensletModel:
         # the 12 points' rays a point, shared; each of the ``count`` points its own turn
         return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS),
