@@ -248,9 +248,9 @@ def test_turned_line_points_sample_the_pupil_better(dist):
     # a line model's 12 points, each with the same pupil sample, make the same sampling error
     # 12 times over; turning the k-th point's sample by 2πk/12 lets the errors cancel. Against
     # a 400 000-ray reference (its own error 1e-5 of the moments, 50× under those compared),
-    # averaged over six turns of the whole sample, at equal rays (the line fit's floor, 6 666
-    # a point) the turned model is closer (measured 0.41, 0.45, 0.48 × the shared model's
-    # error; 0.68 on the 1800 mm line's smaller blur)
+    # averaged over six turns of the whole sample, at equal rays (6 666 a point, the line fit's
+    # floor before its budget was halved) the turned model is closer (measured 0.41, 0.45,
+    # 0.48 × the shared model's error; 0.68 on the 1800 mm line's smaller blur)
     from lfcam.measure import fastfit as ff
     from lfcam.measure.lenslets import lenslet_stats
     from lfcam.measure.regions import find_regions
