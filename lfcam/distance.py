@@ -271,12 +271,12 @@ def run_distance(
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)
         jobs = max(1, min(int(jobs), len(regions)))
+        near = nearby_regions(regions)  # each region's touching blurs (the pixel fit's)
         if pool is not None and jobs > 1:
-            estimates = pool.estimate(profile, geom, img, stats, regions, noise, args,
+            estimates = pool.estimate(profile, geom, img, stats, regions, near, noise, args,
                                       progress, noise_model)
         else:
             estimates = []
-            near = nearby_regions(regions)
             for i, reg in enumerate(regions):
                 estimates.append(_timed_estimate(profile, geom, img, stats, reg, noise, args,
                                                  near[i]))
@@ -442,9 +442,10 @@ class _RegionPool:
         finally:
             _restore_environ(saved)
 
-    def estimate(self, profile, geom, img, stats, regions, noise, args, progress,
+    def estimate(self, profile, geom, img, stats, regions, nearby, noise, args, progress,
                  noise_model=None) -> list:
-        """:func:`_timed_estimate` of every region, in region order."""
+        """:func:`_timed_estimate` of every region, in region order (``nearby``: each
+        region's :func:`~lfcam.measure.regions.nearby_regions`)."""
         import pickle
         from concurrent.futures import as_completed
         from multiprocessing import shared_memory
@@ -467,9 +468,8 @@ class _RegionPool:
             names = tuple(s.name for s in shms)
             # the largest regions first, so that no worker is left with a long tail
             order = sorted(range(len(regions)), key=lambda i: -len(regions[i].lenslets))
-            near = nearby_regions(regions)
             futures = {self.pool.submit(_worker_region, names, img.shape, regions[i],
-                                        near[i]): i
+                                        nearby[i]): i
                        for i in order}
             out: list = [None] * len(regions)
             for done, fut in enumerate(as_completed(futures), start=1):
