@@ -30,6 +30,14 @@ FULL_WELL_E = 20000.0
 READ_E = 3.0
 
 
+def _camera():
+    """System 2 and the camera the scenes render with (focus 1 m, SIZE² sensor), its d_in
+    fixed."""
+    base = load_profile("system2")
+    prof = apply_overrides(base, CAMERA)
+    return base, prof.with_d_in(prof.d_in_mm)
+
+
 @pytest.mark.parametrize("t", [0.0, 0.5, 1.0, 2.0, 4.0])
 def test_clipped_mean_matches_monte_carlo(t):
     """E[max(0, μ + n)] and P(μ + n > 0) (its slope) against 4 M draws, μ = t σ."""
@@ -56,8 +64,7 @@ def far_dim():
     """A source at 3000 mm behind the 1 m focus of system 2, rendered without noise, and the
     mean a clipped raw of it reads over infinitely many draws (photon and read noise: σ² =
     σ_r² + g·μ, in DN)."""
-    base = load_profile("system2")
-    prof = apply_overrides(base, CAMERA).with_d_in(apply_overrides(base, CAMERA).d_in_mm)
+    base, prof = _camera()
     quiet = {"photon_noise": False, "full_well_e": FULL_WELL_E, "read_noise_e": 0.0}
     scene = {"seed": 5, "rays_per_source": 3_000_000, "camera": CAMERA, "sensor": quiet,
              "exposure": {"peak": 0.01},
@@ -109,8 +116,7 @@ def test_touching_blur_fitted_together():
     near one's edge. Fitted alone, the far source moves to explain that light; with the other
     source's light modelled (at its own free intensity, from a point 2 % off its truth, as a
     lenslet fit would give), it is found (noise-free render, unclipped)."""
-    base = load_profile("system2")
-    prof = apply_overrides(base, CAMERA).with_d_in(apply_overrides(base, CAMERA).d_in_mm)
+    base, prof = _camera()
     quiet = {"photon_noise": False, "full_well_e": FULL_WELL_E, "read_noise_e": 0.0}
     objects = [{"type": "point", "distance_mm": 3000.0, "position_mm": [20.0, 60.0]},
                {"type": "point", "distance_mm": 2500.0, "position_mm": [16.0, -75.0]}]
