@@ -34,7 +34,7 @@ from a distance scan. Point or line is decided from the two misfits (:func:`meas
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -62,10 +62,15 @@ COARSE_PER_LENSLET = 25  # ... at least this many per lit lenslet
 SCAN_DISTANCES = 28  # geometric distance scan, 1.1 f … 30 m
 SCAN_KEEP = 2  # starts matched on the summary
 COARSE_ITERATIONS = 6
-COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L
+COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L: difference steps, at most
+LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on the MLA by at
+#                            most this × the blur's diameter (point_steps)
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
-FINE_LM_ITERATIONS = 3  # Levenberg–Marquardt iterations of the polish (its own Jacobian)
+FINE_LM_ITERATIONS = 6  # Levenberg–Marquardt iterations of the polish (its own Jacobian), at
+#                         most: a sharp minimum ends in 1-3 (POLISH_SETTLE_LOG); along a flat
+#                         valley 3 stopped mid-way (a 12-source scene's 3500 mm blur: +2.9 or
+#                         +20 % by the path, its minimum at +4.4 %, σ 3.7 %)
 LINE_SETTLE_LOG = 2e-5  # the line's fine fit ends on a step under this in log distance
 LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
 POLISH_RAYS = 80000  # rays of the polishing model
@@ -123,6 +128,10 @@ LINE_TRIGGER = 0.0015  # a point misfit over this and over twice its noise misfi
 #                        elongated region): also fit a line (lfcam.measure.verify.line_trigger;
 #                        noise-free seed captures: points leave 0.0001-0.0039, 10 mm lines as
 #                        points 0.0018-0.29)
+LINE_MODEL_FACTOR = 2.0  # ... and over this × the point models' own disagreement at the fit
+#                          (LensletFit.model_misfit: the fine and polishing models' ray samples;
+#                          points leave at most 1.07 × it on the seed, lines as points 2.9 × and
+#                          more; noise-free points over the floor tried lines that could not win)
 LINE_NOISE_FACTOR = 1.3  # ... and over this × its noise misfit (verify.line_trigger; 2.0 left
 #                          lines 2 pitches long 2200-2900 mm behind a 1 m focus as points at
 #                          1.6-1.7 ×, 0.4-1.4 % off; real points leave 0.3-1.5 ×)
@@ -660,6 +669,9 @@ class LensletFit:
     ends_mm: tuple = ()  # lines: (start (3,), end (3,))
     polished: bool = False  # the POLISH_RAYS model was needed (the fine one had not settled)
     polish_floor: float = math.nan  # the least misfit a polish of this fit can reach (bound)
+    model_misfit: float = math.nan  # the fine and polishing models' disagreement at the fine
+    #                                 fit (point fits): the share of a misfit that is the
+    #                                 models' own ray samples, not the data
 
 
 LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
@@ -905,8 +917,26 @@ def _linear_step(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | N
     return step, float(g @ step)
 
 
+def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarray:
+    """Difference steps of a point fit's parameters (log distance, x/L, y/L) for a blur that
+    lights ``n_lit`` lenslets.
+
+    A lateral step ``h`` moves the chief ray, and the blur with it, by about ``h · d_in`` on
+    the MLA. Near focus the blur is a few lenslets wide and its micro-images are sharp spots
+    whose place moves fast with the source's: there the fixed step of ``COARSE_STEPS`` (0.12
+    pitch on system 2) lies far outside the range over which the moments are linear (on the
+    seed's system 2 point at 2800 mm, 10 mm off axis: the misfit is 0.0009 at the truth and
+    0.7 a step away), and the Gauss–Newton steps built on such a Jacobian stalled 0.55 % off.
+    So the lateral step moves the blur by at most ``LATERAL_STEP_BLUR`` × its diameter,
+    ``pitch · √(4 n_lit / π)`` (docs/distance.md, "Difference steps sized to the blur").
+    """
+    blur_mm = profile.mla.pitch_mm * math.sqrt(4.0 * max(n_lit, 1) / math.pi)
+    lateral = min(float(COARSE_STEPS[1]), LATERAL_STEP_BLUR * blur_mm / geom.d_in_mm)
+    return np.array([COARSE_STEPS[0], lateral, lateral])
+
+
 def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
-                  bound_above: float) -> float:
+                  bound_above: float, steps: np.ndarray = COARSE_STEPS) -> float:
     """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
     of the polishing model) can reach, bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
 
@@ -919,7 +949,7 @@ def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarr
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
     if not math.sqrt(f) > bound_above:
         return floor
-    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, COARSE_STEPS), r_check)
+    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, steps), r_check)
     if step_gain is None:
         return floor
     gain = step_gain[1]
@@ -964,7 +994,8 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
 
 
 def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
-                   r0: np.ndarray | None = None, jac0: np.ndarray | None = None) -> float:
+                   r0: np.ndarray | None = None, jac0: np.ndarray | None = None,
+                   steps: np.ndarray = COARSE_STEPS) -> float:
     """σ of the log distance from the misfit profile (lateral position refitted at each trial
     distance), for blurs of a few lenslets (:data:`PROFILE_LENSLETS`).
 
@@ -977,7 +1008,7 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
     distance to that mismatch: such sources were measured 5–8 % off with a statistical σ of
     1.3–2.3 %. Returns the larger side's σ, or ``inf`` on a ridge or when a side does not
     rise by s² within a factor 2 in distance (the data do not fix the distance). ``r0`` and
-    ``jac0``: ``fun(q)`` and its difference Jacobian (steps ``COARSE_STEPS``), when known.
+    ``jac0``: ``fun(q)`` and its difference Jacobian (steps ``steps``), when known.
 
     The lateral refit at a trial distance starts where the Jacobian at ``q`` predicts the
     lateral minimum and takes up to ``PROFILE_GN_STEPS`` Gauss–Newton steps with that
@@ -993,7 +1024,7 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
     if not s2 > 0.0:
         return sigma_rel
     systematic = min(f0, PROFILE_FLOOR**2)
-    jac = _fd_jacobian(fun, fun_many, q, r0, COARSE_STEPS) if jac0 is None else jac0
+    jac = _fd_jacobian(fun, fun_many, q, r0, steps) if jac0 is None else jac0
     jp, jz = jac[:, 1:], jac[:, 0]
     try:
         solve = np.linalg.inv(_gram(jp))
@@ -1041,7 +1072,9 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, polish_above: float = math.inf,
                      mom: _Moments | None = None,
-                     bound_above: float = math.inf) -> Iterator[LensletFit]:
+                     bound_above: float = math.inf,
+                     gates: Callable[[float], tuple[float, float]] | None = None
+                     ) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -1057,6 +1090,11 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     its σ the Jacobian's, no profile), then the final fit. A caller that learns from the
     first that the region is no point (a line fits it far better) stops there and saves the
     polish and the σ profile.
+
+    ``gates``: when given, ``polish_above`` and ``bound_above`` are ``gates(m)``, with ``m``
+    the fine and polishing models' disagreement at the fine fit (``‖r_fine − r_polish‖``, the
+    first yield's ``model_misfit``): a gate that reads the data's misfit need not look below
+    what the models' own ray samples leave (:func:`measure_lenslet`).
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1066,6 +1104,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return
     n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
+    steps = point_steps(profile, geom, n_lit)
     frame = _Frame(profile)
     coarse = LensletModel(profile, geom, mom,
                           int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)))
@@ -1087,7 +1126,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         f = _sq(r)
         if best is None or f < best[1]:
             best = (q, f, r)
-    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], steps,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
     q_c = q
@@ -1102,6 +1141,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     polish = LensletModel(profile, geom, mom, POLISH_RAYS)
     fun_p = fun_of(polish)
     r_p = fun_p(q)
+    model_misfit = math.sqrt(_sq(r - r_p))
+    if gates is not None:
+        polish_above, bound_above = gates(model_misfit)
 
     def evaluations() -> int:
         return (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
@@ -1110,15 +1152,17 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)),
                      math.exp(_log_distance(q)) * _log_distance_sigma(jac, r), evaluations(),
                      not _at_far_bound(q),
-                     polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above))
+                     polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above,
+                                                steps),
+                     model_misfit=model_misfit)
     # a misfit near a gate is polished whatever the settled test says: do not run it then
     settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else _settled(
-        fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, COARSE_STEPS)
+        fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps)
     polished = not settled
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its own noise)
         jac, r, f = jac_q, r_p, _sq(r_p)
     else:
-        q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, COARSE_STEPS, FINE_LM_ITERATIONS,
+        q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(polish), r0=r_p, jac0=jac_q,
                                                  broyden=True, settle_log=POLISH_SETTLE_LOG)
         if jac_fine is not None:
@@ -1130,7 +1174,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ridge = False
     if n_lit <= PROFILE_LENSLETS and math.isfinite(sigma_d) and not _at_far_bound(q):
         s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist,
-                               *((None, None) if polished else (r_fine, jac_q)))
+                               *((None, None) if polished else (r_fine, jac_q)), steps=steps)
         ridge = not math.isfinite(s_rel)  # the data do not fix the distance
         if not ridge:
             sigma_d = max(sigma_d, dist * s_rel)
@@ -1475,15 +1519,25 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
                                                                            mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
-    trigger = line_trigger(nm, LINE_TRIGGER, LINE_NOISE_FACTOR)
+    noise_trigger = line_trigger(nm, LINE_TRIGGER, LINE_NOISE_FACTOR)
+
+    def trigger_of(model_misfit: float) -> float:
+        # the point misfit over which a line is tried: over the noise's trigger, and over
+        # LINE_MODEL_FACTOR × what the point models' own ray samples leave (noise-free
+        # points leave up to 1.1 × that, lines fitted as points 2.9-300 ×: docs/distance.md,
+        # "A line trigger over the models' own ray noise")
+        return max(noise_trigger, LINE_MODEL_FACTOR * model_misfit)
+
+    def gates(model_misfit: float) -> tuple[float, float]:  # polish_above, bound_above
+        trigger = trigger_of(model_misfit)
+        return POLISH_NEAR_GATE * min(limit, trigger), trigger
 
     def beats(point_misfit: float) -> float:  # the misfit a line must stay under to win
         return line_beats(point_misfit, nm, LINE_GAIN)
 
-    stages = point_fit_stages(profile, geom, image, region,
-                              polish_above=POLISH_NEAR_GATE * min(limit, trigger), mom=mom,
-                              bound_above=trigger)
+    stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates)
     fit = next(stages)  # the fine fit, before its polish and σ profile
+    trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
     line = None
     if fit.ok and fit.polish_floor > trigger:
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
