@@ -1126,7 +1126,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         f = _sq(r)
         if best is None or f < best[1]:
             best = (q, f, r)
-    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], steps,
+    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
     q_c = q
