@@ -379,6 +379,35 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
     np.testing.assert_allclose(_jackknife_variance(jac, r, inv), ref, rtol=1e-8)
 
 
+def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone():
+    # one lenslet of 12 carries most of the first parameter (leverage over LEVERAGE_CAP): its
+    # term is the capped one (eigenvalues of H_k cut to the cap); every other lenslet's term
+    # is still its exact leave-one-out refit (the plain solve, no eigen-decomposition)
+    from lfcam.measure.fastfit import LEVERAGE_CAP, _gram, _jackknife_variance
+
+    rng = np.random.default_rng(11)
+    k, p = 12, 3
+    jac = rng.normal(size=(4 * k, p))
+    jac[:4, 0] *= 40.0
+    jac[4:, 0] *= 0.05
+    r_all = rng.normal(size=4 * k)
+    inv = np.linalg.inv(_gram(jac))
+    theta = inv @ (jac.T @ r_all)
+    r = r_all - jac @ theta
+    jk = jac.reshape(k, 4, p)
+    h0 = jk[0] @ inv @ jk[0].T
+    lam, vec = np.linalg.eigh(h0)
+    assert lam.max() > LEVERAGE_CAP  # the case is what it says
+    drops = [inv @ jk[0].T @ vec @ np.diag(1 / (1 - np.minimum(lam, LEVERAGE_CAP))) @ vec.T
+             @ r[:4]]
+    for i in range(1, k):
+        keep = np.ones(4 * k, dtype=bool)
+        keep[4 * i:4 * i + 4] = False
+        drops.append(np.linalg.lstsq(jac[keep], r_all[keep], rcond=None)[0] - theta)
+    ref = (k - 1) / k * sum(np.outer(d, d) for d in drops)
+    np.testing.assert_allclose(_jackknife_variance(jac, r, inv), ref, rtol=1e-8)
+
+
 @pytest.mark.parametrize("lens", ["cooke_triplet", "double_gauss"])
 def test_compiled_pupil_maps_equal_the_aimed_numpy_ones(lens):
     # kernels.pupil_maps runs aim_rays' damped Newton iteration per stop-edge ray: the same
