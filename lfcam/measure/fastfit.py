@@ -938,7 +938,9 @@ def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarra
     seed's system 2 point at 2800 mm, 10 mm off axis: the misfit is 0.0009 at the truth and
     0.7 a step away), and the Gauss–Newton steps built on such a Jacobian stalled 0.55 % off.
     So the lateral step moves the blur by at most ``LATERAL_STEP_BLUR`` × its diameter,
-    ``pitch · √(4 n_lit / π)`` (docs/distance.md, "Difference steps sized to the blur").
+    ``pitch · √(4 n_lit / π)`` (docs/distance.md, "Difference steps sized to the blur"). The
+    fine stages use these steps; the coarse stage keeps ``COARSE_STEPS``, as a step sized to
+    the blur mostly differences its 3 000-ray model's own ray noise.
     """
     blur_mm = profile.mla.pitch_mm * math.sqrt(4.0 * max(n_lit, 1) / math.pi)
     lateral = min(float(COARSE_STEPS[1]), LATERAL_STEP_BLUR * blur_mm / geom.d_in_mm)
@@ -1534,7 +1536,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # the point misfit over which a line is tried: over the noise's trigger, and over
         # LINE_MODEL_FACTOR × what the point models' own ray samples leave (noise-free
         # points leave up to 1.1 × that, lines fitted as points 2.9-300 ×: docs/distance.md,
-        # "A line trigger over the models' own ray noise")
+        # "A line trigger over the point models' own noise")
         return max(noise_trigger, LINE_MODEL_FACTOR * model_misfit)
 
     def gates(model_misfit: float) -> tuple[float, float]:  # polish_above, bound_above
