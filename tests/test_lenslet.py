@@ -100,12 +100,13 @@ def test_lateral_steps_keep_a_small_blur_linear():
         _Frame,
         _region_box,
         data_moments,
+        lit_lenslets,
         point_steps,
     )
 
     img, prof, cal, geom, truth = _capture("point_system2_2800mm_dh10", "system2")
     mom = data_moments(geom, img, _region_box(geom, _region(img, geom), img.shape))
-    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    n_lit = lit_lenslets(mom)
     frame = _Frame(prof)
     model = LensletModel(prof, geom, mom, 80_000)
     x, y = truth["position_mm"]

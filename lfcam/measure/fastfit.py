@@ -927,6 +927,12 @@ def _linear_step(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | N
     return step, float(g @ step)
 
 
+def lit_lenslets(mom: _Moments) -> int:
+    """The lenslets a region's blur lights: those with over 5 % of the brightest one's energy
+    (what the ray budgets and :func:`point_steps` scale with)."""
+    return int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+
+
 def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarray:
     """Difference steps of a point fit's parameters (log distance, x/L, y/L) for a blur that
     lights ``n_lit`` lenslets.
@@ -1114,7 +1120,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if not mom.norm > 0 or len(mom.ids) < 3:
         yield LensletFit(nan3, np.nan, np.nan, 0, False, RegionStatus.EMPTY)
         return
-    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    n_lit = lit_lenslets(mom)
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     steps = point_steps(profile, geom, n_lit)
     frame = _Frame(profile)
@@ -1306,7 +1312,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # are turned (docs/distance.md, "Lines across the field's stretch"). The footprint less
     # the point's own is the turns' first axis: alone, on axis, it put seed lines up to
     # 3.4 % off (a small blur's footprint is square or hexagonal on the lattice).
-    n_lit = int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
+    n_lit = lit_lenslets(mom)
     stretched = False
     # (a footprint of a few lenslets is square or hexagonal, not round: 0.06-0.1 on axis)
     if n_lit >= LINE_STRETCH_MIN_LIT:
