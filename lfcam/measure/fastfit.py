@@ -954,9 +954,10 @@ def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarra
 
 
 def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
-                  bound_above: float, steps: np.ndarray = COARSE_STEPS) -> float:
+                  bound_above: float, steps: np.ndarray) -> float:
     """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
     of the polishing model) can reach, bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
+    ``steps``: the fit's difference steps (:func:`point_steps`).
 
     Over ``bound_above`` the bound is raised by the Gauss–Newton step on ``r_check`` with the
     fine model's own Jacobian at ``q``: the polish removes at most ``POLISH_GAIN_SAFETY`` × the
