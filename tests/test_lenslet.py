@@ -291,11 +291,9 @@ def test_line_jacobian_from_points_matches_differences(dist, turns):
     # agree to the model's piecewise-linear ray noise (measured cos ≥ 0.998, 2-7 % apart), and
     # the distance σ they imply to 2 %
     from lfcam.measure import fastfit as ff
-    from lfcam.measure.lenslets import lenslet_stats
-    from lfcam.measure.regions import find_regions
 
     img, prof, cal, geom, truth = _capture(f"line_system1_{dist}mm", "system1")
-    reg = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)[0]
+    reg = _region(img, geom)
     mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
     fit = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
     frame = ff._Frame(prof)
@@ -328,11 +326,9 @@ def test_turned_line_points_sample_the_pupil_better(dist):
     # floor before its budget was halved) the turned model is closer (measured 0.41, 0.45,
     # 0.48 × the shared model's error; 0.68 on the 1800 mm line's smaller blur)
     from lfcam.measure import fastfit as ff
-    from lfcam.measure.lenslets import lenslet_stats
-    from lfcam.measure.regions import find_regions
 
     img, prof, cal, geom, truth = _capture(f"line_system1_{dist}mm", "system1")
-    reg = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)[0]
+    reg = _region(img, geom)
     mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
     fit = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
     a, b = fit.ends_mm
