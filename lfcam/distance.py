@@ -30,6 +30,7 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -158,6 +159,9 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
         d, sig, status = measure_refocus(profile, geom, img, reg)
         return reg.kind, "refocus", d, nan, nan, sig, status, None
     meas = None
+    # a line's refit with more rays only where the tolerance needs it (fit_lenslet_line)
+    accept = (None if tolerance_pct is None else
+              partial(auto.lenslet_answer_meets, tolerance_pct=tolerance_pct))
     if method == "auto":
         method = auto.choose_method(tolerance_pct, reg.kind)
         if method in ("lenslet", "lightfield") and tolerance_pct is not None:
@@ -166,7 +170,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
             # regions shaped like lines): a line's answer stands (no method measures lines
             # better), a spot's where its own σ meets the tolerance; the pixel fit (seconds)
             # only for the other spots, and for failed regions that look like spots
-            first = measure_lenslet(profile, geom, img, reg, noise)
+            first = measure_lenslet(profile, geom, img, reg, noise, accept)
             if first.status != RegionStatus.OK:
                 meas = first if method == "lenslet" else None
             elif first.kind == "line" or auto.lenslet_answer_meets(
@@ -177,7 +181,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
         if method == "lightfield":
             meas = measure_lightfield(profile, geom, img, reg, noise, fast, nearby)
         elif method == "lenslet":
-            meas = measure_lenslet(profile, geom, img, reg, noise)
+            meas = measure_lenslet(profile, geom, img, reg, noise, accept)
         else:
             meas = measure_diameter(profile, geom, img, stats, reg, noise)
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)

@@ -252,18 +252,25 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     cam = fg.Camera("system1", 1000.0, 1024, tmp_path, True)
     img = _field_line(cam, 3400.0, 0.8, 135.0, 16_000_000)
 
-    def line_error() -> tuple[float, float]:
+    def line_error(tolerance_pct: float | None = None) -> tuple[float, float]:
         run = run_distance(img, cam.used, None, model="exact", method="lenslet",
-                           geometry=cam.geom, jobs=1)
+                           geometry=cam.geom, jobs=1, tolerance_pct=tolerance_pct)
         best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
         assert best.kind == "line" and best.status == "ok"
         return best.distance_mm / 3400.0 - 1.0, best.uncertainty_mm / 3400.0
 
     err, sigma = line_error()
     assert abs(err) < 0.003 and abs(err) < 3.0 * sigma
+    # A tolerance the fine fit cannot meet with the shift in its σ keeps the refit; one it
+    # meets skips it and reports that σ (docs/distance.md, "A line's refit only where the
+    # tolerance needs it"): the unrefitted answer, with a σ that covers its error
+    assert line_error(1.0) == (err, sigma)
+    err_quick, sigma_quick = line_error(10.0)
     monkeypatch.setattr(ff, "LINE_SETTLED_LOG", np.inf)  # without the settled test
-    err_turned, _ = line_error()
+    err_turned, sigma_turned = line_error()
     assert abs(err_turned) < 0.005  # the points' turned samples alone: measured +0.32 %
+    assert err_quick == err_turned and abs(err_quick) < sigma_quick
+    assert sigma_quick > 2.0 * sigma_turned  # the shift (0.015 in log distance) is in it
     monkeypatch.setattr(ff, "LINE_TURNS", False)  # ... and one pupil sample for every point
     err_unsettled, sigma_unsettled = line_error()
     assert err_unsettled > 0.01 and err_unsettled > 3.0 * sigma_unsettled  # measured +6.5 %

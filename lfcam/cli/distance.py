@@ -49,7 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "--tolerance, the "
                    "method a learned lens was learned with (lenslet), else lightfield")
     p.add_argument("--tolerance", type=positive_float, metavar="PCT",
-                   help="--model auto: allowed distance error in percent (default: best)")
+                   help="allowed distance error in percent: --model auto and --method auto "
+                   "pick the cheapest that meets it; with --method lenslet or auto a line is "
+                   "refitted with more rays only where its σ would not (default: best)")
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
     p.add_argument("--jobs", type=positive_int, metavar="N",

@@ -41,7 +41,12 @@ from typing import NamedTuple
 import numpy as np
 
 from lfcam.camera import CameraProfile
-from lfcam.measure.base import Measurement, line_measurement, point_measurement
+from lfcam.measure.base import (
+    LINE_SIGMA_FLOOR_REL,
+    Measurement,
+    line_measurement,
+    point_measurement,
+)
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moment_noise_sums
@@ -1280,7 +1285,8 @@ def _footprint(geom: Geometry, mom: _Moments, energy: np.ndarray
 
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
-                     useful_below: float = math.inf, mom: _Moments | None = None) -> LensletFit:
+                     useful_below: float = math.inf, mom: _Moments | None = None,
+                     accept: Callable[[float, float], bool] | None = None) -> LensletFit:
     """Fit a line source (equally bright points half a pitch apart, 5 parameters) to the
     region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
     a distance scan (centre from the chief ray through the light's centroid); both with the
@@ -1294,6 +1300,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     2.7× on the measured regions (docs/distance.md, "A compiled inner loop, lines that stop
     when they cannot win", "Fewer evaluations: a cheaper σ profile and polish"). ``mom``: the
     region's :func:`data_moments`, when the caller has them.
+
+    ``accept`` (optional): ``accept(distance_mm, sigma_mm)``, whether an answer that certain
+    is enough for the caller (its ``--tolerance``). A line whose settled test asks for the
+    refit with more rays is not refitted when its σ, with the measured sampling shift and the
+    line σ floor added in quadrature, is accepted; that σ is then the one it reports
+    (docs/distance.md, "A line's refit only where the tolerance needs it").
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1454,6 +1466,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         jac = jac if jac_lead is None else jac_lead
 
     settling: list[LensletModel] = []  # the settled test's models (below)
+    sigma_log = None  # the fit's statistical σ (log distance), once computed
+    sampling_log = 0.0  # the fine sample's shift, kept in σ where its refit was not needed
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
@@ -1492,7 +1506,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                               turn_every=fine.turn_every)
         settling.append(turned)
         shift = _linear_step(jac, line_model(turned, frame, n_pts, steps)[0](q))
-        if shift is None or abs(float(shift[0][0])) > LINE_SETTLED_LOG:
+        moved = math.inf if shift is None else abs(float(shift[0][0]))
+        refit = moved > LINE_SETTLED_LOG
+        if refit and accept is not None and math.isfinite(moved):
+            # the refit is for the sample's share of the error: not needed where the caller
+            # accepts the answer with that share in its σ
+            sigma_log = _log_distance_sigma(jac, r)
+            d_fine = math.exp(_log_distance(q))
+            if accept(d_fine, d_fine * math.sqrt(sigma_log ** 2 + moved ** 2
+                                                 + LINE_SIGMA_FLOOR_REL ** 2)):
+                refit, sampling_log = False, moved
+        if refit:
             refined = LensletModel(profile, geom, mom,
                                    min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS),
                                    turn_every=fine.turn_every)
@@ -1503,12 +1527,15 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                     settle_log=LINE_SETTLE_LOG)
             if jac_ref is not None:
                 jac = jac_ref
+            sigma_log = None
     pts = _line_points(frame, q, 2)
     z = pts[0, 2]
     along = frame.z_rim - z
     ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
     dist = math.exp(_log_distance(q))
-    sigma_d = dist * _log_distance_sigma(jac, r)
+    if sigma_log is None:
+        sigma_log = _log_distance_sigma(jac, r)
+    sigma_d = dist * math.hypot(sigma_log, sampling_log)
     total = evaluations()
     mid = 0.5 * (ends[0] + ends[1])
     if _at_far_bound(q):
@@ -1518,7 +1545,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                    region: Region, noise: float) -> Measurement:
+                    region: Region, noise: float,
+                    accept: Callable[[float, float], bool] | None = None) -> Measurement:
     """Lenslet-statistics fit of one region (module docstring).
 
     Parameters
@@ -1528,6 +1556,10 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     image : (H, W) float array
     region : Region
     noise : float
+    accept : callable, optional
+        ``accept(distance_mm, sigma_mm)``: whether a line answer that certain is enough for
+        the caller (:func:`fit_lenslet_line`); without it every line is refitted where its
+        settled test asks.
 
     Returns
     -------
@@ -1565,7 +1597,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (fit.polish_floor), the point's polish and σ profile are not needed
         line = fit_lenslet_line(profile, geom, image, region, fit,
-                                useful_below=min(beats(fit.misfit), limit), mom=mom)
+                                useful_below=min(beats(fit.misfit), limit), mom=mom,
+                                accept=accept)
         if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
@@ -1585,7 +1618,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         if line is None:
             line = fit_lenslet_line(profile, geom, image, region, fit,
-                                    useful_below=min(beats(fit.misfit), limit), mom=mom)
+                                    useful_below=min(beats(fit.misfit), limit), mom=mom,
+                                    accept=accept)
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:

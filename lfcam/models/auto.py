@@ -207,6 +207,8 @@ METHOD_MAX_ERROR_PCT = {
 # 12-source scene) no answer so accepted missed its tolerance, for T from 0.1 to 2 %
 # (docs/distance.md, "Auto: the lenslet fit first"). Lines are not covered (their bias behind
 # focus exceeds their σ) and keep the table: the lenslet method is theirs at any tolerance.
+# The same rule spares a line the refit with more rays where its σ, with the refit's share of
+# the error in it, meets the tolerance (lfcam.measure.fastfit.fit_lenslet_line's ``accept``).
 LENSLET_ACCEPT_SIGMAS = 3.0
 
 
