@@ -151,6 +151,35 @@ def test_points_at_the_models_own_noise_try_no_line(name, monkeypatch):
     assert calls
 
 
+def test_a_start_whose_light_misses_the_data_is_not_matched(monkeypatch):
+    # system 2's 300 mm seed blur (~1 250 lenslets): the scan's second start lies near
+    # 1500 mm, where the model lights none of the data's lenslets (scan misfit² 0.998); its
+    # summary matching (~8 ms) never brought such a start back (0 winners of 39 logged), so
+    # once the first start leaves a coarse misfit² under START_GOOD it is skipped, and the
+    # answer is the same to the last digit
+    from lfcam.measure import fastfit
+
+    matched = []
+    match = fastfit._match_summary
+    monkeypatch.setattr(fastfit, "_match_summary",
+                        lambda *a, **k: matched.append(math.exp(a[5][0])) or match(*a, **k))
+    img, prof, cal, geom, truth = _capture("point_system2_300mm_dh5", "system2")
+
+    def answer():
+        matched.clear()
+        r = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom,
+                         jobs=1).regions[0]
+        assert r.kind == "spot" and r.status == "ok"
+        return r.distance_mm, r.uncertainty_mm
+
+    skipped = answer()
+    assert len(matched) == 1 and abs(matched[0] / 300.0 - 1.0) < 0.05
+    assert abs(skipped[0] / truth["distance_mm"] - 1.0) < 0.0005  # measured 0.006 %
+    monkeypatch.setattr(fastfit, "START_HOPELESS", math.inf)  # every start matched
+    assert answer() == skipped
+    assert len(matched) == 2 and matched[1] > 1000.0
+
+
 def _render(camera, objects, rays=300_000, seed=4):
     base = load_profile("system2")
     scene = {"seed": seed, "rays_per_source": rays, "camera": camera,
