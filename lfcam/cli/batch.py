@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from lfcam.atomic import check_output_dir, refuse_overwrite
-from lfcam.cli.common import positive_float, positive_int, profile_file
+from lfcam.cli.common import add_tolerance, positive_int, profile_file
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
 
@@ -26,8 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="auto",
                    choices=DISTANCE_MODELS)
     p.add_argument("--method", default="lightfield", choices=METHODS)
-    p.add_argument("--tolerance", type=positive_float, metavar="PCT",
-                   help="--model auto: allowed distance error in percent (default: best)")
+    add_tolerance(p)
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
     p.add_argument("--workers", type=positive_int, metavar="N",

@@ -98,6 +98,14 @@ def add_quiet(p: argparse.ArgumentParser) -> None:
                    help="no progress line on stderr (shown only on a terminal)")
 
 
+def add_tolerance(p: argparse.ArgumentParser) -> None:
+    """``--tolerance PCT`` of the distance pipeline (``lfcam distance``, ``lfcam batch``)."""
+    p.add_argument("--tolerance", type=positive_float, metavar="PCT",
+                   help="allowed distance error in percent: --model auto and --method auto "
+                   "pick the cheapest that meets it; with --method lenslet or auto a line is "
+                   "refitted with more rays only where its σ would not (default: best)")
+
+
 def add_no_verify(p: argparse.ArgumentParser) -> None:
     """``--no-verify`` for commands that load captures (LFP sha1 checks)."""
     p.add_argument("--no-verify", action="store_true",

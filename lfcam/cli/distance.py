@@ -13,9 +13,9 @@ from lfcam.calibrate.lensfit import default_method
 from lfcam.cli.common import (
     add_no_verify,
     add_quiet,
+    add_tolerance,
     capture_files,
     json_value,
-    positive_float,
     positive_int,
     profile_file,
     verify_mode,
@@ -48,10 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the pixel fit measures the rest); default: auto with --model auto "
                    "--tolerance, the "
                    "method a learned lens was learned with (lenslet), else lightfield")
-    p.add_argument("--tolerance", type=positive_float, metavar="PCT",
-                   help="allowed distance error in percent: --model auto and --method auto "
-                   "pick the cheapest that meets it; with --method lenslet or auto a line is "
-                   "refitted with more rays only where its σ would not (default: best)")
+    add_tolerance(p)
     p.add_argument("--fast", action="store_true",
                    help="lightfield: triangulation only (no per-pixel fit)")
     p.add_argument("--jobs", type=positive_int, metavar="N",
