@@ -1025,8 +1025,8 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
 
 
 def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
-                   r0: np.ndarray | None = None, jac0: np.ndarray | None = None,
-                   steps: np.ndarray = COARSE_STEPS) -> float:
+                   r0: np.ndarray | None = None, jac0: np.ndarray | None = None, *,
+                   steps: np.ndarray) -> float:
     """σ of the log distance from the misfit profile (lateral position refitted at each trial
     distance), for blurs of a few lenslets (:data:`PROFILE_LENSLETS`).
 
@@ -1595,6 +1595,11 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def beats(point_misfit: float) -> float:  # the misfit a line must stay under to win
         return line_beats(point_misfit, nm, LINE_GAIN)
 
+    def line_for(point: LensletFit) -> LensletFit:  # the line fit that could replace a point
+        return fit_lenslet_line(profile, geom, image, region, point,
+                                useful_below=min(beats(point.misfit), limit), mom=mom,
+                                accept=accept)
+
     stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates)
     fit = next(stages)  # the fine fit, before its polish and σ profile
     trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
@@ -1603,9 +1608,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (fit.polish_floor), the point's polish and σ profile are not needed
-        line = fit_lenslet_line(profile, geom, image, region, fit,
-                                useful_below=min(beats(fit.misfit), limit), mom=mom,
-                                accept=accept)
+        line = line_for(fit)
         if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
@@ -1624,9 +1627,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if region.kind == "line" or fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         if line is None:
-            line = fit_lenslet_line(profile, geom, image, region, fit,
-                                    useful_below=min(beats(fit.misfit), limit), mom=mom,
-                                    accept=accept)
+            line = line_for(fit)
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
