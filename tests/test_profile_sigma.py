@@ -14,6 +14,7 @@ import pytest
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
 from lfcam.measure.fastfit import (
+    COARSE_STEPS,
     PROFILE_FLOOR,
     PROFILE_RIDGE_LOG,
     PROFILE_RIDGE_RISE,
@@ -49,14 +50,17 @@ def test_quadratic_profile_gives_the_analytic_sigma():
     n_res = 3 + N_CONST
     s2 = N_CONST * c * c / (n_res - 3)
     expected = math.sqrt(2.0 * s2) / k  # f(t) − f0 = k²t²/2 = s²
-    assert _profile_sigma(fun, many, q, n_res, 1e-4) == pytest.approx(expected, rel=0.02)
+    assert _profile_sigma(fun, many, q, n_res, 1e-4, steps=COARSE_STEPS) == pytest.approx(
+        expected, rel=0.02)
     # the start of the search does not matter
-    assert _profile_sigma(fun, many, q, n_res, 0.05) == pytest.approx(expected, rel=0.02)
+    assert _profile_sigma(fun, many, q, n_res, 0.05, steps=COARSE_STEPS) == pytest.approx(
+        expected, rel=0.02)
 
 
 def test_flat_profile_is_not_a_distance():
     fun, many = _residual(0.0, 0.01)
-    assert math.isinf(_profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-3))
+    assert math.isinf(_profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-3,
+                                     steps=COARSE_STEPS))
 
 
 def test_ridge_is_not_a_distance_but_a_steep_enough_profile_is():
@@ -67,12 +71,14 @@ def test_ridge_is_not_a_distance_but_a_steep_enough_profile_is():
     f0 = N_CONST * c * c
     assert f0 < PROFILE_FLOOR**2
     fun, many = _residual(2.0, c, plateau=2.0 * f0)
-    assert math.isinf(_profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-4))
+    assert math.isinf(_profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-4,
+                                     steps=COARSE_STEPS))
     fun, many = _residual(0.5, c, plateau=20.0 * f0)
     expected = math.sqrt(2.0 * f0 / N_CONST) / 0.5
     assert PROFILE_RIDGE_RISE * f0 < 20.0 * f0 * math.tanh(
         0.5 * PROFILE_RIDGE_LOG / math.sqrt(40.0 * f0)) ** 2
-    assert _profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-4) == pytest.approx(
+    assert _profile_sigma(fun, many, np.array([0.0, 0.0, 0.3]), 63, 1e-4,
+                                     steps=COARSE_STEPS) == pytest.approx(
         expected, rel=0.03)
 
 
