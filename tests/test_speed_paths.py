@@ -224,7 +224,7 @@ def test_compiled_trace_drops_the_rays_the_lens_stops():
     pts = np.array([[0.0, 0.0, fv - 800.0], [40.0, -25.0, fv - 300.0], [0.0, 0.0, fv + 5.0]])
     ref = trace_sources_fast(lens, pts, rx, ry, prof.d_in_mm, map_pupil=False)
     maps = np.tile([0.0, 0.0, 1.0, 1.0], (3, 1))
-    x, y, sx, sy, wt, rows, foot = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (3, 1)),
+    x, y, sx, sy, wt, rows, _, foot = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (3, 1)),
                                                    rx, ry, table, coef, fv,
                                                    lens.rim_z_mm, prof.d_in_mm, 1.0)
     ok = ref.ok

@@ -178,6 +178,10 @@ PROFILE_RIDGE_RISE = 5.0  # systematic misfit² (≤ PROFILE_FLOOR²): a ridge, 
 PROFILE_FLOOR = 0.001  # relative misfit of the exact model on bright far sources (0.0006-7)
 PROFILE_GN_STEPS = 2  # lateral Gauss–Newton steps at each trial distance (fixed Jacobian)
 PROFILE_START = 2.0  # the first trial step, in units of the Jacobian's σ
+CELL_MAP_TOLERANCE = 0.01  # a point's polynomial map off its ring's traced rays by at most this
+#                            (pitches), or the cells do not apply
+CELL_AREA_TOLERANCE = 0.005  # a point's samples' pupil area within this share of π: one to one
+CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
@@ -274,8 +278,16 @@ class LensletModel:
     """Forward model of a region's lenslet moments for point (or line) sources."""
 
     def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
-                 phase: float = 0.0, kernel: str | None = None, turn_every: int = 0):
+                 phase: float = 0.0, kernel: str | None = None, turn_every: int = 0,
+                 cells: int = 0):
         self.profile, self.geom, self.mom = profile, geom, mom
+        # cells = n > 0: each point's pupil sample is the preimage of the centres of the n × n
+        # sub-cells of every lattice cell (n² samples a cell, ``n_rays`` and ``phase`` unused;
+        # the compiled kernel only): the samples stay where they are on the MLA as the source
+        # moves, so no sample crosses a cell border and the Jacobian by differences is not
+        # the sample's noise (docs/distance.md, "Samples fixed on the lenslet cells")
+        self.cells = int(cells)
+        self.folded = False  # cells did not apply (:meth:`invertible`): ray-sampled from then on
         # turn_every = c > 0: the k-th point of each run of c stacked points (a line's k-th
         # point, in every set of a Jacobian or a scan) has its pupil sample turned by
         # 2πk / c, so that the points' sampling errors cancel instead of adding up
@@ -341,6 +353,14 @@ class LensletModel:
             out = self._simulate(np.ascontiguousarray(points, dtype=np.float64), group, groups)
         return out.reshape(groups, -1, 4)
 
+    def cell_offsets(self, m: int) -> np.ndarray:
+        """(m, 2) each of ``m`` stacked points' sub-grid offset (``cells`` = n > 0): the
+        centres of the n² sub-cells of the cell about each node, (index + ½)/n − ½ ≡ (index +
+        offset)/n modulo 1. (One of the k² cosets of a k times finer grid for each point, in
+        turn, as the pupil samples turn, is 2-3× worse: docs/distance.md, "Samples fixed on
+        the lenslet cells".)"""
+        return np.full((m, 2), 0.5 * ((self.cells + 1) % 2))
+
     def turns(self, m: int) -> np.ndarray:
         """(m, 2) cos and sin of each of ``m`` stacked points' pupil-sample turn."""
         out = np.zeros((m, 2))
@@ -355,6 +375,8 @@ class LensletModel:
         """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
         points = np.atleast_2d(sources)
         out = np.zeros((groups * len(self.mom.data), 4))
+        if self.cells:
+            return self._simulate_cells(points, group, groups, out)
         if self.kernel == "compiled":
             return self._simulate_compiled(points, group, groups, out)
         p = self.profile
@@ -422,7 +444,7 @@ class LensletModel:
         table, coef = self.packed.table, self.packed.coef
         # the real stop's image on the aperture plane, per point (identity for the singlet)
         maps = compiled_pupil_maps(lens, points, self.packed)
-        x, y, sx, sy, wt, rows, foot = trace_model_rays(
+        x, y, sx, sy, wt, rows, _, foot = trace_model_rays(
             np.ascontiguousarray(points, dtype=np.float64), maps, self.turns(len(points)),
             self.rx, self.ry, table, coef,
             float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
@@ -443,6 +465,142 @@ class LensletModel:
             np.asarray(group, dtype=np.int64), int(groups),
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
             float(ax), float(ay), int(x0), int(y0), float(self.s_px), self.mom.labels,
+            self.mom.centres_px, float(self.geom.pitch_px))
+
+    def _cell_samples(self, points: np.ndarray):
+        """Each point's pupil samples on the cells (``cells`` > 0), or ``None`` where a point's
+        pupil is vignetted or its map from the pupil to the MLA is not one to one (the MLA
+        cuts the caustic: in front of focus, near it).
+
+        Each point's map from the unit pupil disc to the MLA is fitted by a polynomial of
+        degree :data:`lfcam.measure.kernels.MAP_DEGREE` (the 81 rays of :func:`_cell_ring`;
+        0.0005 pitch RMS off the exact trace on a large system-2 blur, where a linear map
+        leaves 0.5–2 pitches of spherical aberration and a cubic 0.015), and each point of the
+        sub-grid inside the footprint is mapped back to its pupil point
+        (:func:`lfcam.measure.kernels.cell_samples`). A map that is one to one takes each
+        pupil point to one sub-grid point, so the samples' pupil areas add up to the disc's, π
+        (behind focus to 1e-4); where the map folds they do not (0.25–0.95 measured in front
+        of a 1 m focus), and :data:`CELL_AREA_TOLERANCE` tells the two apart.
+
+        Returns ``(u, v, w, rows, du, maps, trace_args)`` (see ``cell_samples``).
+        """
+        from lfcam.measure.kernels import cell_samples, trace_model_rays
+
+        p = self.profile
+        lens = p.main_lens
+        if self.packed is None:
+            self.packed = _packed_lens(lens)
+        half = 0.5 * lens.pupil_diameter_mm
+        lat = self.lattice
+        if lat is None:
+            raise ValueError("cell samples need a lenslet lattice")
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        m = len(pts)
+        maps = compiled_pupil_maps(lens, pts, self.packed)
+        ring, pinv, ring_basis = _cell_ring()
+        trace_args = (self.packed.table, self.packed.coef, float(lens.front_vertex_z_mm),
+                      float(lens.rim_z_mm), float(self.geom.d_in_mm),
+                      float(p.mla.focal_length_mm))
+        x, y, _, _, _, rows, ray, _ = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (m, 1)),
+                                                       ring[:, 0] * half, ring[:, 1] * half,
+                                                       *trace_args)
+        n = self.cells
+        boxes = np.zeros((m, 4))
+        if len(rows) != m * len(ring):
+            # a vignetted pupil: its cut runs across the cells, and the samples fixed on them
+            # that it drops are not the rays it drops (system 1's lines at 80 % of the
+            # half-field behind focus: 0.42 / 1.52 % on the cells, 0.31 / 0.68 % ray-sampled)
+            return None
+        xr, yr = x.reshape(m, -1), y.reshape(m, -1)
+        cx = xr @ pinv.T
+        cy = yr @ pinv.T
+        pitch = math.sqrt(abs(np.linalg.det(lat.basis)))
+        off = np.hypot(xr - cx @ ring_basis.T, yr - cy @ ring_basis.T).max()
+        if off > CELL_MAP_TOLERANCE * pitch:
+            # the polynomial misses the exact map (far off axis: system 1's at 80 % of the
+            # half-field by 0.03 pitch; system 2's behind focus on axis by 0.002)
+            return None
+        margin = pitch * (1.0 + 1.0 / n)
+        boxes[:, 0] = xr.min(axis=1) - margin
+        boxes[:, 1] = xr.max(axis=1) + margin
+        boxes[:, 2] = yr.min(axis=1) - margin
+        boxes[:, 3] = yr.max(axis=1) + margin
+        # a disc about the centre ray's landing through the farthest ring ray, and a margin
+        reach = np.column_stack([xr[:, 0], yr[:, 0], np.hypot(xr - xr[:, :1],
+                                                              yr - yr[:, :1]).max(axis=1)
+                                 + margin])
+        u, v, w, srows, du = cell_samples(cx, cy, boxes, reach, lat.origin, lat.basis,
+                                          lat.inverse, n, self.cell_offsets(m))
+        area = np.bincount(srows, w, minlength=m)
+        if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
+            return None
+        return u, v, w, srows, du, maps, trace_args
+
+    def invertible(self, points: np.ndarray) -> bool:
+        """Whether every point's whole pupil passes and its map to the MLA is one to one
+        (:meth:`_cell_samples`): where samples on the cells apply."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._cell_samples(np.atleast_2d(points)) is not None
+
+    def _simulate_cells(self, points: np.ndarray, group: np.ndarray | None, groups: int,
+                        out: np.ndarray) -> np.ndarray:
+        """:meth:`_simulate` with samples fixed on the lenslet cells (``cells`` > 0): the
+        pupil points of :meth:`_cell_samples` traced exactly, and deposited as
+        :meth:`_simulate_compiled`'s rays, each weighted by the pupil area it stands for.
+        Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
+        from then on (``folded``).
+        """
+        from lfcam.measure.kernels import deposit_moments, trace_model_rays
+
+        got = None if self.folded else self._cell_samples(points)
+        if got is None:
+            self.folded = True
+            return self._simulate_compiled(points, group, groups, out)
+        u, v, w, srows, du, maps, trace_args = got
+        p = self.profile
+        lens = p.main_lens
+        half = 0.5 * lens.pupil_diameter_mm
+        lat = self.lattice
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        m = len(pts)
+        n = self.cells
+        pitch = math.sqrt(abs(np.linalg.det(lat.basis)))
+        still = np.array([[1.0, 0.0]])
+        if srows.size == 0:
+            return out
+        # the samples of each point through the lens (the trace takes one sample a call)
+        cuts = np.searchsorted(srows, np.arange(m + 1))
+        parts = []
+        for k in range(m):
+            lo, hi = cuts[k], cuts[k + 1]
+            if hi == lo:
+                continue
+            tx, ty, tsx, tsy, twt, _, tray, _ = trace_model_rays(
+                pts[k:k + 1], maps[k:k + 1], still, u[lo:hi] * half, v[lo:hi] * half,
+                *trace_args)
+            parts.append((tx, ty, tsx, tsy, twt * w[lo:hi][tray], np.full(tx.size, k)))
+        if not parts:
+            return out
+        x, y, sx, sy, wt, rows = (np.concatenate([part[i] for part in parts])
+                                  for i in range(6))
+        # a sample stands for its sub-cell, which lies in one lattice cell: shared across a
+        # border only when its ray lands off its sub-cell's centre, or where a hexagonal
+        # cell's border cuts its sub-cell (a rectangular lattice's samples lie exactly half
+        # a sub-cell from the borders: 0.9 × that keeps them whole)
+        spacing = np.full(m, CELL_SHARE * pitch / n)
+        mag = (p.mla.focal_length_mm / (self.geom.d_in_mm - lens.exit_pupil_z_mm)
+               / p.sensor.pixel_pitch_mm)
+        s_px = min(0.9, max(float(np.mean(du[du > 0])) * half * mag, 1e-3))
+        if group is None:
+            group = np.zeros(m, dtype=np.int64)
+        la, lb, rect = self.cell_shape or _cell_shape(lat)
+        ax, ay = p.sensor.axis_xy_px
+        x0, y0 = self.mom.box[:2]
+        return deposit_moments(
+            x, y, sx, sy, wt, rows.astype(np.int64), spacing,
+            np.asarray(group, dtype=np.int64), int(groups),
+            lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
+            float(ax), float(ay), int(x0), int(y0), float(s_px), self.mom.labels,
             self.mom.centres_px, float(self.geom.pitch_px))
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
@@ -511,6 +669,32 @@ def compiled_pupil_maps(lens, points_mm: np.ndarray, packed: _PackedLens | None 
     out[good] = pupil_maps(np.ascontiguousarray(src[good]), z_refs, pk.table, pk.coef,
                            pk.stop, stop_sd, r_ep, pk.z_ap, pk.half)
     return out
+
+
+def _map_basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Terms of :func:`lfcam.measure.kernels._map2` at pupil points (u, v): (n, terms)."""
+    from lfcam.measure.kernels import MAP_DEGREE
+
+    return np.column_stack([u ** i * v ** (k - i) for k in range(MAP_DEGREE + 1)
+                            for i in range(k + 1)])
+
+
+_CELL_RING: list = []
+
+
+def _cell_ring() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pupil points (unit disc) a cell-sampled model traces to fit each point's
+    polynomial map (centre and rings at 0.25 … 1.0: 81 rays), the fit's pseudo-inverse and
+    the polynomial's terms at those points."""
+    if not _CELL_RING:
+        pts = [(0.0, 0.0)]
+        for r, k in ((0.25, 8), (0.5, 12), (0.7, 16), (0.87, 20), (1.0, 24)):
+            a = 2.0 * np.pi * (np.arange(k) + 0.5 * (r > 0.5)) / k
+            pts += list(zip(r * np.cos(a), r * np.sin(a), strict=True))
+        ring = np.array(pts)
+        basis = _map_basis(ring[:, 0], ring[:, 1])
+        _CELL_RING.append((ring, np.linalg.pinv(basis), basis))
+    return _CELL_RING[0]
 
 
 def _cell_shape(lattice: LocalLattice) -> tuple[float, float, bool]:

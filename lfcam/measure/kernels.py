@@ -512,7 +512,8 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
 
     Returns, for the rays that pass, in point-major order: ``x, y`` (mm at the MLA),
     ``sx, sy`` (``fx`` × slope), the cosine³ weight ``wt`` (unmapped aperture point), the
-    point index ``row``; and ``foot`` (M,): each point's footprint extent at the MLA (the
+    point index ``row``, the aperture point's index ``ray`` (0 … len(rx) − 1); and ``foot``
+    (M,): each point's footprint extent at the MLA (the
     larger of its x and y ranges; 0 when no ray passes). The same quantities
     :class:`~lfcam.measure.fastfit.LensletModel` computes with numpy from
     :func:`lfcam.optics.trace.trace_sources_fast` (to ~1e-15, ``tests/test_speed_paths.py``).
@@ -529,6 +530,7 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
     res = np.empty((5, size))  # the passing rays: x, y, sx, sy, wt
     xs, ys, sxs, sys_, wts = res[0], res[1], res[2], res[3], res[4]
     rows = np.empty(size, dtype=np.int64)
+    rays = np.empty(size, dtype=np.int64)
     lo_x = np.full(m, np.inf)
     hi_x = np.full(m, -np.inf)
     lo_y = np.full(m, np.inf)
@@ -578,6 +580,7 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
                 sys_[count] = fx * dy[b] / dz[b]
                 wts[count] = wt[b]
                 rows[count] = p
+                rays[count] = lo + b
                 count += 1
                 lo_x[p] = min(lo_x[p], xr)
                 hi_x[p] = max(hi_x[p], xr)
@@ -588,7 +591,7 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
         if hi_x[p] >= lo_x[p]:
             foot[p] = max(hi_x[p] - lo_x[p], hi_y[p] - lo_y[p])
     return (xs[:count], ys[:count], sxs[:count], sys_[:count], wts[:count], rows[:count],
-            foot)
+            rays[:count], foot)
 
 
 # ----------------------------------------------------------------------------- ray aiming
@@ -718,4 +721,233 @@ def pupil_maps(points, z_refs, table, coef, stop, stop_sd, r_ep, z_ap, half):
             out[p, 1] = 0.0
             out[p, 2] = 1.0
             out[p, 3] = 1.0
+    return out
+
+
+# ----------------------------------------------------------------------------- cell samples
+CELL_NEWTON = 8  # Newton iterations of the pupil map's inverse (converges in 3-4)
+CELL_NEWTON_STEP = 1e-4  # Newton ends on a step under this (pupil radii): the root is then
+#                          within ~1e-8 of it, ~1e-6 pitch on the MLA
+
+
+MAP_DEGREE = 5  # the pupil → MLA map's polynomial degree (cubic: 0.015 pitch RMS off the exact
+#                trace on a large system-2 blur, 0.08 at most; quintic: 0.0005 and 0.003);
+#                _map2 is written out for it
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _map2(c_x, c_y, u, v):
+    """Values and partial derivatives of the two polynomials ``c_x``, ``c_y`` of degree
+    :data:`MAP_DEGREE` at the pupil point (u, v) (terms ``u^i v^(k−i)``, k = 0 … degree,
+    i = 0 … k, in that order: :func:`lfcam.measure.fastfit._map_basis`): x, y, ∂x/∂u, ∂x/∂v,
+    ∂y/∂u, ∂y/∂v."""
+    u2 = u * u
+    u3 = u2 * u
+    u4 = u3 * u
+    u5 = u4 * u
+    v2 = v * v
+    v3 = v2 * v
+    v4 = v3 * v
+    v5 = v4 * v
+    fx = (c_x[0] + c_x[1] * v + c_x[2] * u + c_x[3] * v2 + c_x[4] * u * v + c_x[5] * u2
+          + c_x[6] * v3 + c_x[7] * u * v2 + c_x[8] * u2 * v + c_x[9] * u3
+          + c_x[10] * v4 + c_x[11] * u * v3 + c_x[12] * u2 * v2
+          + c_x[13] * u3 * v + c_x[14] * u4 + c_x[15] * v5 + c_x[16] * u * v4
+          + c_x[17] * u2 * v3 + c_x[18] * u3 * v2 + c_x[19] * u4 * v
+          + c_x[20] * u5)
+    fy = (c_y[0] + c_y[1] * v + c_y[2] * u + c_y[3] * v2 + c_y[4] * u * v + c_y[5] * u2
+          + c_y[6] * v3 + c_y[7] * u * v2 + c_y[8] * u2 * v + c_y[9] * u3
+          + c_y[10] * v4 + c_y[11] * u * v3 + c_y[12] * u2 * v2
+          + c_y[13] * u3 * v + c_y[14] * u4 + c_y[15] * v5 + c_y[16] * u * v4
+          + c_y[17] * u2 * v3 + c_y[18] * u3 * v2 + c_y[19] * u4 * v
+          + c_y[20] * u5)
+    j11 = (c_x[2] + c_x[4] * v + 2.0 * c_x[5] * u + c_x[7] * v2 + 2.0 * c_x[8] * u * v
+           + 3.0 * c_x[9] * u2 + c_x[11] * v3 + 2.0 * c_x[12] * u * v2
+           + 3.0 * c_x[13] * u2 * v + 4.0 * c_x[14] * u3 + c_x[16] * v4
+           + 2.0 * c_x[17] * u * v3 + 3.0 * c_x[18] * u2 * v2
+           + 4.0 * c_x[19] * u3 * v + 5.0 * c_x[20] * u4)
+    j12 = (c_x[1] + 2.0 * c_x[3] * v + c_x[4] * u + 3.0 * c_x[6] * v2
+           + 2.0 * c_x[7] * u * v + c_x[8] * u2 + 4.0 * c_x[10] * v3
+           + 3.0 * c_x[11] * u * v2 + 2.0 * c_x[12] * u2 * v + c_x[13] * u3
+           + 5.0 * c_x[15] * v4 + 4.0 * c_x[16] * u * v3
+           + 3.0 * c_x[17] * u2 * v2 + 2.0 * c_x[18] * u3 * v + c_x[19] * u4)
+    j21 = (c_y[2] + c_y[4] * v + 2.0 * c_y[5] * u + c_y[7] * v2 + 2.0 * c_y[8] * u * v
+           + 3.0 * c_y[9] * u2 + c_y[11] * v3 + 2.0 * c_y[12] * u * v2
+           + 3.0 * c_y[13] * u2 * v + 4.0 * c_y[14] * u3 + c_y[16] * v4
+           + 2.0 * c_y[17] * u * v3 + 3.0 * c_y[18] * u2 * v2
+           + 4.0 * c_y[19] * u3 * v + 5.0 * c_y[20] * u4)
+    j22 = (c_y[1] + 2.0 * c_y[3] * v + c_y[4] * u + 3.0 * c_y[6] * v2
+           + 2.0 * c_y[7] * u * v + c_y[8] * u2 + 4.0 * c_y[10] * v3
+           + 3.0 * c_y[11] * u * v2 + 2.0 * c_y[12] * u2 * v + c_y[13] * u3
+           + 5.0 * c_y[15] * v4 + 4.0 * c_y[16] * u * v3
+           + 3.0 * c_y[17] * u2 * v2 + 2.0 * c_y[18] * u3 * v + c_y[19] * u4)
+    return fx, fy, j11, j12, j21, j22
+
+
+@njit(cache=True, nogil=True)
+def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
+    """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
+    every lattice cell: the points ``(i + (a + oa)/n, j + (b + ob)/n)`` in lattice coordinates
+    (``a, b = 0 … n−1``: n² a cell, wherever the cell's border runs; ``(oa, ob) =
+    offsets[p]``, per point), each mapped back to the
+    unit pupil disc through the inverse of the point's polynomial pupil → MLA map ``(cx[p],
+    cy[p])`` (M, terms) (:func:`_map2`), by Newton from the map's linear part.
+
+    ``boxes`` (M, 4): each point's footprint box on the MLA (x lo, x hi, y lo, y hi, mm);
+    ``reach`` (M, 3): a disc (centre x, y, radius, mm) that holds each footprint.
+    Returns ``u, v`` (pupil, unit disc), ``w`` (the sample's pupil area, ``|∂u/∂X|`` × the
+    sub-cell's area, times its share of the pupil's rim: linear over its own spacing there),
+    ``rows`` (point index) and ``du`` (M,): each point's mean pupil spacing of its samples.
+    """
+    m = cx.shape[0]
+    area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) / (n * n)
+    cap = 1024
+    us = np.empty(cap)
+    vs = np.empty(cap)
+    ws = np.empty(cap)
+    rows = np.empty(cap, dtype=np.int64)
+    du_mean = np.zeros(m)
+    count = 0
+    for p in range(m):
+        c_x = cx[p]
+        c_y = cy[p]
+        oa = offsets[p, 0]
+        ob = offsets[p, 1]
+        # the linear terms (order 1, v then u: see _map2)
+        a11, a12, a21, a22 = c_x[2], c_x[1], c_y[2], c_y[1]
+        det0 = a11 * a22 - a12 * a21
+        if det0 == 0.0 or not math.isfinite(det0):
+            continue
+        x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
+        # the box's corners in lattice coordinates bound the cells to visit
+        s_lo = math.inf
+        s_hi = -math.inf
+        t_lo = math.inf
+        t_hi = -math.inf
+        for cxr in (x_lo, x_hi):
+            for cyr in (y_lo, y_hi):
+                ex = cxr - origin[0]
+                ey = cyr - origin[1]
+                s = inverse[0, 0] * ex + inverse[0, 1] * ey
+                t = inverse[1, 0] * ex + inverse[1, 1] * ey
+                s_lo = min(s_lo, s)
+                s_hi = max(s_hi, s)
+                t_lo = min(t_lo, t)
+                t_hi = max(t_hi, t)
+        n_du = 0.0
+        n_kept = 0
+        # the sub-grid is a finer lattice: its rows (fixed s index) are walked along t, so
+        # that each sample starts Newton from the three before it (extrapolated: 1 iteration)
+        row_lo = (int(math.floor(t_lo)) - 1) * n
+        row_hi = (int(math.ceil(t_hi)) + 1) * n
+        for fi in range((int(math.floor(s_lo)) - 1) * n, (int(math.ceil(s_hi)) + 1) * n):
+            chain = 0  # consecutive solved samples just before this one in the row
+            u1 = v1 = u2 = v2 = u3 = v3 = 0.0
+            l11 = l12 = l21 = l22 = last_det = 1.0
+            last_x = last_y = 0.0
+            s = (fi + oa) / n
+            # the row's points g(t) = p0 + t·b2 inside the reach disc: a quadratic in t
+            px0 = origin[0] + basis[0, 0] * s - reach[p, 0]
+            py0 = origin[1] + basis[1, 0] * s - reach[p, 1]
+            qa = basis[0, 1] * basis[0, 1] + basis[1, 1] * basis[1, 1]
+            qb = px0 * basis[0, 1] + py0 * basis[1, 1]
+            qc = px0 * px0 + py0 * py0 - reach[p, 2] * reach[p, 2]
+            disc = qb * qb - qa * qc
+            if disc <= 0.0:
+                continue
+            root = math.sqrt(disc)
+            j_lo = max(int(math.floor(((-qb - root) / qa) * n - ob)), row_lo)
+            j_hi = min(int(math.ceil(((-qb + root) / qa) * n - ob)) + 1, row_hi)
+            for fj in range(j_lo, j_hi):
+                t = (fj + ob) / n
+                gx = origin[0] + basis[0, 0] * s + basis[0, 1] * t
+                gy = origin[1] + basis[1, 0] * s + basis[1, 1] * t
+                ox = gx - reach[p, 0]
+                oy = gy - reach[p, 1]
+                if (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi
+                        or ox * ox + oy * oy > reach[p, 2] * reach[p, 2]):
+                    chain = 0
+                    continue
+                if chain >= 3:  # the parabola through the last three
+                    u = 3.0 * (u1 - u2) + u3
+                    v = 3.0 * (v1 - v2) + v3
+                elif chain == 2:
+                    u = 2.0 * u1 - u2
+                    v = 2.0 * v1 - v2
+                elif chain == 1:
+                    ex = gx - last_x
+                    ey = gy - last_y
+                    u = u1 + (l22 * ex - l12 * ey) / last_det
+                    v = v1 + (-l21 * ex + l11 * ey) / last_det
+                else:
+                    ex = gx - c_x[0]
+                    ey = gy - c_y[0]
+                    u = (a22 * ex - a12 * ey) / det0
+                    v = (-a21 * ex + a11 * ey) / det0
+                    if u * u + v * v > 16.0:
+                        continue
+                # Newton until its step is under CELL_NEWTON_STEP (the root then within
+                # ~step² of it); the area element from the last Jacobian
+                converged = False
+                j11 = j12 = j21 = j22 = 0.0
+                det = 0.0
+                for _ in range(CELL_NEWTON):
+                    fx, fy, j11, j12, j21, j22 = _map2(c_x, c_y, u, v)
+                    det = j11 * j22 - j12 * j21
+                    if det == 0.0:
+                        break
+                    rx = gx - fx
+                    ry = gy - fy
+                    su = (j22 * rx - j12 * ry) / det
+                    sv = (-j21 * rx + j11 * ry) / det
+                    u += su
+                    v += sv
+                    if abs(su) + abs(sv) < CELL_NEWTON_STEP:
+                        converged = True
+                        break
+                if not converged or u * u + v * v > 16.0:
+                    chain = 0
+                    continue
+                u3, v3, u2, v2, u1, v1 = u2, v2, u1, v1, u, v
+                chain += 1
+                last_x, last_y = gx, gy
+                l11, l12, l21, l22, last_det = j11, j12, j21, j22, det
+                det = abs(det)
+                d_area = area / det
+                spacing = math.sqrt(d_area)
+                r = math.sqrt(u * u + v * v)
+                if r >= 1.0 + 0.5 * spacing:
+                    continue
+                rim = min(max(0.5 + (1.0 - r) / spacing, 0.0), 1.0)
+                if count == cap:
+                    cap *= 2
+                    us = _grow(us, cap)
+                    vs = _grow(vs, cap)
+                    ws = _grow(ws, cap)
+                    rows = _grow_int(rows, cap)
+                # a sample beyond the rim (its share there) is traced on the rim
+                scale = min(1.0, 1.0 / r) if r > 0.0 else 1.0
+                us[count] = u * scale
+                vs[count] = v * scale
+                ws[count] = d_area * rim
+                rows[count] = p
+                count += 1
+                n_du += spacing
+                n_kept += 1
+        if n_kept:
+            du_mean[p] = n_du / n_kept
+    return us[:count], vs[:count], ws[:count], rows[:count], du_mean
+
+
+@njit(cache=True, nogil=True)
+def _grow(a, cap):
+    out = np.empty(cap)
+    out[: a.size] = a
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _grow_int(a, cap):
+    out = np.empty(cap, dtype=np.int64)
+    out[: a.size] = a
     return out

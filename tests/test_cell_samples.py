@@ -1,0 +1,235 @@
+"""Samples fixed on the lenslet cells: ``LensletModel(cells=n)`` and ``kernels.cell_samples``.
+
+A ray-sampled model's Jacobian by differences is mostly its own sample's noise on a large blur
+(docs/distance.md, "Large line blurs: why they stay slow"). The cell-sampled model maps the
+centres of an n × n sub-grid of every lenslet cell back to the pupil through each point's
+polynomial pupil → MLA map, so its samples stay put on the MLA as the source moves
+(docs/distance.md, "Samples fixed on the lenslet cells").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lfcam.camera import load_profile
+from lfcam.measure import fastfit as ff
+from lfcam.measure.kernels import MAP_DEGREE, cell_samples
+from lfcam.measure.pointfit import chief_ray_offset
+from lfcam.optics.trace import trace_sources_fast
+from lfcam.sim.capture import apply_overrides
+from lfcam.sim.geometry import truth_geometry
+
+SIZE = 1024
+CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
+
+
+def _term(k: int, i: int) -> int:
+    """Index of the term u^i v^(k−i) in the map's polynomial (kernels._map2's order)."""
+    return k * (k + 1) // 2 + i
+
+
+def _radial_map(scale, kappa, centre):
+    """Coefficients of X = centre + scale·(1 + κ·r²)·(u, v): a linear map bent by a cubic
+    radial term, as spherical aberration bends a lens's."""
+    terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
+    cx, cy = np.zeros(terms), np.zeros(terms)
+    cx[0], cy[0] = centre
+    cx[_term(1, 1)] = cy[_term(1, 0)] = scale
+    cx[_term(3, 3)] = cx[_term(3, 1)] = scale * kappa  # u³ + u·v²
+    cy[_term(3, 2)] = cy[_term(3, 0)] = scale * kappa  # u²·v + v³
+    return cx, cy
+
+
+@pytest.mark.parametrize("grid", ["rect", "hex"])
+@pytest.mark.parametrize("n", [2, 4])
+def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n):
+    # the sub-grid of a lattice of unit pitch seen through a map known in closed form (8
+    # pitches a pupil radius, 20 % more at the rim): every sample inside the pupil must map to
+    # its sub-grid point, weigh the sub-cell's area over the map's Jacobian determinant
+    # (analytic: s²(1 + κr²)(1 + 3κr²)), every cell wholly inside the footprint holds n² of
+    # them, and their pupil areas add up to the disc's, π
+    scale, kappa, centre = 8.0, 0.2, (0.3, -0.2)
+    cx, cy = _radial_map(scale, kappa, centre)
+    basis = (np.eye(2) if grid == "rect"
+             else np.array([[1.0, 0.5], [0.0, math.sqrt(3.0) / 2.0]]))
+    origin = np.array([0.1, 0.05])
+    reach = scale * (1.0 + kappa) + 2.0
+    boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
+                       centre[1] + reach]])
+    offsets = np.full((1, 2), 0.5 * ((n + 1) % 2))
+    u, v, w, rows, du = cell_samples(cx[None], cy[None], boxes,
+                                     np.array([[centre[0], centre[1], reach]]), origin, basis,
+                                     np.linalg.inv(basis), n, offsets)
+    r = np.hypot(u, v)
+    inside = r < 1.0 - 1e-9  # (samples beyond the rim are placed on it, with their share)
+    x = centre[0] + scale * (1.0 + kappa * r * r) * u
+    y = centre[1] + scale * (1.0 + kappa * r * r) * v
+    lat = np.linalg.inv(basis) @ np.vstack([x - origin[0], y - origin[1]])
+    fine = lat * n - offsets[0, :, None]
+    assert np.abs(fine - np.round(fine))[:, inside].max() < 1e-6
+    sub_area = abs(np.linalg.det(basis)) / n**2
+    det = scale**2 * (1.0 + kappa * r**2) * (1.0 + 3.0 * kappa * r**2)
+    full = inside & (r < 1.0 - du[0])
+    # (the determinant of Newton's last Jacobian, within a step of 1e-4 of the root)
+    assert np.allclose(w[full], sub_area / det[full], rtol=5e-4)
+    cell = np.floor(lat + 0.5).astype(int) if grid == "rect" else None
+    if cell is not None:  # rectangular cells: count each whole cell's samples
+        deep = r < 0.8
+        keys = cell[0] * 1000 + cell[1]
+        deep_cells = np.unique(keys[deep])
+        counts = np.array([(keys == k).sum() for k in deep_cells])
+        assert np.all(counts[counts > 0] <= n * n)
+        assert np.median(counts) == n * n
+    assert w.sum() == pytest.approx(math.pi, rel=2e-3)
+    assert np.all(rows == 0)
+
+
+def _system2():
+    prof = apply_overrides(load_profile("system2"), CAMERA)
+    geom = truth_geometry(prof, (SIZE, SIZE))
+    return prof, geom
+
+
+def _line_points(prof, distance_mm, count=12, image_len_mm=3.0):
+    """``count`` points along a line whose image on the MLA is ``image_len_mm`` long."""
+    a = chief_ray_offset(prof, prof.d_in_mm, distance_mm, np.array([-0.5 * image_len_mm, 0.0]))
+    b = chief_ray_offset(prof, prof.d_in_mm, distance_mm, np.array([0.5 * image_len_mm, 0.0]))
+    t = (np.arange(count) + 0.5) / count
+    xy = a[None, :] + t[:, None] * (b - a)[None, :]
+    z = prof.main_lens.front_vertex_z_mm - distance_mm
+    return np.column_stack([xy, np.full(count, z)])
+
+
+def _moments_box(prof, geom, half_px=260):
+    """The lenslets of a box about the sensor's centre (the model needs the region's lenslet
+    map, not its pixels)."""
+    image = np.zeros((SIZE, SIZE))
+    c = SIZE // 2
+    return ff.data_moments(geom, image, (c - half_px, c - half_px, c + half_px, c + half_px))
+
+
+def _normalised(m):
+    return m / m[:, 0].sum()
+
+
+def test_cells_model_is_closer_to_a_dense_ray_model_at_the_same_samples():
+    # system 2's 3 mm line at 3400 mm, behind a 1 m focus (a blur of ~600 lenslets), its 12
+    # points: the cell-sampled moments against a 400 000-ray reference, and the ray-sampled
+    # ones with as many rays a point as the cells' samples
+    prof, geom = _system2()
+    mom = _moments_box(prof, geom)
+    pts = _line_points(prof, 3400.0)
+    ref = _normalised(ff.LensletModel(prof, geom, mom, 400_000, turn_every=12).simulate(pts))
+    cells = ff.LensletModel(prof, geom, mom, 1000, cells=4, turn_every=12)
+    got = _normalised(cells.simulate(pts))
+    assert not cells.folded
+    samples = int(cells._cell_samples(pts)[0].size / len(pts))
+    rays = _normalised(ff.LensletModel(prof, geom, mom, samples, turn_every=12).simulate(pts))
+    err_cells = np.linalg.norm(got - ref) / np.linalg.norm(ref)
+    err_rays = np.linalg.norm(rays - ref) / np.linalg.norm(ref)
+    assert err_cells < 0.004
+    assert err_cells < 0.5 * err_rays
+
+
+def test_cells_jacobian_is_not_sample_noise():
+    # the moments' derivative in log distance (a 1 % difference) of one point at 3400 mm:
+    # two cell quadratures (n = 4 and 6) agree far better than two ray samples of as many
+    # rays (the Vogel spiral at two phases), against a 200 000-ray reference
+    prof, geom = _system2()
+    mom = _moments_box(prof, geom)
+    src = _line_points(prof, 3400.0, count=1)[0]
+    moved = src.copy()
+    z_front = prof.main_lens.front_vertex_z_mm
+    moved[2] = z_front - (z_front - src[2]) * math.exp(0.01)
+
+    def derivative(model):
+        return (_normalised(model.simulate(moved)) - _normalised(model.simulate(src))) / 0.01
+
+    ref = derivative(ff.LensletModel(prof, geom, mom, 200_000))
+    c4 = derivative(ff.LensletModel(prof, geom, mom, 1000, cells=4))
+    c6 = derivative(ff.LensletModel(prof, geom, mom, 1000, cells=6))
+    samples = int(ff.LensletModel(prof, geom, mom, 1000, cells=4)._cell_samples(
+        src[None])[0].size)
+    r0 = derivative(ff.LensletModel(prof, geom, mom, samples))
+    r1 = derivative(ff.LensletModel(prof, geom, mom, samples, phase=1.0))
+    size = np.linalg.norm(ref)
+    cells_apart = np.linalg.norm(c4 - c6) / size
+    rays_apart = np.linalg.norm(r0 - r1) / size
+    assert cells_apart < 0.5
+    assert cells_apart < 0.3 * rays_apart
+    assert np.linalg.norm(c6 - ref) / size < 0.5
+
+
+def _fold_of_exact_trace(prof, src, grid=41):
+    """Whether the exact trace's pupil → MLA map folds: the sign of its Jacobian determinant
+    by differences over a grid of the pupil (the numpy reference trace)."""
+    lens = prof.main_lens
+    half = 0.5 * lens.pupil_diameter_mm
+    g = np.linspace(-0.95, 0.95, grid)
+    u, v = np.meshgrid(g, g, indexing="ij")
+    tr = trace_sources_fast(lens, src[None], (u * half).ravel()[None], (v * half).ravel()[None],
+                            prof.d_in_mm)
+    x = np.where(tr.ok, tr.x, np.nan).reshape(grid, grid)
+    y = np.where(tr.ok, tr.y, np.nan).reshape(grid, grid)
+    det = (np.diff(x, axis=0)[:, :-1] * np.diff(y, axis=1)[:-1, :]
+           - np.diff(x, axis=1)[:-1, :] * np.diff(y, axis=0)[:, :-1])
+    inside = (np.hypot(u, v) < 0.95)[:-1, :-1]
+    det = det[inside & np.isfinite(det)]
+    return bool((det > 0).any() and (det < 0).any())
+
+
+@pytest.mark.parametrize("distance_mm, folds", [(380.0, True), (3400.0, False)])
+def test_cells_apply_only_where_the_map_is_one_to_one(distance_mm, folds):
+    # In front of a 1 m focus (380 mm) the MLA cuts the spherical caustic: the exact trace's
+    # map from the pupil to the MLA folds, each sub-grid point has several pupil points, and
+    # the cell model falls back to rays (its samples' pupil areas add up to 0.25-0.95 π
+    # there); behind focus the map is one to one
+    prof, geom = _system2()
+    mom = _moments_box(prof, geom)
+    src = _line_points(prof, distance_mm, count=1)[0]
+    assert _fold_of_exact_trace(prof, src) == folds
+    model = ff.LensletModel(prof, geom, mom, 4000, cells=4)
+    assert model.invertible(src[None]) == (not folds)
+    model.simulate(src)
+    assert model.folded == folds
+
+
+def _polynomial_miss(prof, src, rays=3000):
+    """How far (pitches, at most) a polynomial of the kernel's degree, fitted by least squares
+    to ``rays`` exactly traced rays of the source (the numpy reference trace), lies off them."""
+    from lfcam.measure.sampling import vogel_disc
+
+    half = 0.5 * prof.main_lens.pupil_diameter_mm
+    u, v = vogel_disc(rays)
+    tr = trace_sources_fast(prof.main_lens, src[None], (u * half)[None], (v * half)[None],
+                            prof.d_in_mm)
+    ok = tr.ok[0]
+    terms = np.column_stack([u[ok] ** i * v[ok] ** (k - i) for k in range(MAP_DEGREE + 1)
+                             for i in range(k + 1)])
+    miss = 0.0
+    for coord in (tr.x[0, ok], tr.y[0, ok]):
+        coef = np.linalg.lstsq(terms, coord, rcond=None)[0]
+        miss = max(miss, float(np.abs(coord - terms @ coef).max()))
+    return miss / prof.mla.pitch_mm
+
+
+def test_cells_do_not_apply_where_the_polynomial_misses_the_map():
+    # system 1 at 80 % of its half-field (coma, a far source): the pupil → MLA map bends more
+    # than a quintic follows (0.05 pitch off at most; system 2 on axis 0.003), and samples
+    # placed by it would sit off their sub-cells (the grid's lines there: 0.37 / 1.10 % on the
+    # cells against 0.31 / 0.68 % ray-sampled); on axis the cells apply
+    prof = apply_overrides(load_profile("system1"), CAMERA)
+    geom = truth_geometry(prof, (SIZE, SIZE))
+    mom = _moments_box(prof, geom)
+    half_field = 0.5 * SIZE * prof.sensor.pixel_pitch_mm
+    z = prof.main_lens.front_vertex_z_mm - 3400.0
+    xy = chief_ray_offset(prof, prof.d_in_mm, 3400.0, np.array([0.8 * half_field, 0.0]))
+    off_axis = np.array([xy[0], xy[1], z])
+    centre = np.array([0.0, 0.0, z])
+    assert _polynomial_miss(prof, off_axis) > 0.02
+    assert _polynomial_miss(prof, centre) < 0.005
+    assert not ff.LensletModel(prof, geom, mom, 4000, cells=4).invertible(off_axis[None])
+    assert ff.LensletModel(prof, geom, mom, 4000, cells=4).invertible(centre[None])
