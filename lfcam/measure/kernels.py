@@ -749,39 +749,32 @@ def _map2(c_x, c_y, u, v):
     v3 = v2 * v
     v4 = v3 * v
     v5 = v4 * v
-    fx = (c_x[0] + c_x[1] * v + c_x[2] * u + c_x[3] * v2 + c_x[4] * u * v + c_x[5] * u2
-          + c_x[6] * v3 + c_x[7] * u * v2 + c_x[8] * u2 * v + c_x[9] * u3
-          + c_x[10] * v4 + c_x[11] * u * v3 + c_x[12] * u2 * v2
-          + c_x[13] * u3 * v + c_x[14] * u4 + c_x[15] * v5 + c_x[16] * u * v4
-          + c_x[17] * u2 * v3 + c_x[18] * u3 * v2 + c_x[19] * u4 * v
-          + c_x[20] * u5)
-    fy = (c_y[0] + c_y[1] * v + c_y[2] * u + c_y[3] * v2 + c_y[4] * u * v + c_y[5] * u2
-          + c_y[6] * v3 + c_y[7] * u * v2 + c_y[8] * u2 * v + c_y[9] * u3
-          + c_y[10] * v4 + c_y[11] * u * v3 + c_y[12] * u2 * v2
-          + c_y[13] * u3 * v + c_y[14] * u4 + c_y[15] * v5 + c_y[16] * u * v4
-          + c_y[17] * u2 * v3 + c_y[18] * u3 * v2 + c_y[19] * u4 * v
-          + c_y[20] * u5)
-    j11 = (c_x[2] + c_x[4] * v + 2.0 * c_x[5] * u + c_x[7] * v2 + 2.0 * c_x[8] * u * v
-           + 3.0 * c_x[9] * u2 + c_x[11] * v3 + 2.0 * c_x[12] * u * v2
-           + 3.0 * c_x[13] * u2 * v + 4.0 * c_x[14] * u3 + c_x[16] * v4
-           + 2.0 * c_x[17] * u * v3 + 3.0 * c_x[18] * u2 * v2
-           + 4.0 * c_x[19] * u3 * v + 5.0 * c_x[20] * u4)
-    j12 = (c_x[1] + 2.0 * c_x[3] * v + c_x[4] * u + 3.0 * c_x[6] * v2
-           + 2.0 * c_x[7] * u * v + c_x[8] * u2 + 4.0 * c_x[10] * v3
-           + 3.0 * c_x[11] * u * v2 + 2.0 * c_x[12] * u2 * v + c_x[13] * u3
-           + 5.0 * c_x[15] * v4 + 4.0 * c_x[16] * u * v3
-           + 3.0 * c_x[17] * u2 * v2 + 2.0 * c_x[18] * u3 * v + c_x[19] * u4)
-    j21 = (c_y[2] + c_y[4] * v + 2.0 * c_y[5] * u + c_y[7] * v2 + 2.0 * c_y[8] * u * v
-           + 3.0 * c_y[9] * u2 + c_y[11] * v3 + 2.0 * c_y[12] * u * v2
-           + 3.0 * c_y[13] * u2 * v + 4.0 * c_y[14] * u3 + c_y[16] * v4
-           + 2.0 * c_y[17] * u * v3 + 3.0 * c_y[18] * u2 * v2
-           + 4.0 * c_y[19] * u3 * v + 5.0 * c_y[20] * u4)
-    j22 = (c_y[1] + 2.0 * c_y[3] * v + c_y[4] * u + 3.0 * c_y[6] * v2
-           + 2.0 * c_y[7] * u * v + c_y[8] * u2 + 4.0 * c_y[10] * v3
-           + 3.0 * c_y[11] * u * v2 + 2.0 * c_y[12] * u2 * v + c_y[13] * u3
-           + 5.0 * c_y[15] * v4 + 4.0 * c_y[16] * u * v3
-           + 3.0 * c_y[17] * u2 * v2 + 2.0 * c_y[18] * u3 * v + c_y[19] * u4)
+    fx, j11, j12 = _poly5(c_x, u, v, u2, u3, u4, u5, v2, v3, v4, v5)
+    fy, j21, j22 = _poly5(c_y, u, v, u2, u3, u4, u5, v2, v3, v4, v5)
     return fx, fy, j11, j12, j21, j22
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _poly5(c, u, v, u2, u3, u4, u5, v2, v3, v4, v5):
+    """One polynomial of :func:`_map2` (``c`` (21,)) and its two partial derivatives, from the
+    powers of u and v."""
+    f = (c[0] + c[1] * v + c[2] * u + c[3] * v2 + c[4] * u * v + c[5] * u2
+         + c[6] * v3 + c[7] * u * v2 + c[8] * u2 * v + c[9] * u3
+         + c[10] * v4 + c[11] * u * v3 + c[12] * u2 * v2
+         + c[13] * u3 * v + c[14] * u4 + c[15] * v5 + c[16] * u * v4
+         + c[17] * u2 * v3 + c[18] * u3 * v2 + c[19] * u4 * v
+         + c[20] * u5)
+    fu = (c[2] + c[4] * v + 2.0 * c[5] * u + c[7] * v2 + 2.0 * c[8] * u * v
+          + 3.0 * c[9] * u2 + c[11] * v3 + 2.0 * c[12] * u * v2
+          + 3.0 * c[13] * u2 * v + 4.0 * c[14] * u3 + c[16] * v4
+          + 2.0 * c[17] * u * v3 + 3.0 * c[18] * u2 * v2
+          + 4.0 * c[19] * u3 * v + 5.0 * c[20] * u4)
+    fv = (c[1] + 2.0 * c[3] * v + c[4] * u + 3.0 * c[6] * v2
+          + 2.0 * c[7] * u * v + c[8] * u2 + 4.0 * c[10] * v3
+          + 3.0 * c[11] * u * v2 + 2.0 * c[12] * u2 * v + c[13] * u3
+          + 5.0 * c[15] * v4 + 4.0 * c[16] * u * v3
+          + 3.0 * c[17] * u2 * v2 + 2.0 * c[18] * u3 * v + c[19] * u4)
+    return f, fu, fv
 
 
 @njit(cache=True, nogil=True)
