@@ -1677,9 +1677,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     #                                     the cells, the settled test's)
     race_c, race_j = fun_c, jac_c
     if coarse.cells and len(starts) > 1:
-        # on the cells the race that only picks the basin runs on the rays (a cells model costs
-        # ~2.5× as many rays): the leader then goes on on the cells (the same answers on
-        # system 2's lines behind focus, 3–10 % less CPU)
+        # on the cells the race, which only picks the basin, runs on the rays (an evaluation on
+        # the cells costs ~2.5× one of the race's rays); the leader then goes on on the cells
+        # (the same answers on system 2's lines behind focus, 3–10 % less CPU)
         race = model(coarse_rays, share_c, n_coarse)
         race_c, race_j = line_model(race, frame, n_coarse, steps)
         settling.append(race)
@@ -1743,8 +1743,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # LINE_REFINE × the rays (docs/distance.md, "A line's settled test").
         # On the cells the second sample is a finer sub-grid (LINE_CELLS_SETTLE), whose
         # quadrature is the better one: a line that has settled takes that step to its
-        # minimum (the cells' own bias, +0.08 % at n = 4 on system 2's lines behind focus
-        # against a 400 000-ray model, is +0.00–0.03 % at n = 6 and 8: docs/distance.md,
+        # minimum (the cells' own bias against a 400 000-ray model, on system 2's lines
+        # behind focus: +0.02 to +0.10 % at n = 4, within ±0.01 % at n = 6: docs/distance.md,
         # "Samples fixed on the lenslet cells").
         turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0,
                               turn_every=fine.turn_every,
