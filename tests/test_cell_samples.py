@@ -130,8 +130,9 @@ def test_cells_model_is_closer_to_a_dense_ray_model_at_the_same_samples():
     rays = _normalised(ff.LensletModel(prof, geom, mom, samples, turn_every=12).simulate(pts))
     err_cells = np.linalg.norm(got - ref) / np.linalg.norm(ref)
     err_rays = np.linalg.norm(rays - ref) / np.linalg.norm(ref)
-    assert err_cells < 0.004
-    assert err_cells < 0.5 * err_rays
+    # (measured 0.0013 against 0.0055 at 7 981 samples a point)
+    assert err_cells < 0.0025
+    assert err_cells < 0.4 * err_rays
 
 
 def test_cells_jacobian_is_not_sample_noise():
