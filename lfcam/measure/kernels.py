@@ -782,9 +782,9 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
     every lattice cell: the points ``(i + (a + oa)/n, j + (b + ob)/n)`` in lattice coordinates
     (``a, b = 0 … n−1``: n² a cell, wherever the cell's border runs; ``(oa, ob) =
-    offsets[p]``, per point), each mapped back to the
-    unit pupil disc through the inverse of the point's polynomial pupil → MLA map ``(cx[p],
-    cy[p])`` (M, terms) (:func:`_map2`), by Newton from the map's linear part.
+    offsets[p]``, per point), each mapped back to the unit pupil disc through the inverse of
+    the point's polynomial pupil → MLA map ``(cx[p], cy[p])`` (M, terms) (:func:`_map2`) by
+    Newton, started from the samples before it in its row (or the map's linear part).
 
     ``boxes`` (M, 4): each point's footprint box on the MLA (x lo, x hi, y lo, y hi, mm);
     ``reach`` (M, 3): a disc (centre x, y, radius, mm) that holds each footprint.
