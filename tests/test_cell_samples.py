@@ -59,16 +59,16 @@ def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n):
     reach = scale * (1.0 + kappa) + 2.0
     boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
                        centre[1] + reach]])
-    offsets = np.full((1, 2), 0.5 * ((n + 1) % 2))
+    offset = 0.5 * ((n + 1) % 2)  # the sub-cell centres: (index + ½)/n − ½ modulo 1
     u, v, w, rows, du = cell_samples(cx[None], cy[None], boxes,
                                      np.array([[centre[0], centre[1], reach]]), origin, basis,
-                                     np.linalg.inv(basis), n, offsets)
+                                     np.linalg.inv(basis), n)
     r = np.hypot(u, v)
     inside = r < 1.0 - 1e-9  # (samples beyond the rim are placed on it, with their share)
     x = centre[0] + scale * (1.0 + kappa * r * r) * u
     y = centre[1] + scale * (1.0 + kappa * r * r) * v
     lat = np.linalg.inv(basis) @ np.vstack([x - origin[0], y - origin[1]])
-    fine = lat * n - offsets[0, :, None]
+    fine = lat * n - offset
     assert np.abs(fine - np.round(fine))[:, inside].max() < 1e-6
     sub_area = abs(np.linalg.det(basis)) / n**2
     det = scale**2 * (1.0 + kappa * r**2) * (1.0 + 3.0 * kappa * r**2)

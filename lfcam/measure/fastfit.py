@@ -362,14 +362,6 @@ class LensletModel:
             out = self._simulate(np.ascontiguousarray(points, dtype=np.float64), group, groups)
         return out.reshape(groups, -1, 4)
 
-    def cell_offsets(self, m: int) -> np.ndarray:
-        """(m, 2) each of ``m`` stacked points' sub-grid offset (``cells`` = n > 0): the
-        centres of the n² sub-cells of the cell about each node, (index + ½)/n − ½ ≡ (index +
-        offset)/n modulo 1. (One of the k² cosets of a k times finer grid for each point, in
-        turn, as the pupil samples turn, is 2-3× worse: docs/distance.md, "Samples fixed on
-        the lenslet cells".)"""
-        return np.full((m, 2), 0.5 * ((self.cells + 1) % 2))
-
     def turns(self, m: int) -> np.ndarray:
         """(m, 2) cos and sin of each of ``m`` stacked points' pupil-sample turn."""
         out = np.zeros((m, 2))
@@ -444,7 +436,7 @@ class LensletModel:
                            out: np.ndarray) -> np.ndarray:
         """:meth:`_simulate` through the compiled trace and deposit
         (:mod:`lfcam.measure.kernels`): the same rays, weights, spacings and sums."""
-        from lfcam.measure.kernels import deposit_moments, trace_model_rays  # numba
+        from lfcam.measure.kernels import trace_model_rays  # numba
 
         p = self.profile
         lens = p.main_lens
@@ -461,8 +453,18 @@ class LensletModel:
         if rows.size == 0:
             return out
         spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
+        return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
+                             self.s_px)
+
+    def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m, s_px) -> np.ndarray:
+        """Moments of traced rays (:func:`lfcam.measure.kernels.deposit_moments`): ray ``r``
+        from point ``rows[r]`` of ``m``, whose rays are ``spacing[rows[r]]`` apart on the MLA,
+        spread as ``s_px`` boxes on the sensor; ``group`` per point (None: one group)."""
+        from lfcam.measure.kernels import deposit_moments  # numba
+
+        p = self.profile
         if group is None:
-            group = np.zeros(len(points), dtype=np.int64)
+            group = np.zeros(m, dtype=np.int64)
         lat = self.lattice
         la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
         ax, ay = p.sensor.axis_xy_px
@@ -473,7 +475,7 @@ class LensletModel:
             x, y, sx, sy, wt, rows.astype(np.int64, copy=False), spacing,
             np.asarray(group, dtype=np.int64), int(groups),
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
-            float(ax), float(ay), int(x0), int(y0), float(self.s_px), self.mom.labels,
+            float(ax), float(ay), int(x0), int(y0), float(s_px), self.mom.labels,
             self.mom.centres_px, float(self.geom.pitch_px))
 
     def _cell_samples(self, points: np.ndarray):
@@ -539,7 +541,7 @@ class LensletModel:
                                                               yr - yr[:, :1]).max(axis=1)
                                  + margin])
         u, v, w, srows, du = cell_samples(cx, cy, boxes, reach, lat.origin, lat.basis,
-                                          lat.inverse, n, self.cell_offsets(m))
+                                          lat.inverse, n)
         area = np.bincount(srows, w, minlength=m)
         if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
             return None
@@ -559,7 +561,7 @@ class LensletModel:
         Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
         from then on (``folded``).
         """
-        from lfcam.measure.kernels import deposit_moments, trace_model_rays
+        from lfcam.measure.kernels import trace_model_rays
 
         got = None if self.folded else self._cell_samples(points)
         if got is None:
@@ -600,17 +602,7 @@ class LensletModel:
         mag = (p.mla.focal_length_mm / (self.geom.d_in_mm - lens.exit_pupil_z_mm)
                / p.sensor.pixel_pitch_mm)
         s_px = min(0.9, max(float(np.mean(du[du > 0])) * half * mag, 1e-3))
-        if group is None:
-            group = np.zeros(m, dtype=np.int64)
-        la, lb, rect = self.cell_shape or _cell_shape(lat)
-        ax, ay = p.sensor.axis_xy_px
-        x0, y0 = self.mom.box[:2]
-        return deposit_moments(
-            x, y, sx, sy, wt, rows.astype(np.int64), spacing,
-            np.asarray(group, dtype=np.int64), int(groups),
-            lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
-            float(ax), float(ay), int(x0), int(y0), float(s_px), self.mom.labels,
-            self.mom.centres_px, float(self.geom.pitch_px))
+        return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, m, s_px)
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
         """Data minus the best-scaled model moments, over the data's norm."""

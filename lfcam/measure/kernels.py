@@ -778,11 +778,13 @@ def _poly5(c, u, v, u2, u3, u4, u5, v2, v3, v4, v5):
 
 
 @njit(cache=True, nogil=True)
-def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
+def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
-    every lattice cell: the points ``(i + (a + oa)/n, j + (b + ob)/n)`` in lattice coordinates
-    (``a, b = 0 … n−1``: n² a cell, wherever the cell's border runs; ``(oa, ob) =
-    offsets[p]``, per point), each mapped back to the unit pupil disc through the inverse of
+    every lattice cell: the centres of the n × n sub-cells of the cell about each node, the
+    points ``(i + (a + o)/n, j + (b + o)/n)`` in lattice coordinates (``a, b = 0 … n−1``: n²
+    a cell, wherever the cell's border runs; ``o`` = ½ for even n, 0 for odd: (a + ½)/n − ½
+    modulo 1; docs/distance.md, "Samples fixed on the lenslet cells", on why no other offset),
+    each mapped back to the unit pupil disc through the inverse of
     the point's polynomial pupil → MLA map ``(cx[p], cy[p])`` (M, terms) (:func:`_map2`) by
     Newton, started from the samples before it in its row (or the map's linear part).
 
@@ -794,6 +796,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
     """
     m = cx.shape[0]
     area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) / (n * n)
+    o = 0.5 * ((n + 1) % 2)
     cap = 1024
     us = np.empty(cap)
     vs = np.empty(cap)
@@ -804,8 +807,6 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
     for p in range(m):
         c_x = cx[p]
         c_y = cy[p]
-        oa = offsets[p, 0]
-        ob = offsets[p, 1]
         # the linear terms (order 1, v then u: see _map2)
         a11, a12, a21, a22 = c_x[2], c_x[1], c_y[2], c_y[1]
         det0 = a11 * a22 - a12 * a21
@@ -838,7 +839,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
             u1 = v1 = u2 = v2 = u3 = v3 = 0.0
             l11 = l12 = l21 = l22 = last_det = 1.0
             last_x = last_y = 0.0
-            s = (fi + oa) / n
+            s = (fi + o) / n
             # the row's points g(t) = p0 + t·b2 inside the reach disc: a quadratic in t
             px0 = origin[0] + basis[0, 0] * s - reach[p, 0]
             py0 = origin[1] + basis[1, 0] * s - reach[p, 1]
@@ -849,10 +850,10 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, offsets):
             if disc <= 0.0:
                 continue
             root = math.sqrt(disc)
-            j_lo = max(int(math.floor(((-qb - root) / qa) * n - ob)), row_lo)
-            j_hi = min(int(math.ceil(((-qb + root) / qa) * n - ob)) + 1, row_hi)
+            j_lo = max(int(math.floor(((-qb - root) / qa) * n - o)), row_lo)
+            j_hi = min(int(math.ceil(((-qb + root) / qa) * n - o)) + 1, row_hi)
             for fj in range(j_lo, j_hi):
-                t = (fj + ob) / n
+                t = (fj + o) / n
                 gx = origin[0] + basis[0, 0] * s + basis[0, 1] * t
                 gy = origin[1] + basis[1, 0] * s + basis[1, 1] * t
                 ox = gx - reach[p, 0]
