@@ -234,6 +234,9 @@ def warm_up() -> None:
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
     pupil_maps(np.array([[0.0, 0.0, -10.0]]), np.zeros(1), table, np.zeros((1, 1)), 0, 1.0, 1.0,
                0.0, 1.0)
+    terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
+    cell_samples(np.zeros((1, terms)), np.zeros((1, terms)), np.zeros((1, 4)), np.zeros((1, 3)),
+                 np.zeros(2), eye, eye, 2)
 
 
 def warm_up_frame() -> None:
