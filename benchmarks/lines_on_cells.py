@@ -42,6 +42,9 @@ def main() -> None:
     ap.add_argument("--distances", default="1500,2200,2900,3400", help="mm, behind a 1 m focus")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays a line in the render")
     args = ap.parse_args()
+    from lfcam.measure.kernels import warm_up
+
+    warm_up()  # the compiled kernels loaded (or compiled) before the first line is timed
     camera = {"mla": {"focus_mm": 1000.0, "grid": args.grid},
               "sensor": {"width_px": SIZE, "height_px": SIZE}}
     base = load_profile(ROOT / "calibration" / "system2.toml")

@@ -130,11 +130,21 @@ LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line
 #                               "A line's points, each with its own turn of the pupil sample")
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
-LINE_CELLS_PROBE_LOG = (-0.22, 0.0, 0.22)  # ... where they apply at these log distances from
-#                                            each start's (3 points of the line at each)
+LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log distances from
+#                                            each start's (3 points of the line at each; −0.22
+#                                            kept system 2's 1500 mm lines off: 0.42-0.46 s,
+#                                            0.13-0.16 s on the cells)
 LINE_CELLS_COARSE = 2  # ... n of the coarse stage's model,
 LINE_CELLS_FINE = 4  # ... of the fine model,
 LINE_CELLS_SETTLE = 6  # ... of the settled test's model (the answer steps to its minimum),
+LINE_CELLS_COARSE_STEP_LOG = 1e-3  # ... the coarse Gauss–Newton steps end on a step under this
+#                                   (log distance; the n = 2 model's own bias is 0.4-0.7 %)
+LINE_CELLS_JACOBIANS = 3  # ... and take their Jacobian at most this many times (again after
+#                           LINE_CELLS_GN_STEPS steps whose next is still over that)
+LINE_CELLS_GN_STEPS = 3
+LINE_CELLS_FINE_STEP_LOG = 3e-4  # ... the fine model's end on a step under this (the settled
+#                                  test's step takes the rest: docs/distance.md, "Fewer
+#                                  evaluations on the cells (stop 39)")
 LINE_CELLS_REFIT = 8  # ... and of the refit (docs/distance.md, "Samples fixed on the lenslet
 #                        cells")
 LINE_REFIT_ITERATIONS = 2  # ... by at most this many Levenberg–Marquardt iterations (3, the
@@ -1087,8 +1097,11 @@ def _jackknife_variance(jac: np.ndarray, r: np.ndarray, inv: np.ndarray) -> np.n
     return (k - 1) / k * (d.T @ d)
 
 
-def _gauss_newton_fixed(fun, q, r, jac, iterations):
-    """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step."""
+def _gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0):
+    """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step.
+    ``skip_below``: a step whose log distance is under this is not taken (nor evaluated): at
+    the minimum the misfit no longer falls by a step that small, and such a step was
+    evaluated and halved twice: three evaluations for nothing."""
     f = _sq(r)
     jtj = _gram(jac)
     try:
@@ -1097,6 +1110,8 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations):
         return q, r, f
     for _ in range(iterations):
         dq = -(solve @ _jt(jac, r))
+        if abs(dq[0]) < skip_below:
+            break
         for _ in range(3):
             r2 = fun(q + dq)
             f2 = _sq(r2)
@@ -1643,10 +1658,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # the footprint's own axis stays a start: on small blurs the scan model's few rays
         # misjudge the turn (a seed line)
         starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
-    # On the cells where they apply at every start and at ±25 % of its distance: in front of
+    # On the cells where they apply at every start, 11 % nearer and 25 % farther: in front of
     # focus, near the caustic, a fit that starts where the map is one to one may go where it
     # folds (and its models then turn to rays midway: 560 mm lines in front of a 1 m focus
-    # took 0.16-0.30 s instead of 0.11-0.15)
+    # took 0.16-0.30 s instead of 0.11-0.15 with the start alone checked). Behind a 1 m focus
+    # the map folds nearer than ~1280 mm.
     on_cells = (n_lit >= LINE_CELLS_MIN_LIT
                 and lattice_of(geom, profile.mla.pitch_mm) is not None
                 and LensletModel(profile, geom, mom, LINE_MIN_RAYS, cells=LINE_CELLS_COARSE)
@@ -1668,18 +1684,34 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     settling: list[LensletModel] = []  # more models whose evaluations count (the race's on
     #                                     the cells, the settled test's)
     race_c, race_j = fun_c, jac_c
-    if coarse.cells and len(starts) > 1:
+    if coarse.cells:
         # on the cells the race, which only picks the basin, runs on the rays (an evaluation on
-        # the cells costs ~2.5× one of the race's rays); the leader then goes on on the cells
-        # (the same answers on system 2's lines behind focus, 3–10 % less CPU)
+        # the cells costs ~2.5× one of the race's rays), a lone start too; the leader then goes
+        # on on the cells
         race = model(coarse_rays, share_c, n_coarse)
         race_c, race_j = line_model(race, frame, n_coarse, steps)
         settling.append(race)
     heats = [_levenberg_marquardt(race_c, start, steps,
-                                  COARSE_ITERATIONS if len(starts) == 1 else LINE_RACE_ITERATIONS,
+                                  LINE_RACE_ITERATIONS if coarse.cells or len(starts) > 1
+                                  else COARSE_ITERATIONS,
                                   1e-3, jac_of=race_j) for start in starts]
     q, r, f, jac = min(heats, key=lambda heat: heat[2])
-    if len(starts) > 1:
+    if coarse.cells:
+        # Gauss–Newton on the coarse cells, its Jacobian refreshed only where the steps are
+        # still long after LINE_CELLS_GN_STEPS: Levenberg–Marquardt's fresh Jacobian at every
+        # iteration cost three evaluations each, to reach a minimum the fine model moves by
+        # 0.4-0.7 % anyway (docs/distance.md, "Fewer evaluations on the cells")
+        r = fun_c(q)
+        f = _sq(r)
+        jac = jac_c(q, r)  # (the race's, from the rays: one more round, no less CPU)
+        for _ in range(LINE_CELLS_JACOBIANS):
+            q, r, f = _gauss_newton_fixed(fun_c, q, r, jac, LINE_CELLS_GN_STEPS,
+                                          skip_below=LINE_CELLS_COARSE_STEP_LOG)
+            step = _linear_step(jac, r)
+            if step is None or abs(float(step[0][0])) < LINE_CELLS_COARSE_STEP_LOG:
+                break
+            jac = jac_c(q, r)
+    elif len(starts) > 1:
         q, r, f, jac_lead = _levenberg_marquardt(fun_c, q, steps,
                                                  COARSE_ITERATIONS - LINE_RACE_ITERATIONS, 1e-3,
                                                  r0=r if race_c is fun_c else None,
@@ -1703,23 +1735,20 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return stopped(math.sqrt(f))
     fun, jac_f = line_model(fine, frame, n_pts, steps)
     fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
-    q, r, f = _gauss_newton_fixed(fun_gn, q, fun_gn(q), jac, FINE_ITERATIONS)
+    if fine.cells:
+        # the fine model's own Jacobian for its steps, the settled test and σ: n = 2's is not
+        # fit for them on a hexagonal lattice, whose borders cut its sub-cells (its distance
+        # column 10 % off n = 6's, 0.4 % on the rectangular; the answers 0.26 % from n = 6's
+        # minimum on a 3400 mm line)
+        jac = jac_f(q, fun(q))
+    q, r, f = _gauss_newton_fixed(fun_gn, q, fun_gn(q), jac, FINE_ITERATIONS,
+                                  skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     if gn_model is not fine:
         r = fun(q)
         f = _sq(r)
-    if fine.cells:
-        # on the cells the coarse Jacobian's steps reach the fine minimum: the fine Jacobian
-        # (for σ and the settled test) and one step with it, kept where it lowers the misfit
-        jac = jac_f(q, r)
-        step = _linear_step(jac, r)
-        if step is not None and abs(float(step[0][0])) > LINE_SETTLE_LOG:
-            q2 = q - step[0]
-            r2 = fun(q2)
-            if _sq(r2) < f:
-                q, r, f = q2, r2, _sq(r2)
-    else:
+    if not fine.cells:
         q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                                  r0=r, jac_of=jac_f,
                                                  settle_log=LINE_SETTLE_LOG)
