@@ -15,7 +15,6 @@ evaluations on the cells").
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from collections import defaultdict
@@ -26,18 +25,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lfcam.camera import load_profile  # noqa: E402
 from lfcam.measure import fastfit as ff  # noqa: E402
 from lfcam.measure.kernels import warm_up  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
-from lfcam.measure.pointfit import chief_ray_offset  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
-from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
-from lfcam.sim.geometry import truth_geometry  # noqa: E402
-from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
-SIZE = 1024
-NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from lines_on_cells import SIZE, line_capture  # noqa: E402
 
 
 def main() -> None:
@@ -48,19 +42,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     warm_up()
-    camera = {"mla": {"focus_mm": 1000.0, "grid": args.grid},
-              "sensor": {"width_px": SIZE, "height_px": SIZE}}
-    base = load_profile(ROOT / "calibration" / "system2.toml")
-    prof = apply_overrides(base, camera)
-    geom = truth_geometry(prof, (SIZE, SIZE))
-    u = np.array([math.cos(math.radians(args.angle)), math.sin(math.radians(args.angle))])
-    ends = [chief_ray_offset(prof, prof.d_in_mm, args.distance, s * 1.5 * u).tolist()
-            for s in (-1.0, 1.0)]
-    scene = {"seed": 3, "camera": camera, "sensor": NOISE,
-             "objects": [{"type": "line", "distance_mm": args.distance, "start_mm": ends[0],
-                          "end_mm": ends[1], "rays": 1_000_000}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    image = raw.astype(np.float64)
+    image, used, geom = line_capture(args.grid, args.distance, args.angle)
     regions = find_regions(lenslet_stats(image, geom.lmap), geom.lmap, geom.pitch_px)
     region = max(regions, key=lambda r: len(r.lenslets))
     mom = ff.data_moments(geom, image, ff._region_box(geom, region, image.shape))

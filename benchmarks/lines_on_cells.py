@@ -36,6 +36,26 @@ SIZE = 1024
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
 
 
+def line_capture(grid: str, distance_mm: float, angle_deg: float,
+                 rays: int = 1_000_000) -> tuple[np.ndarray, object, object]:
+    """System 2 with a ``grid`` MLA (focus 1 m, 1024², photon and read noise): a 3 mm line
+    (on the MLA) at ``distance_mm`` through the field centre at ``angle_deg``, rendered by
+    ``lfcam.sim`` (seed 3). Returns the image (float64), the profile the renderer used and
+    the renderer's own lenslet geometry."""
+    camera = {"mla": {"focus_mm": 1000.0, "grid": grid},
+              "sensor": {"width_px": SIZE, "height_px": SIZE}}
+    base = load_profile(ROOT / "calibration" / "system2.toml")
+    prof = apply_overrides(base, camera)
+    u = np.array([math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))])
+    ends = [chief_ray_offset(prof, prof.d_in_mm, distance_mm, s * 1.5 * u).tolist()
+            for s in (-1.0, 1.0)]
+    scene = {"seed": 3, "camera": camera, "sensor": NOISE,
+             "objects": [{"type": "line", "distance_mm": distance_mm, "start_mm": ends[0],
+                          "end_mm": ends[1], "rays": rays}]}
+    raw, used, _ = simulate(base, scene_from_dict(scene))
+    return raw.astype(np.float64), used, truth_geometry(prof, (SIZE, SIZE))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", choices=("hex", "rect"), default="hex")
@@ -45,25 +65,13 @@ def main() -> None:
     from lfcam.measure.kernels import warm_up
 
     warm_up()  # the compiled kernels loaded (or compiled) before the first line is timed
-    camera = {"mla": {"focus_mm": 1000.0, "grid": args.grid},
-              "sensor": {"width_px": SIZE, "height_px": SIZE}}
-    base = load_profile(ROOT / "calibration" / "system2.toml")
-    prof = apply_overrides(base, camera)
-    geom = truth_geometry(prof, (SIZE, SIZE))
     shipped = ff.LINE_CELLS_MIN_LIT
     totals: dict[str, list[tuple[float, float, float]]] = {"rays": [], "cells": []}
     print(f"# system 2, {args.grid} MLA, focus 1 m, {SIZE}² sensor, photon noise")
     print("distance_mm angle_deg | rays: error_pct z cpu_s | cells: error_pct z cpu_s")
     for d in (float(v) for v in args.distances.split(",")):
         for angle in (0.0, 60.0, 135.0):
-            u = np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
-            ends = [chief_ray_offset(prof, prof.d_in_mm, d, s * 1.5 * u).tolist()
-                    for s in (-1.0, 1.0)]
-            scene = {"seed": 3, "camera": camera, "sensor": NOISE,
-                     "objects": [{"type": "line", "distance_mm": d, "start_mm": ends[0],
-                                  "end_mm": ends[1], "rays": args.rays}]}
-            raw, used, _ = simulate(base, scene_from_dict(scene))
-            image = raw.astype(np.float64)
+            image, used, geom = line_capture(args.grid, d, angle, args.rays)
             cols = []
             for tag, lit in (("rays", 10**9), ("cells", shipped)):
                 ff.LINE_CELLS_MIN_LIT = lit

@@ -303,25 +303,16 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
     # Levenberg–Marquardt on that model alone from the fit's answer. With the coarse n = 2
     # Jacobian for the fine steps (a hexagonal cell's borders cut n = 2's sub-cells: its
     # distance column 10 % off) the answer lay 0.26 % from it (σ 0.21 %); measured 0.002 %
+    import sys
+    from pathlib import Path
+
     from lfcam.measure.lenslets import lenslet_stats
     from lfcam.measure.regions import find_regions
-    from lfcam.sim.capture import simulate
-    from lfcam.sim.scene import scene_from_dict
 
-    camera = {"mla": {"focus_mm": 1000.0, "grid": "hex"},
-              "sensor": {"width_px": SIZE, "height_px": SIZE}}
-    base = load_profile("system2")
-    prof = apply_overrides(base, camera)
-    geom = truth_geometry(prof, (SIZE, SIZE))
-    u = np.array([math.cos(math.radians(135.0)), math.sin(math.radians(135.0))])
-    ends = [chief_ray_offset(prof, prof.d_in_mm, 3400.0, s * 1.5 * u).tolist()
-            for s in (-1.0, 1.0)]
-    scene = {"seed": 3, "camera": camera,
-             "sensor": {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0},
-             "objects": [{"type": "line", "distance_mm": 3400.0, "start_mm": ends[0],
-                          "end_mm": ends[1], "rays": 1_000_000}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    img = raw.astype(np.float64)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from lines_on_cells import line_capture  # the benchmark's capture of that line
+
+    img, used, geom = line_capture("hex", 3400.0, 135.0)
     regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
     reg = max(regions, key=lambda r: len(r.lenslets))
     mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
