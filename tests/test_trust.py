@@ -212,6 +212,44 @@ def test_batch_dangling_symlink_and_unreadable_folder(tmp_path, capture, monkeyp
     assert len(res.summary) == 1
 
 
+def test_ctrl_c_does_not_cut_a_workers_start_up_data():
+    # a spawned batch worker's start-up data (268 kB with system 2's calibration) goes down a
+    # pipe of 64 kB, so the write waits for the child to read. A Ctrl-C to the main thread in
+    # that wait cut it (the child then printed "pickle data was truncated" and its traceback
+    # under the batch's one-line message). Here a reader drains 300 kB after 0.3 s and SIGINT
+    # reaches the main thread at 0.1 s: under _sigint_deferred the write ends whole and the
+    # KeyboardInterrupt comes after it (without it: 65 536 bytes arrive)
+    import threading
+
+    from lfcam.batch import _sigint_deferred
+
+    r, w = os.pipe()
+    got = bytearray()
+
+    def reader():
+        time.sleep(0.3)
+        with os.fdopen(r, "rb") as f:
+            while chunk := f.read(65536):
+                got.extend(chunk)
+
+    payload = b"x" * 300_000
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    thread = threading.Thread(target=reader)
+    thread.start()
+    timer = threading.Timer(0.1, signal.pthread_kill,
+                            (threading.main_thread().ident, signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _sigint_deferred(), open(w, "wb") as f:
+                f.write(payload)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        timer.join(5)
+        thread.join(5)
+    assert len(got) == len(payload)
+
+
 def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
