@@ -250,6 +250,24 @@ def test_ctrl_c_does_not_cut_a_workers_start_up_data():
     assert len(got) == len(payload)
 
 
+def test_local_worker_starts_with_ctrl_c_unblocked():
+    # a spawned worker inherits the signal mask of the thread that started it, and
+    # _sigint_deferred blocks SIGINT there: the worker's initializer unblocks it again, so a
+    # worker takes Ctrl-C as before (measured: without it every worker ran with SIGINT blocked)
+    import cv2
+
+    from lfcam.batch import _init_local_worker
+
+    threads = cv2.getNumThreads()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        _init_local_worker((DATA / "calib_system2.json").read_bytes())
+        assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        cv2.setNumThreads(threads)
+
+
 def test_batch_sigint_writes_csvs_and_exits_130(tmp_path):
     src = tmp_path / "in"
     src.mkdir()

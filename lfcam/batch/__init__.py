@@ -248,6 +248,14 @@ def _sigint_deferred():
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+def _init_local_worker(cal_bytes: bytes) -> None:
+    """A local worker's start: Ctrl-C unblocked again (a spawned process inherits the signal
+    mask :func:`_sigint_deferred` held while it was started), then :func:`init_worker`."""
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    init_worker(cal_bytes)
+
+
 def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> None:
     if workers <= 1 or len(jobs) <= 1:
         import cv2
@@ -265,8 +273,10 @@ def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> No
     from concurrent.futures.process import BrokenProcessPool
 
     ctx = mp.get_context("spawn")
+    # (created before _sigint_deferred: starting multiprocessing's resource tracker unblocks
+    # SIGINT, and creating the pool starts it)
     pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx,
-                               initializer=init_worker, initargs=(cal_bytes,))
+                               initializer=_init_local_worker, initargs=(cal_bytes,))
     try:
         # spawned workers start on the first submit: single-threaded numerical libraries
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
