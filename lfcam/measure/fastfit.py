@@ -1735,13 +1735,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return stopped(math.sqrt(f))
     fun, jac_f = line_model(fine, frame, n_pts, steps)
     fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
+    r = fun_gn(q)
     if fine.cells:
-        # the fine model's own Jacobian for its steps, the settled test and σ: n = 2's is not
-        # fit for them on a hexagonal lattice, whose borders cut its sub-cells (its distance
-        # column 10 % off n = 6's, 0.4 % on the rectangular; the answers 0.26 % from n = 6's
-        # minimum on a 3400 mm line)
-        jac = jac_f(q, fun(q))
-    q, r, f = _gauss_newton_fixed(fun_gn, q, fun_gn(q), jac, FINE_ITERATIONS,
+        # the fine model's own Jacobian (on the cells the fine model makes the steps too) for
+        # its steps, the settled test and σ: n = 2's is not fit for them on a hexagonal
+        # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
+        # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
+        jac = jac_f(q, r)
+    q, r, f = _gauss_newton_fixed(fun_gn, q, r, jac, FINE_ITERATIONS,
                                   skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
