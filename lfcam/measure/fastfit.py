@@ -147,9 +147,21 @@ LINE_CELLS_FINE_STEP_LOG = 3e-4  # ... the fine model's end on a step under this
 #                                  evaluations on the cells (stop 39)")
 LINE_CELLS_REFIT = 8  # ... and of the refit (docs/distance.md, "Samples fixed on the lenslet
 #                        cells")
-LINE_REFIT_ITERATIONS = 2  # ... by at most this many Levenberg–Marquardt iterations (3, the
-#                            fine fit's: a third costs 4 of a refit's 13 traces; the 231 grid
-#                            lines' answers the same but for 3, moved by at most 0.034 %)
+LINE_REFIT_STEPS = 3  # ... by the refit model's Jacobian, taken once, and at most this many
+#                       Gauss–Newton steps with it (2 Levenberg–Marquardt iterations, a fresh
+#                       Jacobian at each, until stop 40: 25-30 % of the line's CPU more, the
+#                       answers within 0.12 %: docs/distance.md, "Cheaper stages (stop 40)")
+LINE_REFIT_STEP_LOG = 1e-4  # ... ending on a step under this (log distance)
+LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line has this share
+#                                of the points (LINE_POINTS at least): the settled test's
+#                                model keeps them all, and the answer goes to its minimum (the
+#                                fine model's minimum moves by ≤ 0.06 % with half the points)
+LINE_CELLS_COARSE_GAIN = 0.05  # ... the coarse stage takes no further Jacobian after a round
+#                                 of steps that lowered the misfit² by under this share
+LINE_CELLS_SETTLED_LOG = 5e-3  # ... the settled test's step is taken as it is up to this; a
+#                                 longer one by Gauss–Newton steps on the settled test's model
+LINE_CELLS_SETTLE_STEPS = 3  # ... at most this many (the refit of the rays is for their
+#                              sample's noise, which the cells do not have)
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
 # Measured relative misfits of the moments: a point source fitted as a point 0.0006-0.011
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
@@ -1670,9 +1682,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                             for st in starts for dl in LINE_CELLS_PROBE_LOG])))
     coarse_rays = np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
                           LINE_MAX_RAYS // 4)
+    n_fine = n_pts
+    if on_cells:
+        # the coarse and fine stages on half the points (the race too): the settled test's
+        # model has them all (LINE_CELLS_POINTS_SHARE)
+        n_coarse = n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
     fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
-    fine = model(fine_rays, cells=LINE_CELLS_FINE)
+    fine = model(fine_rays, count=n_fine, cells=LINE_CELLS_FINE)
     # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
     # fine one itself where both budgets meet at the floor (small blurs)
     gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
@@ -1705,10 +1722,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         f = _sq(r)
         jac = jac_c(q, r)  # (the race's, from the rays: one more round, no less CPU)
         for _ in range(LINE_CELLS_JACOBIANS):
+            f_round = f
             q, r, f = _gauss_newton_fixed(fun_c, q, r, jac, LINE_CELLS_GN_STEPS,
                                           skip_below=LINE_CELLS_COARSE_STEP_LOG)
             step = _linear_step(jac, r)
-            if step is None or abs(float(step[0][0])) < LINE_CELLS_COARSE_STEP_LOG:
+            if (step is None or abs(float(step[0][0])) < LINE_CELLS_COARSE_STEP_LOG
+                    or f > (1.0 - LINE_CELLS_COARSE_GAIN) * f_round):
                 break
             jac = jac_c(q, r)
     elif len(starts) > 1:
@@ -1733,7 +1752,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
-    fun, jac_f = line_model(fine, frame, n_pts, steps)
+    fun, jac_f = line_model(fine, frame, n_fine, steps)
     fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
     r = fun_gn(q)
     if fine.cells:
@@ -1763,18 +1782,29 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # residual of a turned pupil sample measures that shift (as the point fit's settled
         # test does); a line that moves by more than LINE_SETTLED_LOG is refitted with
         # LINE_REFINE × the rays (docs/distance.md, "A line's settled test").
-        # On the cells the second sample is a finer sub-grid (LINE_CELLS_SETTLE), whose
-        # quadrature is the better one: a line that has settled takes that step to its
-        # minimum (the cells' own bias against a 400 000-ray model, on system 2's lines
-        # behind focus: +0.02 to +0.10 % at n = 4, within ±0.01 % at n = 6: docs/distance.md,
-        # "Samples fixed on the lenslet cells").
+        # On the cells the second sample is a finer sub-grid (LINE_CELLS_SETTLE) of all the
+        # line's points, whose quadrature is the better one: the answer goes to its minimum
+        # (the cells' own bias against a 400 000-ray model, on system 2's lines behind
+        # focus: +0.02 to +0.10 % at n = 4, within ±0.01 % at n = 6: docs/distance.md,
+        # "Samples fixed on the lenslet cells"), by that step or, where it is longer than
+        # LINE_CELLS_SETTLED_LOG, by Gauss–Newton on that model (docs/distance.md, "Cheaper
+        # stages (stop 40)").
         turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0,
                               turn_every=fine.turn_every,
                               cells=LINE_CELLS_SETTLE if fine.cells else 0)
         settling.append(turned)
-        shift = _linear_step(jac, line_model(turned, frame, n_pts, steps)[0](q))
+        fun_t = line_model(turned, frame, n_pts, steps)[0]
+        shift = _linear_step(jac, fun_t(q))
         moved = math.inf if shift is None else abs(float(shift[0][0]))
         refit = moved > LINE_SETTLED_LOG
+        if fine.cells and shift is not None:
+            # the step to n = 6's minimum: as it is, or, where long, by Gauss–Newton on n = 6
+            if moved > LINE_CELLS_SETTLED_LOG:
+                q, r, f = _gauss_newton_fixed(fun_t, q, fun_t(q), jac, LINE_CELLS_SETTLE_STEPS,
+                                              skip_below=LINE_REFIT_STEP_LOG)
+            else:
+                q = q - shift[0]
+            refit = False
         if refit and accept is not None and math.isfinite(moved):
             # the refit is for the sample's share of the error: not needed where the caller
             # accepts the answer with that share in its σ
@@ -1783,8 +1813,6 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             if accept(d_fine, d_fine * math.sqrt(sigma_log ** 2 + moved ** 2
                                                  + LINE_SIGMA_FLOOR_REL ** 2)):
                 refit, sampling_log = False, moved
-        if not refit and fine.cells and shift is not None:
-            q = q - shift[0]
         if refit:
             refined = LensletModel(profile, geom, mom,
                                    min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS),
@@ -1792,11 +1820,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                    cells=LINE_CELLS_REFIT if fine.cells else 0)
             settling.append(refined)
             fun_r, jac_r = line_model(refined, frame, n_pts, steps)
-            q, r, f, jac_ref = _levenberg_marquardt(fun_r, q, steps, LINE_REFIT_ITERATIONS,
-                                                    1e-3, jac_of=jac_r,
-                                                    settle_log=LINE_SETTLE_LOG)
-            if jac_ref is not None:
-                jac = jac_ref
+            r = fun_r(q)
+            jac = jac_r(q, r)
+            q, r, f = _gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
+                                          skip_below=LINE_REFIT_STEP_LOG)
             sigma_log = None
     pts = _line_points(frame, q, 2)
     z = pts[0, 2]
