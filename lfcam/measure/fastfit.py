@@ -155,9 +155,10 @@ LINE_REFIT_STEP_LOG = 1e-4  # ... ending on a step under this (log distance)
 LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line has this share
 #                                of the points (LINE_POINTS at least): the settled test's
 #                                model keeps them all, and the answer goes to its minimum (the
-#                                fine model's minimum moves by ≤ 0.06 % with half the points)
+#                                fine model's minimum moves by 0.05-0.08 % with half of them)
 LINE_CELLS_COARSE_GAIN = 0.05  # ... the coarse stage takes no further Jacobian after a round
-#                                 of steps that lowered the misfit² by under this share
+#                                 of steps that lowered the misfit² by under this share, or
+#                                 where the next step would, by its Jacobian's prediction
 LINE_CELLS_SETTLED_LOG = 5e-3  # ... the settled test's step is taken as it is up to this; a
 #                                 longer one by Gauss–Newton steps on the settled test's model
 LINE_CELLS_SETTLE_STEPS = 3  # ... at most this many (the refit of the rays is for their
@@ -1727,7 +1728,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                           skip_below=LINE_CELLS_COARSE_STEP_LOG)
             step = _linear_step(jac, r)
             if (step is None or abs(float(step[0][0])) < LINE_CELLS_COARSE_STEP_LOG
-                    or f > (1.0 - LINE_CELLS_COARSE_GAIN) * f_round):
+                    or f > (1.0 - LINE_CELLS_COARSE_GAIN) * f_round
+                    or step[1] < LINE_CELLS_COARSE_GAIN * f):
                 break
             jac = jac_c(q, r)
     elif len(starts) > 1:
