@@ -236,6 +236,39 @@ def test_compiled_trace_drops_the_rays_the_lens_stops():
         max(np.ptp(ref.x[0][ok[0]]), np.ptp(ref.y[0][ok[0]])), abs=1e-12)
 
 
+def test_sample_trace_is_the_per_point_trace():
+    # each point its own aperture points (the lenslet cells' samples): the same rays, values
+    # and order as one trace_model_rays call a point, to the last bit; a point with no sample
+    # and one whose samples the stop and rims cut (double Gauss, vignetted)
+    from lfcam.measure.fastfit import _packed_lens
+    from lfcam.measure.kernels import trace_model_rays, trace_sample_rays
+
+    prof = load_profile(Path(__file__).resolve().parents[1] / "calibration" / "double_gauss.toml")
+    lens = prof.main_lens
+    table, coef = _packed_lens(lens)[:2]
+    half = 0.5 * lens.pupil_diameter_mm
+    rng = np.random.default_rng(3)
+    fv = lens.front_vertex_z_mm
+    pts = np.array([[0.0, 0.0, fv - 800.0], [5.0, 1.0, fv - 900.0], [40.0, -25.0, fv - 300.0]])
+    maps = np.tile([0.0, 0.0, 1.0, 1.0], (3, 1))
+    counts = [500, 0, 700]
+    rx, ry = (rng.uniform(-1.3, 1.3, sum(counts)) * half for _ in range(2))
+    cuts = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    args = (table, coef, fv, lens.rim_z_mm, prof.d_in_mm, 1.0)
+    got = trace_sample_rays(pts, maps, cuts, rx, ry, *args)
+    parts = []
+    for k in range(3):
+        lo, hi = cuts[k], cuts[k + 1]
+        x, y, sx, sy, wt, _, ray, _ = trace_model_rays(pts[k:k + 1], maps[k:k + 1],
+                                                       np.array([[1.0, 0.0]]), rx[lo:hi],
+                                                       ry[lo:hi], *args)
+        parts.append((x, y, sx, sy, wt, np.full(x.size, k), ray + lo))
+    want = [np.concatenate([part[i] for part in parts]) for i in range(7)]
+    assert 0 < (want[5] == 2).sum() < counts[2]  # the off-axis point is cut, not emptied
+    for a, b in zip(got[:7], want, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
     # the compiled per-lenslet sums (frames ≥ COMPILED_FRAME_PX) against numpy's bincount chain:
     # the same sums in the same order, so equal to the last bit; unassigned pixels (−1) and

@@ -584,7 +584,7 @@ class LensletModel:
         Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
         from then on (``folded``).
         """
-        from lfcam.measure.kernels import trace_model_rays
+        from lfcam.measure.kernels import trace_sample_rays
 
         got = None if self.folded else self._cell_samples(points)
         if got is None:
@@ -599,24 +599,15 @@ class LensletModel:
         m = len(pts)
         n = self.cells
         pitch = math.sqrt(abs(np.linalg.det(lat.basis)))
-        still = np.array([[1.0, 0.0]])
         if srows.size == 0:
             return out
-        # the samples of each point through the lens (the trace takes one sample a call)
+        # the samples of each point through the lens, each point its own (srows is sorted)
         cuts = np.searchsorted(srows, np.arange(m + 1))
-        parts = []
-        for k in range(m):
-            lo, hi = cuts[k], cuts[k + 1]
-            if hi == lo:
-                continue
-            tx, ty, tsx, tsy, twt, _, tray, _ = trace_model_rays(
-                pts[k:k + 1], maps[k:k + 1], still, u[lo:hi] * half, v[lo:hi] * half,
-                *trace_args)
-            parts.append((tx, ty, tsx, tsy, twt * w[lo:hi][tray], np.full(tx.size, k)))
-        if not parts:
+        x, y, sx, sy, wt, rows, ray, _ = trace_sample_rays(pts, maps, cuts, u * half, v * half,
+                                                           *trace_args)
+        if rows.size == 0:
             return out
-        x, y, sx, sy, wt, rows = (np.concatenate([part[i] for part in parts])
-                                  for i in range(6))
+        wt = wt * w[ray]
         # a sample stands for its sub-cell, which lies in one lattice cell: shared across a
         # border only when its ray lands off its sub-cell's centre, or where a hexagonal
         # cell's border cuts its sub-cell (a rectangular lattice's samples lie exactly half

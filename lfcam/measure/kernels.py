@@ -232,6 +232,9 @@ def warm_up() -> None:
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
                      np.array([[1.0, 0.0]]), one, one,
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
+    trace_sample_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
+                      np.array([0, 1], dtype=np.int64), one, one,
+                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
     pupil_maps(np.array([[0.0, 0.0, -10.0]]), np.zeros(1), table, np.zeros((1, 1)), 0, 1.0, 1.0,
                0.0, 1.0)
     terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
@@ -522,9 +525,37 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
     :func:`lfcam.optics.trace.trace_sources_fast` (to ~1e-15, ``tests/test_speed_paths.py``).
     """
     m = points.shape[0]
-    n = rx.size
-    size = m * n
-    block = min(TRACE_BLOCK, max(n, 1))
+    return _trace_ranges(points, maps, turns, rx, ry, np.zeros(m, dtype=np.int64),
+                         np.full(m, rx.size, dtype=np.int64), table, coef, front_z, rim_z,
+                         z_plane, fx)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def trace_sample_rays(points, maps, cuts, rx, ry, table, coef, front_z, rim_z, z_plane, fx):
+    """:func:`trace_model_rays` with each point its own aperture points: point ``p``'s are
+    ``rx[cuts[p]:cuts[p + 1]]``, ``ry[...]`` (``cuts`` (M + 1,), non-decreasing), not turned;
+    the returned ``ray`` indexes ``rx``. The same rays, sums and order as one
+    :func:`trace_model_rays` call a point (the lenslet cells' samples:
+    ``LensletModel._simulate_cells``), without a call and a copy a point."""
+    m = points.shape[0]
+    turns = np.zeros((m, 2))
+    turns[:, 0] = 1.0
+    return _trace_ranges(points, maps, turns, rx, ry, cuts[:m].copy(), cuts[1:] - cuts[:m],
+                         table, coef, front_z, rim_z, z_plane, fx)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front_z, rim_z,
+                  z_plane, fx):
+    """The body of :func:`trace_model_rays`: point ``p`` through the aperture points
+    ``first[p]`` … ``first[p] + n_rays[p] − 1``."""
+    m = points.shape[0]
+    size = 0
+    widest = 1
+    for p in range(m):
+        size += n_rays[p]
+        widest = max(widest, n_rays[p])
+    block = min(TRACE_BLOCK, widest)
     # one block of rays at a time through every surface: scratch arrays that stay in cache
     scratch = np.empty((7, block))
     x, y, z, dx, dy, dz, wt = (scratch[0], scratch[1], scratch[2], scratch[3], scratch[4],
@@ -548,8 +579,9 @@ def trace_model_rays(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z
         a2 = along * along
         tc = turns[p, 0]
         ts = turns[p, 1]
-        for lo in range(0, n, block):
-            k = min(block, n - lo)
+        end = first[p] + n_rays[p]
+        for lo in range(first[p], end, block):
+            k = min(block, end - lo)
             for b in range(k):
                 j = lo + b
                 ax = tc * rx[j] - ts * ry[j]  # (1, 0): rx, ry unchanged, bit for bit
