@@ -1783,7 +1783,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # LINE_CELLS_SETTLED_LOG, by Gauss–Newton on that model (docs/distance.md, "Cheaper
         # stages (stop 40)").
         turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0,
-                              turn_every=fine.turn_every,
+                              turn_every=n_pts if LINE_TURNS else 0,
                               cells=LINE_CELLS_SETTLE if fine.cells else 0)
         settling.append(turned)
         fun_t = line_model(turned, frame, n_pts, steps)[0]
@@ -1809,7 +1809,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if refit:
             refined = LensletModel(profile, geom, mom,
                                    min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS),
-                                   turn_every=fine.turn_every,
+                                   turn_every=n_pts if LINE_TURNS else 0,
                                    cells=LINE_CELLS_REFIT if fine.cells else 0)
             settling.append(refined)
             fun_r, jac_r = line_model(refined, frame, n_pts, steps)
