@@ -107,6 +107,10 @@ LINE_STRETCHED = 0.1  # a point footprint elongated more (off axis): the line's 
 LINE_STRETCH_MIN_LIT = 40  # ... on blurs of this many lit lenslets or more
 LINE_STRETCH_AXIS_DEG = 20.0  # ... whose footprint's axis is within this of the stretch's
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
+LINE_RACE_HOPELESS = 100.0  # the starts race from the best placed; one whose misfit² where
+#                             it starts is over this × the best race's end is not raced (a
+#                             380 mm line in front of a 1 m focus: 3 of its 4 starts, 0.16-0.21
+#                             against 0.0007; 0.22 -> 0.18 s, the same answer)
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -161,10 +165,6 @@ LINE_CELLS_COARSE_GAIN = 0.05  # ... the coarse stage takes no further Jacobian 
 #                                 where the next step would, by its Jacobian's prediction
 LINE_CELLS_SETTLED_LOG = 5e-3  # ... the settled test's step is taken as it is up to this; a
 #                                 longer one by Gauss–Newton steps on the settled test's model
-LINE_RACE_HOPELESS = 100.0  # the starts race from the best placed; one whose misfit² where
-#                             it starts is over this × the best race's end is not raced (a
-#                             380 mm line in front of a 1 m focus: 3 of its 4 starts, 0.16-0.21
-#                             against 0.0007; 0.22 -> 0.18 s, the same answer)
 LINE_CELLS_SETTLE_STEPS = 3  # ... at most this many (the refit of the rays is for their
 #                              sample's noise, which the cells do not have)
 # Point or line, decided from the data (docs/distance.md, "The misses fixed").
