@@ -1706,21 +1706,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         settling.append(race)
     race_iterations = (LINE_RACE_ITERATIONS if coarse.cells or len(starts) > 1
                        else COARSE_ITERATIONS)
-    if len(starts) > 1:
-        # the starts race from the best placed: one whose misfit² where it starts is over
-        # LINE_RACE_HOPELESS × the best race's end does not run (a far start, or an axis
-        # turned the wrong way)
-        r_starts = [race_c(start) for start in starts]  # (the race's first evaluations)
-        order = np.argsort([_sq(r0) for r0 in r_starts], kind="stable")
-        heats = []
-        for k in order:
-            if heats and _sq(r_starts[k]) > LINE_RACE_HOPELESS * min(h[2] for h in heats):
-                continue
-            heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
-                                              r0=r_starts[k], jac_of=race_j))
-    else:
-        heats = [_levenberg_marquardt(race_c, starts[0], steps, race_iterations, 1e-3,
-                                      jac_of=race_j)]
+    # the starts race from the best placed: one whose misfit² where it starts is over
+    # LINE_RACE_HOPELESS × the best race's end does not run (a far start, or an axis turned
+    # the wrong way)
+    r_starts = [race_c(start) for start in starts]  # (the race's first evaluations)
+    heats = []
+    for k in np.argsort([_sq(r0) for r0 in r_starts], kind="stable"):
+        if heats and _sq(r_starts[k]) > LINE_RACE_HOPELESS * min(h[2] for h in heats):
+            continue
+        heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
+                                          r0=r_starts[k], jac_of=race_j))
     q, r, f, jac = min(heats, key=lambda heat: heat[2])
     if coarse.cells:
         # Gauss–Newton on the coarse cells, its Jacobian refreshed only where the steps are
@@ -1804,13 +1799,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                               cells=LINE_CELLS_SETTLE if fine.cells else 0)
         settling.append(turned)
         fun_t = line_model(turned, frame, n_pts, steps)[0]
-        shift = _linear_step(jac, fun_t(q))
+        r_t = fun_t(q)
+        shift = _linear_step(jac, r_t)
         moved = math.inf if shift is None else abs(float(shift[0][0]))
         refit = moved > LINE_SETTLED_LOG
         if fine.cells and shift is not None:
             # the step to n = 6's minimum: as it is, or, where long, by Gauss–Newton on n = 6
             if moved > LINE_CELLS_SETTLED_LOG:
-                q, r, f = _gauss_newton_fixed(fun_t, q, fun_t(q), jac, LINE_CELLS_SETTLE_STEPS,
+                q, r, f = _gauss_newton_fixed(fun_t, q, r_t, jac, LINE_CELLS_SETTLE_STEPS,
                                               skip_below=LINE_REFIT_STEP_LOG)
             else:
                 q = q - shift[0]

@@ -540,7 +540,7 @@ def trace_sample_rays(points, maps, cuts, rx, ry, table, coef, front_z, rim_z, z
     m = points.shape[0]
     turns = np.zeros((m, 2))
     turns[:, 0] = 1.0
-    return _trace_ranges(points, maps, turns, rx, ry, cuts[:m].copy(), cuts[1:] - cuts[:m],
+    return _trace_ranges(points, maps, turns, rx, ry, cuts[:m], cuts[1:] - cuts[:m],
                          table, coef, front_z, rim_z, z_plane, fx)
 
 
