@@ -93,7 +93,7 @@ BINS = (("0", 0.0, 0.0), ("<=40%", 0.0, 0.4), ("<=80%", 0.4, 0.8))
 COLUMNS = ("mode", "system", "focus_mm", "size_px", "centres", "ad_mm", "field", "r_sensor_mm",
            "angle_deg", "side", "kind", "status", "ed_mm", "signed_pct", "error_pct",
            "lenslets", "path", "render_s", "fit_s", "fit_cpu_s", "renderer", "white",
-           "sigma_mm")
+           "sigma_mm", "region_cpu_s")
 RENDERERS = ("sim", "independent")
 WHITES = ("sim", "analytic")
 
@@ -255,24 +255,30 @@ class Camera:
         return raw.astype(np.float64), truth, time.perf_counter() - t0
 
     def measure(self, img: np.ndarray):
-        """(run results, their regions' lenslet counts, wall s, CPU s)."""
+        """(run results, their regions' lenslet counts and measurement CPU s (dicts by region
+        id), the run's wall s, CPU s)."""
         t0, c0 = time.perf_counter(), time.process_time()
         res = run_distance(img, self.used, None, model="exact", method=METHOD[0],
                            tolerance_pct=TOLERANCE[0], geometry=self.geom, jobs=1)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         regions = find_regions(lenslet_stats(img, self.geom.lmap), self.geom.lmap,
                                self.geom.pitch_px)
-        counts = {r.region_id: len(r.lenslets) for r in regions}
+        counts = {r.region_id: (len(r.lenslets), 0.0) for r in regions}
+        # run_distance's own CPU for each region's measurement (timings_s["region_s"], in the
+        # order of its results): the per-region time, without the capture's shared stages
+        for r, t in zip(res.regions, res.timings_s.get("region_s", ()), strict=False):
+            if r.region_id in counts:
+                counts[r.region_id] = (counts[r.region_id][0], t)
         return res.regions, counts, wall, cpu
 
     def row(self, mode, ad, field, r_mm, angle, result, counts, render_s, fit_s, cpu_s):
         """One CSV row; ``result`` is the matched RegionResult or None."""
         kind = status = path = ""
         ed = signed = err = sigma = math.nan
-        n = 0
+        n, region_cpu = 0, math.nan
         if result is not None:
             kind, status = result.kind, result.status
-            n = counts.get(result.region_id, 0)
+            n, region_cpu = counts.get(result.region_id, (0, math.nan))
             path = ("line" if kind == "line" else
                     "tri" if n >= LF.TRIANGULATION_ENOUGH else "pix")
             if status == "ok":
@@ -288,7 +294,7 @@ class Camera:
                 "fit_s": round(fit_s, 2), "fit_cpu_s": round(cpu_s, 2),
                 "renderer": self.renderer,
                 "white": "truth" if self.centres == "truth" else self.white,
-                "sigma_mm": round(sigma, 3)}
+                "sigma_mm": round(sigma, 3), "region_cpu_s": round(region_cpu, 4)}
 
 
 def nearest(results, xy_px) -> object | None:
