@@ -24,6 +24,7 @@ from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_me
 from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
+from lfcam.status import RegionStatus
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "synthetic"
 _GEOMETRY: dict = {}
@@ -179,6 +180,19 @@ def test_a_start_whose_light_misses_the_data_is_not_matched(monkeypatch):
     assert answer() == skipped
     assert len(matched) == 2 and matched[1] > 1000.0
 
+
+
+def test_a_fit_at_the_far_bound_fails_with_its_reason(monkeypatch):
+    """A point fit whose fine stage ends at the far bound of its distance range fails as
+    ``no-solution``. Its first stage reported no reason, and the region's status was the empty
+    string (a 380 mm line in front of a 1 m focus, whose far scan start had run there)."""
+    from lfcam.measure import fastfit
+
+    img, prof, cal, geom, _ = _capture("point_system2_1100mm_dh5", "system2")
+    monkeypatch.setattr(fastfit, "_at_far_bound", lambda q: True)
+    r = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom,
+                     jobs=1).regions[0]
+    assert r.status == RegionStatus.NO_SOLUTION and not np.isfinite(r.distance_mm)
 
 def _render(camera, objects, rays=300_000, seed=4):
     base = load_profile("system2")
