@@ -263,22 +263,22 @@ class Camera:
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         regions = find_regions(lenslet_stats(img, self.geom.lmap), self.geom.lmap,
                                self.geom.pitch_px)
-        counts = {r.region_id: (len(r.lenslets), 0.0) for r in regions}
+        per_region = {r.region_id: (len(r.lenslets), 0.0) for r in regions}
         # run_distance's own CPU for each region's measurement (timings_s["region_s"], in the
         # order of its results): the per-region time, without the capture's shared stages
         for r, t in zip(res.regions, res.timings_s.get("region_s", ()), strict=False):
-            if r.region_id in counts:
-                counts[r.region_id] = (counts[r.region_id][0], t)
-        return res.regions, counts, wall, cpu
+            if r.region_id in per_region:
+                per_region[r.region_id] = (per_region[r.region_id][0], t)
+        return res.regions, per_region, wall, cpu
 
-    def row(self, mode, ad, field, r_mm, angle, result, counts, render_s, fit_s, cpu_s):
+    def row(self, mode, ad, field, r_mm, angle, result, per_region, render_s, fit_s, cpu_s):
         """One CSV row; ``result`` is the matched RegionResult or None."""
         kind = status = path = ""
         ed = signed = err = sigma = math.nan
         n, region_cpu = 0, math.nan
         if result is not None:
             kind, status = result.kind, result.status
-            n, region_cpu = counts.get(result.region_id, (0, math.nan))
+            n, region_cpu = per_region.get(result.region_id, (0, math.nan))
             path = ("line" if kind == "line" else
                     "tri" if n >= LF.TRIANGULATION_ENOUGH else "pix")
             if status == "ok":
@@ -312,9 +312,9 @@ def run_points(cam: Camera, distances, fields, rays: int, emit) -> None:
             xy = cam.field_xy(frac)
             obj = {"type": "point", "distance_mm": ad, "position_mm": cam.position(ad, xy)}
             img, truth, t_r = cam.render([obj], seed=3, rays=rays)
-            results, counts, wall, cpu = cam.measure(img)
+            results, per_region, wall, cpu = cam.measure(img)
             hit = nearest(results, truth["sources"][0]["centroid_px"])
-            emit(cam.row("point", ad, frac, float(np.hypot(*xy)), AZIMUTH_DEG, hit, counts,
+            emit(cam.row("point", ad, frac, float(np.hypot(*xy)), AZIMUTH_DEG, hit, per_region,
                          t_r, wall / max(1, len(results)), cpu / max(1, len(results))))
 
 
@@ -331,7 +331,7 @@ def run_scene12(cam: Camera, rays: int, emit) -> None:
         placed.append((ad, float(np.hypot(fx, fy)), math.degrees(math.atan2(fy, fx)),
                        float(np.hypot(*xy))))
     img, truth, t_r = cam.render(objects, seed=4, rays=rays)
-    results, counts, wall, cpu = cam.measure(img)
+    results, per_region, wall, cpu = cam.measure(img)
     n = max(1, len(results))
     print(f"# 12 sources: {len(results)} regions, {wall:.0f} s", flush=True)
     for (ad, frac, az, r_mm), src in zip(placed, truth["sources"], strict=True):
@@ -340,7 +340,7 @@ def run_scene12(cam: Camera, rays: int, emit) -> None:
         if hit is not None and not (hit.bbox_px[0] <= x < hit.bbox_px[2]
                                     and hit.bbox_px[1] <= y < hit.bbox_px[3]):
             hit = None  # the nearest region does not cover this source: not found
-        emit(cam.row("scene12", ad, round(frac, 3), r_mm, round(az, 1), hit, counts, t_r / 12,
+        emit(cam.row("scene12", ad, round(frac, 3), r_mm, round(az, 1), hit, per_region, t_r / 12,
                      wall / n, cpu / n))
 
 
@@ -367,9 +367,9 @@ def run_lines(cam: Camera, distances, rays: int, emit,
         for ang in LINE_ANGLES_DEG:
             img, truth, t_r = cam.render([cam.line(ad, ang, field, rays, half_mm)], seed=3,
                                          rays=rays)
-            results, counts, wall, cpu = cam.measure(img)
+            results, per_region, wall, cpu = cam.measure(img)
             hit = nearest(results, truth["sources"][0]["centroid_px"])
-            emit(cam.row(mode, ad, field, float(np.hypot(*centre)), ang, hit, counts, t_r,
+            emit(cam.row(mode, ad, field, float(np.hypot(*centre)), ang, hit, per_region, t_r,
                          wall / max(1, len(results)), cpu / max(1, len(results))))
 
 

@@ -181,7 +181,6 @@ def test_a_start_whose_light_misses_the_data_is_not_matched(monkeypatch):
     assert len(matched) == 2 and matched[1] > 1000.0
 
 
-
 def test_a_fit_at_the_far_bound_fails_with_its_reason(monkeypatch):
     """A point fit whose fine stage ends at the far bound of its distance range fails as
     ``no-solution``. Its first stage reported no reason, and the region's status was the empty
@@ -193,6 +192,7 @@ def test_a_fit_at_the_far_bound_fails_with_its_reason(monkeypatch):
     r = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom,
                      jobs=1).regions[0]
     assert r.status == RegionStatus.NO_SOLUTION and not np.isfinite(r.distance_mm)
+
 
 def _render(camera, objects, rays=300_000, seed=4):
     base = load_profile("system2")

@@ -1393,7 +1393,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(),
                      not _at_far_bound(q),
-                     # (a fit at the far bound fails here: its reason is the final one's)
+                     # at the far bound the fit fails here, with the final fit's reason
                      "" if not _at_far_bound(q) else RegionStatus.NO_SOLUTION,
                      polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above,
                                                 steps),
