@@ -36,12 +36,6 @@ ZONES = ((0.0, 0.3), (0.3, 0.6), (0.6, 0.8), (0.8, 0.9), (0.9, 0.98))
 STEP = 1e-5  # central-difference step in the unit pupil
 
 
-def terms(u: np.ndarray, v: np.ndarray, degree: int) -> np.ndarray:
-    """The polynomial's terms ``u^i v^(k−i)`` (as ``fastfit._map_basis``) at any degree."""
-    return np.column_stack([u ** i * v ** (k - i) for k in range(degree + 1)
-                            for i in range(k + 1)])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--system", default="system2")
@@ -93,11 +87,11 @@ def main() -> None:
           + " | ".join(f"r {lo:g}–{hi:g}" for lo, hi in ZONES) + " | RMS off 1 |")
     print("|---|---|" + "---|" * (len(ZONES) + 1))
     for degree in (5, 7, 9):
-        pinv = np.linalg.pinv(terms(ring[:, 0], ring[:, 1], degree))
+        pinv = np.linalg.pinv(ff._map_basis(ring[:, 0], ring[:, 1], degree))
         cx, cy = pinv @ xr, pinv @ yr
 
         def poly(a, b, cx=cx, cy=cy, degree=degree):
-            t = terms(a, b, degree)
+            t = ff._map_basis(a, b, degree)
             return t @ cx, t @ cy
 
         ratio = det_of(poly) / exact

@@ -263,7 +263,7 @@ class Camera:
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         regions = find_regions(lenslet_stats(img, self.geom.lmap), self.geom.lmap,
                                self.geom.pitch_px)
-        per_region = {r.region_id: (len(r.lenslets), 0.0) for r in regions}
+        per_region = {r.region_id: (len(r.lenslets), math.nan) for r in regions}
         # run_distance's own CPU for each region's measurement (timings_s["region_s"], in the
         # order of its results): the per-region time, without the capture's shared stages
         for r, t in zip(res.regions, res.timings_s.get("region_s", ()), strict=False):

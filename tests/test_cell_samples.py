@@ -208,8 +208,7 @@ def _polynomial_miss(prof, src, rays=3000):
     tr = trace_sources_fast(prof.main_lens, src[None], (u * half)[None], (v * half)[None],
                             prof.d_in_mm)
     ok = tr.ok[0]
-    terms = np.column_stack([u[ok] ** i * v[ok] ** (k - i) for k in range(MAP_DEGREE + 1)
-                             for i in range(k + 1)])
+    terms = ff._map_basis(u[ok], v[ok])
     miss = 0.0
     for coord in (tr.x[0, ok], tr.y[0, ok]):
         coef = np.linalg.lstsq(terms, coord, rcond=None)[0]

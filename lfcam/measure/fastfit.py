@@ -690,12 +690,14 @@ def compiled_pupil_maps(lens, points_mm: np.ndarray, packed: _PackedLens | None 
     return out
 
 
-def _map_basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Terms of :func:`lfcam.measure.kernels._map2` at pupil points (u, v): (n, terms)."""
+def _map_basis(u: np.ndarray, v: np.ndarray, degree: int | None = None) -> np.ndarray:
+    """Terms of :func:`lfcam.measure.kernels._map2` at pupil points (u, v): (n, terms);
+    ``degree`` (default :data:`lfcam.measure.kernels.MAP_DEGREE`): the same order of terms
+    for a polynomial of another degree."""
     from lfcam.measure.kernels import MAP_DEGREE
 
-    return np.column_stack([u ** i * v ** (k - i) for k in range(MAP_DEGREE + 1)
-                            for i in range(k + 1)])
+    d = MAP_DEGREE if degree is None else degree
+    return np.column_stack([u ** i * v ** (k - i) for k in range(d + 1) for i in range(k + 1)])
 
 
 _CELL_RING: list = []
@@ -1391,10 +1393,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
                 + polish.evaluations)
 
-    yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(),
-                     not _at_far_bound(q),
-                     # at the far bound the fit fails here, with the final fit's reason
-                     "" if not _at_far_bound(q) else RegionStatus.NO_SOLUTION,
+    far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
+    yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(), not far,
+                     RegionStatus.NO_SOLUTION if far else "",
                      polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above,
                                                 steps),
                      model_misfit=model_misfit)
@@ -1627,10 +1628,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     on_cells = False  # (decided once the starts are known, below)
 
     def model(rays_12: float, share: float = share, count: int = n_pts,
-              cells: int = 0) -> LensletModel:
+              cells: int = 0, phase: float = 0.0) -> LensletModel:
         # the 12 points' rays a point, shared; each of the ``count`` points its own turn
         return LensletModel(profile, geom, mom, max(int(share * rays_12), LINE_MIN_RAYS),
-                            turn_every=count if LINE_TURNS else 0,
+                            phase=phase, turn_every=count if LINE_TURNS else 0,
                             cells=cells if on_cells else 0)
 
     # the scan and the coarse stage find the basin: at most LINE_COARSE_POINTS points (a long
@@ -1796,9 +1797,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # "Samples fixed on the lenslet cells"), by that step or, where it is longer than
         # LINE_CELLS_SETTLED_LOG, by Gauss–Newton on that model (docs/distance.md, "Cheaper
         # stages (stop 40)").
-        turned = LensletModel(profile, geom, mom, fine.rx.size, phase=1.0,
-                              turn_every=n_pts if LINE_TURNS else 0,
-                              cells=LINE_CELLS_SETTLE if fine.cells else 0)
+        turned = model(fine.rx.size, 1.0, cells=LINE_CELLS_SETTLE, phase=1.0)
         settling.append(turned)
         fun_t = line_model(turned, frame, n_pts, steps)[0]
         r_t = fun_t(q)
@@ -1822,10 +1821,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                  + LINE_SIGMA_FLOOR_REL ** 2)):
                 refit, sampling_log = False, moved
         if refit:
-            refined = LensletModel(profile, geom, mom,
-                                   min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS),
-                                   turn_every=n_pts if LINE_TURNS else 0,
-                                   cells=LINE_CELLS_REFIT if fine.cells else 0)
+            refined = model(min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS), 1.0,
+                            cells=LINE_CELLS_REFIT)
             settling.append(refined)
             fun_r, jac_r = line_model(refined, frame, n_pts, steps)
             r = fun_r(q)
