@@ -539,9 +539,9 @@ class LensletModel:
         trace_args = (self.packed.table, self.packed.coef, float(lens.front_vertex_z_mm),
                       float(lens.rim_z_mm), float(self.geom.d_in_mm),
                       float(p.mla.focal_length_mm))
-        x, y, _, _, _, rows, ray, _ = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (m, 1)),
-                                                       ring[:, 0] * half, ring[:, 1] * half,
-                                                       *trace_args)
+        x, y, sx, sy, _, rows, ray, _ = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (m, 1)),
+                                                         ring[:, 0] * half, ring[:, 1] * half,
+                                                         *trace_args)
         n = self.cells
         boxes = np.zeros((m, 4))
         if len(rows) != m * len(ring):
@@ -567,9 +567,34 @@ class LensletModel:
         reach = np.column_stack([xr[:, 0], yr[:, 0], np.hypot(xr - xr[:, :1],
                                                               yr - yr[:, :1]).max(axis=1)
                                  + margin])
-        u, v, w, srows, du = cell_samples(cx, cy, boxes, reach, lat.origin, lat.basis,
-                                          lat.inverse, n)
-        area = np.bincount(srows, w, minlength=m)
+        # Only the cells whose light can reach the region's box are sampled: a sample lands
+        # at its cell's centre (or a neighbour's, where it is shared) plus f_x × its slope,
+        # whose length is at most the ring's largest (the rim's image), and is spread over
+        # a pixel at most. A dim source's blur reaches beyond its box (a scene's 133-lenslet
+        # region: 611 cells a point, 285 lenslets in the box: docs/distance.md, "Speed at
+        # stop 42"). Where that cuts any point's footprint, whether the map is one to one is
+        # read from its whole footprint at n = 2 (the area test is the map's, not the grid's).
+        x0, y0, x1, y1 = self.mom.box
+        ax, ay = p.sensor.axis_xy_px
+        pp = p.sensor.pixel_pitch_mm
+        reach_mm = float(np.hypot(sx, sy).max()) + 1.5 * pitch + 2.0 * pp
+        clip = np.array([(x0 - ax) * pp - reach_mm, (x1 - ax) * pp + reach_mm,
+                         (y0 - ay) * pp - reach_mm, (y1 - ay) * pp + reach_mm])
+        cut = boxes.copy()
+        cut[:, 0] = np.maximum(boxes[:, 0], clip[0])
+        cut[:, 1] = np.minimum(boxes[:, 1], clip[1])
+        cut[:, 2] = np.maximum(boxes[:, 2], clip[2])
+        cut[:, 3] = np.minimum(boxes[:, 3], clip[3])
+        args = (reach, lat.origin, lat.basis, lat.inverse)
+        if n > 2 and not np.array_equal(cut, boxes):
+            _, _, w2, rows2, _ = cell_samples(cx, cy, boxes, *args, 2)
+            area = np.bincount(rows2, w2, minlength=m)
+            boxes = cut
+        else:
+            area = None
+        u, v, w, srows, du = cell_samples(cx, cy, boxes, *args, n)
+        if area is None:
+            area = np.bincount(srows, w, minlength=m)
         if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
             return None
         return u, v, w, srows, du, maps, trace_args
