@@ -479,3 +479,31 @@ def test_frame_kernels_start_only_for_frames_that_use_them(monkeypatch):
     thread = start_frame_kernels((COMPILED_FRAME_PX // 1000 + 1, 1000))
     thread.join(timeout=120)
     assert not thread.is_alive() and errors == []
+
+
+def test_keep_large_buffers_sets_glibc_thresholds_once(monkeypatch):
+    """The allocator is tuned once a process, with glibc's parameter numbers and the module's
+    values, and not at all with LFCAM_MALLOC=default."""
+    import lfcam.measure.kernels as K
+
+    calls = []
+
+    class FakeLibc:
+        class mallopt:  # noqa: N801 (stands in for the C function)
+            argtypes = None
+
+            def __new__(cls, param, value):
+                calls.append((param, value))
+                return 1
+
+    monkeypatch.setattr(K.ctypes, "CDLL", lambda name: FakeLibc)
+    monkeypatch.setattr(K, "_ALLOCATOR", [])
+    monkeypatch.delenv("LFCAM_MALLOC", raising=False)
+    K.keep_large_buffers()
+    K.keep_large_buffers()
+    assert calls == [(-3, 32 * 1024 * 1024), (-1, 256 * 1024 * 1024)]
+    calls.clear()
+    monkeypatch.setattr(K, "_ALLOCATOR", [])
+    monkeypatch.setenv("LFCAM_MALLOC", "default")
+    K.keep_large_buffers()
+    assert calls == []

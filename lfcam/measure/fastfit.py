@@ -1892,6 +1892,9 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     -------
     Measurement
     """
+    from lfcam.measure.kernels import keep_large_buffers
+
+    keep_large_buffers()  # the models' large temporaries reused, not faulted in afresh
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)

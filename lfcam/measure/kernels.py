@@ -35,7 +35,9 @@ The numpy chains stay (:mod:`lfcam.optics.raytrace`, :mod:`lfcam.measure.fastfit
 
 from __future__ import annotations
 
+import ctypes
 import math
+import os
 
 import numpy as np
 from numba import njit
@@ -218,10 +220,44 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
     return out
 
 
+# glibc's mallopt parameters (malloc.h) and the values keep_large_buffers sets
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024  # glibc's largest (64-bit): served from the heap below
+TRIM_THRESHOLD_BYTES = 256 * 1024 * 1024  # free memory kept at the heap's top, at most
+_ALLOCATOR: list[bool] = []
+
+
+def keep_large_buffers() -> None:
+    """Have the C allocator serve blocks of up to :data:`MMAP_THRESHOLD_BYTES` from its heap
+    and keep freed memory for reuse (glibc ``mallopt``), once a process.
+
+    A lenslet model's evaluation allocates its samples, rays and moments afresh: 1-16 MB
+    arrays. glibc maps each such block from the kernel and unmaps it when freed, so every
+    evaluation touches fresh pages, which the kernel faults in and zeroes: 15 % of a large
+    line region's CPU (175-182 → 148-150 ms; docs/distance.md, "Speed at stop 42"). From the
+    heap the same memory is reused. Nothing to do off glibc (no ``mallopt``: macOS,
+    Windows), or with ``LFCAM_MALLOC=default`` in the environment.
+    """
+    if _ALLOCATOR:
+        return
+    _ALLOCATOR.append(True)
+    if os.environ.get("LFCAM_MALLOC", "").strip().lower() == "default":
+        return
+    try:
+        mallopt = ctypes.CDLL(None).mallopt  # the C library the process runs on
+    except (OSError, AttributeError):
+        return
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
+    mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+
+
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) the kernels with the argument types
     :class:`~lfcam.measure.fastfit.LensletModel` passes, so that a region worker pays for it
-    while the parent is still busy with the geometry."""
+    while the parent is still busy with the geometry; and keep the allocator's large blocks
+    (:func:`keep_large_buffers`)."""
+    keep_large_buffers()
     one = np.zeros(1)
     eye = np.eye(2)
     box_moments(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 2)), 0, 0, 1.0,
