@@ -135,6 +135,25 @@ def test_cells_model_is_closer_to_a_dense_ray_model_at_the_same_samples():
     assert err_cells < 0.4 * err_rays
 
 
+def test_cells_cut_to_a_small_box_keep_its_moments():
+    # the same line in a box that holds only the middle of its blur: the cells whose light
+    # cannot reach the box are not sampled (docs/distance.md, "Speed at stop 42"), whether
+    # the map is one to one is read at n = 2 over the whole footprint, and the box's moments
+    # are still those of a 400 000-ray model
+    prof, geom = _system2()
+    pts = _line_points(prof, 3400.0)
+    small = _moments_box(prof, geom, half_px=70)
+    cells = ff.LensletModel(prof, geom, small, 1000, cells=4, turn_every=12)
+    whole = ff.LensletModel(prof, geom, _moments_box(prof, geom), 1000, cells=4, turn_every=12)
+    kept = cells._cell_samples(pts)[0].size
+    assert kept < 0.45 * whole._cell_samples(pts)[0].size  # (measured 0.35)
+    got = _normalised(cells.simulate(pts))
+    assert not cells.folded
+    ref = _normalised(ff.LensletModel(prof, geom, small, 400_000, turn_every=12).simulate(pts))
+    # (measured 0.0013, as on the whole box)
+    assert np.linalg.norm(got - ref) / np.linalg.norm(ref) < 0.0025
+
+
 def test_cells_jacobian_is_not_sample_noise():
     # the moments' derivative in log distance (a 1 % difference) of one point at 3400 mm:
     # two cell quadratures (n = 4 and 6) agree far better than two ray samples of as many
