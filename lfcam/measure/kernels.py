@@ -850,7 +850,8 @@ def _newton_pass(c_x, c_y, gx, gy, u, v, det, step, count):
     """One Newton step of the inverse of the map ``(c_x, c_y)`` (:func:`_map2`) at each of the
     first ``count`` points: ``(u, v)`` moves toward the preimage of ``(gx, gy)``; ``det`` is
     the map's Jacobian determinant where the step was taken, ``step`` the step's length
-    (|Δu| + |Δv|; NaN where ``det`` is 0 or the point is not finite). No branch: SIMD."""
+    (|Δu| + |Δv|; not finite where ``det`` is 0 or the point is not finite, which never
+    passes the convergence test). No branch: SIMD."""
     for k in range(count):
         fx, fy, j11, j12, j21, j22 = _map2(c_x, c_y, u[k], v[k])
         d = j11 * j22 - j12 * j21
