@@ -245,7 +245,7 @@ def keep_large_buffers() -> None:
         return
     try:
         mallopt = ctypes.CDLL(None).mallopt  # the C library the process runs on
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # (Windows cannot open None)
         return
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
