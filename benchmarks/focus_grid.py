@@ -52,16 +52,22 @@ fields 0 and 0.8.
 
 from __future__ import annotations
 
-import argparse
-import csv
-import math
 import os
-import sys
-import tempfile
-import time
-from pathlib import Path
 
-import numpy as np
+# one BLAS thread, as `lfcam distance`'s region workers have: a threaded BLAS's spinning
+# threads count in the process CPU each region reports
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import csv  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
