@@ -316,6 +316,9 @@ class LensletModel:
     def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
                  phase: float = 0.0, kernel: str | None = None, turn_every: int = 0,
                  cells: int = 0):
+        from lfcam.measure.kernels import keep_large_buffers
+
+        keep_large_buffers()  # (once a process) its evaluations' large temporaries reused
         self.profile, self.geom, self.mom = profile, geom, mom
         # cells = n > 0: each point's pupil sample is the preimage of the centres of the n × n
         # sub-cells of every lattice cell (n² samples a cell, ``n_rays`` and ``phase`` unused;
@@ -573,7 +576,8 @@ class LensletModel:
         # a pixel at most. A dim source's blur reaches beyond its box (a scene's 133-lenslet
         # region: 611 cells a point, 285 lenslets in the box: docs/distance.md, "Speed at
         # stop 42"). Where that cuts any point's footprint, whether the map is one to one is
-        # read from its whole footprint at n = 2 (the area test is the map's, not the grid's).
+        # read from its whole footprint at n = 2 (the area test is the map's, not the grid's);
+        # an n = 2 model is not cut, since that test would cost what the cut saves.
         x0, y0, x1, y1 = self.mom.box
         ax, ay = p.sensor.axis_xy_px
         pp = p.sensor.pixel_pitch_mm
@@ -1892,9 +1896,6 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     -------
     Measurement
     """
-    from lfcam.measure.kernels import keep_large_buffers
-
-    keep_large_buffers()  # the models' large temporaries reused, not faulted in afresh
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)

@@ -235,8 +235,10 @@ def keep_large_buffers() -> None:
     arrays. glibc maps each such block from the kernel and unmaps it when freed, so every
     evaluation touches fresh pages, which the kernel faults in and zeroes: 15 % of a large
     line region's CPU (175-182 → 148-150 ms; docs/distance.md, "Speed at stop 42"). From the
-    heap the same memory is reused. Nothing to do off glibc (no ``mallopt``: macOS,
-    Windows), or with ``LFCAM_MALLOC=default`` in the environment.
+    heap the same memory is reused. Called by every
+    :class:`~lfcam.measure.fastfit.LensletModel` and by :func:`warm_up`. Nothing to do off
+    glibc (no ``mallopt``: macOS, Windows), or with ``LFCAM_MALLOC=default`` in the
+    environment.
     """
     if _ALLOCATOR:
         return
