@@ -64,7 +64,8 @@ def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n, kappa):
     offset = 0.5 * ((n + 1) % 2)  # the sub-cell centres: (index + ½)/n − ½ modulo 1
     u, v, w, rows, du = cell_samples(cx[None], cy[None], boxes,
                                      np.array([[centre[0], centre[1], reach]]), origin, basis,
-                                     np.linalg.inv(basis), n)
+                                     np.linalg.inv(basis), n,
+                                     np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=bool))
     r = np.hypot(u, v)
     inside = r < 1.0 - 1e-9  # (samples beyond the rim are placed on it, with their share)
     x = centre[0] + scale * (1.0 + kappa * r * r) * u
@@ -287,7 +288,8 @@ def test_large_line_blur_behind_focus_is_fitted_on_the_cells(monkeypatch):
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
     assert best.kind == "line" and best.status == "ok"
     cells = sorted({m.cells for m in built if m.cells})
-    assert cells == [ff.LINE_CELLS_COARSE, ff.LINE_CELLS_FINE, ff.LINE_CELLS_SETTLE]
+    # (a rectangular lattice: the fine model's n where the cells lit whole are integrated)
+    assert cells == sorted([ff.LINE_CELLS_COARSE, ff.LINE_CELLS_FINE_WHOLE, ff.LINE_CELLS_SETTLE])
     assert not any(m.folded for m in built if m.cells and m.evaluations)
     err = best.distance_mm - 2900.0
     assert abs(err) < 0.002 * 2900.0
@@ -355,3 +357,83 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
     assert not fine.folded
     assert abs(q_min[0] - q[0]) < 2e-4
     assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
+
+
+def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
+    """deposit_cells of one whole cell (weight 1) and deposit_moments of ``dense``² samples
+    spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,
+    lattice pitch 10 mm, the cell at the lattice origin, so that a landing's pixel
+    coordinates are its offsets)."""
+    from lfcam.measure.kernels import deposit_cells, deposit_moments
+
+    eye10 = 10.0 * np.eye(2)
+    inv = np.linalg.inv(eye10)
+    zero = np.zeros(1, dtype=np.int64)
+    out = deposit_cells(np.zeros((len(centres_px), 4)), zero, np.zeros(1), np.zeros(1),
+                        np.array([spot_centre[0]]), np.array([spot_centre[1]]), np.ones(1),
+                        np.array([e], dtype=float), zero, np.zeros(2), eye10, 1.0, 0.0, 0.0,
+                        0, 0, labels, centres_px, 10.0)
+    t = (np.arange(dense) + 0.5) / dense - 0.5
+    a, b = (g.ravel() for g in np.meshgrid(t, t))
+    sx = spot_centre[0] + a * e[0] + b * e[2]
+    sy = spot_centre[1] + a * e[1] + b * e[3]
+    n = sx.size
+    ref = deposit_moments(np.zeros(n), np.zeros(n), sx, sy, np.full(n, 1.0 / n),
+                          np.zeros(n, dtype=np.int64), np.ones(1), zero, 1, np.zeros(2), eye10,
+                          inv, True, 10.0, 10.0, 1.0, 0.0, 0.0, 0, 0, s_px, labels, centres_px,
+                          10.0)
+    return out, ref
+
+
+def test_whole_cell_deposit_is_the_limit_of_dense_samples():
+    # a sheared parallelogram 1.3 × 0.9 px across a pixel corner, one lenslet's pixels: the
+    # trapezoid marginals against 57 600 samples of the same parallelogram, each binned to
+    # its pixel (the samples' own rule converges as 1/dense)
+    labels = np.zeros((12, 12), dtype=np.int64)
+    centres = np.array([[5.2, 5.7]])
+    out, ref = _deposit_pair((5.45, 4.62), (1.1, 0.35, -0.3, 0.8), labels, centres)
+    assert np.allclose(out, ref, rtol=0, atol=2e-5)
+    # an upright square across two lenslets' pixels: each pixel its column's × its row's
+    # share (exact for an upright rectangle), against samples whose boxes tile it exactly
+    labels[:, 6:] = 1
+    centres = np.array([[3.0, 5.0], [9.0, 5.0]])
+    out, ref = _deposit_pair((5.8, 4.3), (1.2, 0.0, 0.0, 1.2), labels, centres, s_px=1.2 / 240)
+    assert abs(out[0, 0] - 0.25) < 1e-12  # (5.5 − 5.2) / 1.2 in the left lenslet's pixels
+    assert np.allclose(out, ref, rtol=0, atol=1e-9)
+
+
+def test_whole_cells_are_closer_to_a_dense_cell_sample(monkeypatch):
+    # system 2's point at 3400 mm behind a 1 m focus (~490 lenslets): the cells it lights whole
+    # integrated by the 2 × 2 Gauss rule against every cell sampled 24 × 24, on those cells'
+    # lenslets (whose light comes from their own cell alone); the sampled model at the same n
+    # leaves several times the difference there (docs/distance.md, "Cells integrated whole")
+    prof, geom = _system2()
+    mom = _moments_box(prof, geom)
+    pts = _line_points(prof, 3400.0, count=1)
+    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
+    model = ff.LensletModel(prof, geom, mom, 1000, cells=4)
+    u, v, w, rows, du, maps, args, whole = model._cell_samples(pts)
+    lat = model.lattice
+    nodes = lat.origin + np.column_stack([whole[1], whole[2]]) @ lat.basis.T
+    lens = geom.lens_centres_mm[mom.ids]
+    fed = np.argmin(((lens[:, None, :] - nodes[None]) ** 2).sum(-1), axis=0)
+    monkeypatch.setattr(ff, "CELLS_WHOLE", False)
+    ref = ff.LensletModel(prof, geom, mom, 1000, cells=24).simulate(pts)
+    lit = ref[:, 0] > 0.05 * ref[:, 0].max()
+    # half the lit cells whole, and the pupil's area in all (samples and Gauss points) π
+    assert len(fed) > 0.45 * np.count_nonzero(lit)
+    assert abs((w.sum() + whole[5].sum()) / math.pi - 1.0) < 1e-4
+    want = ref[fed] / ref[fed, 0].sum()
+    sampled = {n: ff.LensletModel(prof, geom, mom, 1000, cells=n).simulate(pts)[fed]
+               for n in (4, 6)}
+    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
+    for n in (4, 6):
+        model = ff.LensletModel(prof, geom, mom, 1000, cells=n)
+        got = model.simulate(pts)[fed]
+        assert not model.folded
+        e_whole = np.linalg.norm(got / got[:, 0].sum() - want) / np.linalg.norm(want)
+        e_sampled = (np.linalg.norm(sampled[n] / sampled[n][:, 0].sum() - want)
+                     / np.linalg.norm(want))
+        # (measured 1.8e-4 at either n, against 1.4e-3 and 8.5e-4 sampled)
+        assert e_whole < 3e-4
+        assert e_whole < 0.25 * e_sampled

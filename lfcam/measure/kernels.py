@@ -279,8 +279,13 @@ def warm_up() -> None:
     pupil_maps(np.array([[0.0, 0.0, -10.0]]), np.zeros(1), table, np.zeros((1, 1)), 0, 1.0, 1.0,
                0.0, 1.0)
     terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
-    cell_samples(np.zeros((1, terms)), np.zeros((1, terms)), np.zeros((1, 4)), np.zeros((1, 3)),
-                 np.zeros(2), eye, eye, 2)
+    poly = np.zeros((1, terms))
+    cell_samples(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 2,
+                 np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_))
+    cell_centres(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 1.25)
+    deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
+                  np.zeros((1, 4)), np.zeros(1, dtype=np.int64), np.zeros(2), eye, 1.0, 0.0, 0.0,
+                  0, 0, np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
 
 
 def warm_up_frame() -> None:
@@ -868,7 +873,7 @@ def _newton_pass(c_x, c_y, gx, gy, u, v, det, step, count):
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n):
+def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, skip):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
     every lattice cell: the centres of the n × n sub-cells of the cell about each node, the
     points ``(i + (a + o)/n, j + (b + o)/n)`` in lattice coordinates (``a, b = 0 … n−1``: n²
@@ -889,6 +894,12 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n):
     Returns ``u, v`` (pupil, unit disc), ``w`` (the sample's pupil area, ``|∂u/∂X|`` × the
     sub-cell's area, times its share of the pupil's rim: linear over its own spacing there),
     ``rows`` (point index) and ``du`` (M,): each point's mean pupil spacing of its samples.
+
+    ``skip_grid`` (M, 5) and ``skip``: the cells left out (integrated whole by
+    :func:`cell_centres`): point ``p``'s nodes ``(i, j)``, ``i0 ≤ i < i0 + ni``, ``j0 ≤ j <
+    j0 + nj``, rows ``(i0, j0, ni, nj, offset)``, are left out where ``skip[offset + (i −
+    i0)·nj + (j − j0)]`` is set; a sub-grid point's node is its nearest (rectangular lattice
+    only: on a hexagonal one no cell is left out, ``ni = 0``).
     """
     m = cx.shape[0]
     area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) / (n * n)
@@ -973,6 +984,12 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n):
                 if (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi
                         or ox * ox + oy * oy > r2):
                     continue
+                if skip_grid[p, 2] > 0:
+                    ni = int(math.floor(s + 0.5)) - skip_grid[p, 0]
+                    nj = int(math.floor(t + 0.5)) - skip_grid[p, 1]
+                    if (0 <= ni < skip_grid[p, 2] and 0 <= nj < skip_grid[p, 3]
+                            and skip[skip_grid[p, 4] + ni * skip_grid[p, 3] + nj]):
+                        continue
                 ex = gx - c_x[0]
                 ey = gy - c_y[0]
                 u = (a22 * ex - a12 * ey) / det0
@@ -1045,4 +1062,339 @@ def _grow(a, cap):
 def _grow_int(a, cap):
     out = np.empty(cap, dtype=np.int64)
     out[: a.size] = a
+    return out
+
+
+# ----------------------------------------------------------------------------- whole cells
+CELL_WHOLE_MARGIN = 1.25  # a cell is integrated whole where its pupil patch (its corners'
+#                           preimages by the map's linear part at its centre), this much
+#                           wider, lies inside the pupil (docs/distance.md, "Cells
+#                           integrated whole (stop 43)")
+CELL_WHOLE_MAX_PATCH = 0.1  # ... and whose patch reaches at most this far (pupil radii): the
+#                             2 × 2 Gauss rule leaves 1.4 % of a cell's light on patches of
+#                             0.25 (a small blur: 5 whole cells)
+
+
+@njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
+    """The lattice cells each point source lights whole, on a rectangular lattice (the cell
+    about each node is the parallelogram ``node + [−½, ½]·b₁ + [−½, ½]·b₂``), and the four
+    pupil points of each one's 2 × 2 Gauss rule.
+
+    Each node inside the point's box and reach (as :func:`cell_samples`) is mapped back to the
+    unit pupil disc through the inverse of the point's polynomial pupil → MLA map ``(cx[p],
+    cy[p])`` by Newton (:func:`_newton_pass`). Where the preimages of the cell's corners by
+    the map's linear part there reach within ``1 − r`` of the pupil's centre with ``margin``
+    to spare (``r`` the node's pupil radius), the whole cell is lit. Its light is then
+    integrated by the 2 × 2 Gauss–Legendre rule on the cell (the points ``node ± g·b₁ ±
+    g·b₂``, g = 1/(2√3), each mapped back by Newton from the linear part's preimage): exact
+    for a density and a landing cubic across the cell, where the midpoint rule leaves the
+    density's curvature (1.8e-3 of a lenslet's light at the centre of a large blur behind
+    focus; docs/distance.md, "Cells integrated whole (stop 43)").
+
+    Returns ``rows`` (point), ``ci, cj`` (the cell's lattice indices), ``u, v`` (n, 4: the
+    Gauss points' pupil points, in the order (−,−), (−,+), (+,−), (+,+) of the signs of b₁,
+    b₂), ``w`` (n, 4: each one's pupil area, ``|cell| / 4 / |det ∂X/∂u|``), and
+    ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these cells left out of its samples).
+    """
+    m = cx.shape[0]
+    cell_area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0])
+    h1x = 0.5 * (basis[0, 0] + basis[0, 1])
+    h1y = 0.5 * (basis[1, 0] + basis[1, 1])
+    h2x = 0.5 * (basis[0, 0] - basis[0, 1])
+    h2y = 0.5 * (basis[1, 0] - basis[1, 1])
+    g = 0.5 / math.sqrt(3.0)
+    grid = np.zeros((m, 5), dtype=np.int64)
+    cap = 1024
+    rows = np.empty(cap, dtype=np.int64)
+    ci = np.empty(cap)
+    cj = np.empty(cap)
+    us = np.empty((cap, 4))
+    vs = np.empty((cap, 4))
+    ws = np.empty((cap, 4))
+    skip = np.zeros(1024, dtype=np.bool_)
+    count = 0
+    moff = 0
+    ccap = 256
+    gxs = np.empty(ccap)
+    gys = np.empty(ccap)
+    cu = np.empty(ccap)
+    cv = np.empty(ccap)
+    cdet = np.empty(ccap)
+    cstep = np.empty(ccap)
+    ni_ = np.empty(ccap, dtype=np.int64)
+    nj_ = np.empty(ccap, dtype=np.int64)
+    for p in range(m):
+        c_x = cx[p]
+        c_y = cy[p]
+        a11, a12, a21, a22 = c_x[2], c_x[1], c_y[2], c_y[1]
+        det0 = a11 * a22 - a12 * a21
+        if det0 == 0.0 or not math.isfinite(det0):
+            continue
+        x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
+        s_lo = math.inf
+        s_hi = -math.inf
+        t_lo = math.inf
+        t_hi = -math.inf
+        for cxr in (x_lo, x_hi):
+            for cyr in (y_lo, y_hi):
+                ex = cxr - origin[0]
+                ey = cyr - origin[1]
+                s = inverse[0, 0] * ex + inverse[0, 1] * ey
+                t = inverse[1, 0] * ex + inverse[1, 1] * ey
+                s_lo = min(s_lo, s)
+                s_hi = max(s_hi, s)
+                t_lo = min(t_lo, t)
+                t_hi = max(t_hi, t)
+        i0 = int(math.floor(s_lo)) - 1
+        j0 = int(math.floor(t_lo)) - 1
+        ni = int(math.ceil(s_hi)) + 2 - i0
+        nj = int(math.ceil(t_hi)) + 2 - j0
+        grid[p, 0] = i0
+        grid[p, 1] = j0
+        grid[p, 2] = ni
+        grid[p, 3] = nj
+        grid[p, 4] = moff
+        if moff + ni * nj > skip.size:
+            big = skip.size
+            while moff + ni * nj > big:
+                big *= 2
+            grown = np.zeros(big, dtype=np.bool_)
+            grown[:moff] = skip[:moff]
+            skip = grown
+        skip[moff:moff + ni * nj] = False
+        moff += ni * nj
+        if 5 * ni * nj > ccap:
+            while 5 * ni * nj > ccap:
+                ccap *= 2
+            gxs = np.empty(ccap)
+            gys = np.empty(ccap)
+            cu = np.empty(ccap)
+            cv = np.empty(ccap)
+            cdet = np.empty(ccap)
+            cstep = np.empty(ccap)
+            ni_ = np.empty(ccap, dtype=np.int64)
+            nj_ = np.empty(ccap, dtype=np.int64)
+        r2 = reach[p, 2] * reach[p, 2]
+        nc = 0
+        for a in range(ni):
+            for b in range(nj):
+                i = float(i0 + a)
+                j = float(j0 + b)
+                gx = origin[0] + basis[0, 0] * i + basis[0, 1] * j
+                gy = origin[1] + basis[1, 0] * i + basis[1, 1] * j
+                ox = gx - reach[p, 0]
+                oy = gy - reach[p, 1]
+                if (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi
+                        or ox * ox + oy * oy > r2):
+                    continue
+                ex = gx - c_x[0]
+                ey = gy - c_y[0]
+                u = (a22 * ex - a12 * ey) / det0
+                v = (-a21 * ex + a11 * ey) / det0
+                if u * u + v * v > 2.25:  # (far outside: the linear part is within 0.1)
+                    continue
+                gxs[nc] = gx
+                gys[nc] = gy
+                cu[nc] = u
+                cv[nc] = v
+                ni_[nc] = a
+                nj_[nc] = b
+                nc += 1
+        if nc == 0:
+            continue
+        for _ in range(CELL_NEWTON):
+            _newton_pass(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc)
+            left = 0
+            for k in range(nc):
+                left += not (cstep[k] < CELL_NEWTON_STEP)
+            if left == 0:
+                break
+        # the whole cells, and their Gauss points' starts (appended after the nodes)
+        nw = 0
+        for k in range(nc):
+            if not (cstep[k] < CELL_NEWTON_STEP):
+                continue
+            u = cu[k]
+            v = cv[k]
+            _, _, j11, j12, j21, j22 = _map2(c_x, c_y, u, v)
+            d = j11 * j22 - j12 * j21
+            if d == 0.0 or not math.isfinite(d):
+                continue
+            ia = j22 / d
+            ib = -j12 / d
+            ic = -j21 / d
+            ie = j11 / d
+            p1 = math.hypot(ia * h1x + ib * h1y, ic * h1x + ie * h1y)
+            p2 = math.hypot(ia * h2x + ib * h2y, ic * h2x + ie * h2y)
+            if (math.sqrt(u * u + v * v) + margin * max(p1, p2) >= 1.0
+                    or max(p1, p2) > CELL_WHOLE_MAX_PATCH):
+                continue
+            ni_[nw] = ni_[k]
+            nj_[nw] = nj_[k]
+            for q in range(4):
+                s1 = 2.0 * (q >> 1) - 1.0
+                s2 = 2.0 * (q & 1) - 1.0
+                ox = g * (s1 * basis[0, 0] + s2 * basis[0, 1])
+                oy = g * (s1 * basis[1, 0] + s2 * basis[1, 1])
+                at = nc + 4 * nw + q
+                gxs[at] = gxs[k] + ox
+                gys[at] = gys[k] + oy
+                cu[at] = u + ia * ox + ib * oy
+                cv[at] = v + ic * ox + ie * oy
+            nw += 1
+        if nw == 0:
+            continue
+        # Newton on the Gauss points (from the linear part: 2-3 passes), and one more pass
+        # for the area element at the roots
+        gx4 = gxs[nc:nc + 4 * nw]
+        gy4 = gys[nc:nc + 4 * nw]
+        u4 = cu[nc:nc + 4 * nw]
+        v4 = cv[nc:nc + 4 * nw]
+        det4 = cdet[nc:nc + 4 * nw]
+        step4 = cstep[nc:nc + 4 * nw]
+        for _ in range(CELL_NEWTON):
+            _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw)
+            left = 0
+            for k in range(4 * nw):
+                left += not (step4[k] < CELL_NEWTON_STEP)
+            if left == 0:
+                break
+        _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw)
+        if count + nw > cap:
+            while count + nw > cap:
+                cap *= 2
+            rows = _grow_int(rows, cap)
+            ci = _grow(ci, cap)
+            cj = _grow(cj, cap)
+            us = _grow2(us, cap)
+            vs = _grow2(vs, cap)
+            ws = _grow2(ws, cap)
+        for k in range(nw):
+            ok = True
+            for q in range(4):
+                at = 4 * k + q
+                ok &= (step4[at] < CELL_NEWTON_STEP) & (det4[at] != 0.0)
+                ok &= u4[at] * u4[at] + v4[at] * v4[at] < 1.0
+            if not ok:
+                continue  # (left to the samples)
+            rows[count] = p
+            ci[count] = float(i0 + ni_[k])
+            cj[count] = float(j0 + nj_[k])
+            for q in range(4):
+                at = 4 * k + q
+                us[count, q] = u4[at]
+                vs[count, q] = v4[at]
+                ws[count, q] = 0.25 * cell_area / abs(det4[at])
+            skip[grid[p, 4] + ni_[k] * nj + nj_[k]] = True
+            count += 1
+    return (rows[:count], ci[:count], cj[:count], us[:count], vs[:count], ws[:count], grid,
+            skip[:max(moff, 1)])
+
+
+@njit(cache=True, nogil=True)
+def _grow2(a, cap):
+    out = np.empty((cap, a.shape[1]))
+    out[: a.shape[0]] = a
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sum_of_uniforms_cdf(t, a, b):
+    """CDF at ``t`` of the sum of two uniform variables on [−a, a] and [−b, b], a ≥ b ≥ 0
+    (the trapezoid's integral: piecewise quadratic)."""
+    if a <= 0.0:
+        return 1.0 if t >= 0.0 else 0.0
+    at = abs(t)
+    if at >= a + b:
+        g = 0.5
+    elif at <= a - b:
+        g = at / (2.0 * a)
+    else:
+        lo = a - b
+        g = lo / (2.0 * a) + ((a + b) * (at - lo) - 0.5 * (at * at - lo * lo)) / (4.0 * a * b)
+    return 0.5 + g if t >= 0.0 else 0.5 - g
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax, ay, x0, y0,
+                  labels, centres_px, pitch_px):
+    """Add whole cells' light (:func:`cell_centres`) to the moments ``out`` (groups·K, 4), as
+    :func:`deposit_moments` would in the limit of infinitely many samples a cell: cell ``c``
+    of point ``rows[c]`` (group ``group[rows[c]]``), lattice node ``(ci, cj)``, weight
+    ``wt``, lands as a uniform parallelogram of sides ``e[c, 0:2]``, ``e[c, 2:4]`` (sensor
+    mm) about the node plus ``(sx, sy)``. Each pixel's share is the parallelogram's area in
+    it: along x the sum of two uniform offsets (a trapezoid), along y the same. Where the
+    pixels it covers are one lenslet's, the moments need only these two marginals; where they
+    are not (rare: a whole cell's light lies well inside its micro-image), each pixel takes
+    the product of its column's and its row's shares."""
+    n_k = centres_px.shape[0]
+    inv_pitch = 1.0 / pitch_px
+    inv_pp = 1.0 / pp
+    h, wd = labels.shape
+    wxs = np.empty(64)
+    wys = np.empty(64)
+    for c in range(rows.size):
+        w = wt[c]
+        base = group[rows[c]] * n_k
+        px = (origin[0] + basis[0, 0] * ci[c] + basis[0, 1] * cj[c] + sx[c]) * inv_pp + ax - x0
+        py = (origin[1] + basis[1, 0] * ci[c] + basis[1, 1] * cj[c] + sy[c]) * inv_pp + ay - y0
+        ax1 = 0.5 * abs(e[c, 0]) * inv_pp
+        ax2 = 0.5 * abs(e[c, 2]) * inv_pp
+        ay1 = 0.5 * abs(e[c, 1]) * inv_pp
+        ay2 = 0.5 * abs(e[c, 3]) * inv_pp
+        hxa = max(ax1, ax2)
+        hxb = min(ax1, ax2)
+        hya = max(ay1, ay2)
+        hyb = min(ay1, ay2)
+        c_lo = int(math.floor(px - hxa - hxb + 0.5))
+        c_hi = int(math.floor(px + hxa + hxb + 0.5))
+        r_lo = int(math.floor(py - hya - hyb + 0.5))
+        r_hi = int(math.floor(py + hya + hyb + 0.5))
+        if c_hi - c_lo >= wxs.size or r_hi - r_lo >= wys.size:
+            wxs = np.empty(2 * max(c_hi - c_lo, r_hi - r_lo) + 2)
+            wys = np.empty(wxs.size)
+        f0 = _sum_of_uniforms_cdf(c_lo - 0.5 - px, hxa, hxb)
+        for col in range(c_lo, c_hi + 1):
+            f1 = _sum_of_uniforms_cdf(col + 0.5 - px, hxa, hxb)
+            wxs[col - c_lo] = f1 - f0
+            f0 = f1
+        f0 = _sum_of_uniforms_cdf(r_lo - 0.5 - py, hya, hyb)
+        for row in range(r_lo, r_hi + 1):
+            f1 = _sum_of_uniforms_cdf(row + 0.5 - py, hya, hyb)
+            wys[row - r_lo] = f1 - f0
+            f0 = f1
+        one = (c_lo >= 0) & (c_hi < wd) & (r_lo >= 0) & (r_hi < h)
+        k = -1
+        if one:
+            k = labels[r_lo, c_lo]
+            one = k >= 0
+            for row in range(r_lo, r_hi + 1):
+                for col in range(c_lo, c_hi + 1):
+                    one &= labels[row, col] == k
+        if one:
+            cxk = centres_px[k, 0]
+            cyk = centres_px[k, 1]
+            mx = 0.0
+            mxx = 0.0
+            for col in range(c_lo, c_hi + 1):
+                d = (col + x0 - cxk) * inv_pitch
+                mx += wxs[col - c_lo] * d
+                mxx += wxs[col - c_lo] * d * d
+            my = 0.0
+            myy = 0.0
+            for row in range(r_lo, r_hi + 1):
+                d = (row + y0 - cyk) * inv_pitch
+                my += wys[row - r_lo] * d
+                myy += wys[row - r_lo] * d * d
+            n = base + k
+            out[n, 0] += w
+            out[n, 1] += w * mx
+            out[n, 2] += w * my
+            out[n, 3] += w * (mxx + myy)
+            continue
+        for row in range(max(r_lo, 0), min(r_hi + 1, h)):
+            for col in range(max(c_lo, 0), min(c_hi + 1, wd)):
+                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row,
+                       w * wxs[col - c_lo] * wys[row - r_lo])
     return out
