@@ -107,6 +107,10 @@ LINE_STRETCHED = 0.1  # a point footprint elongated more (off axis): the line's 
 LINE_STRETCH_MIN_LIT = 40  # ... on blurs of this many lit lenslets or more
 LINE_STRETCH_AXIS_DEG = 20.0  # ... whose footprint's axis is within this of the stretch's
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
+LINE_CELLS_RACE_ITERATIONS = 1  # ... on the cells, where the coarse stage's own Gauss–Newton
+#                                 steps go on from the leader (168 grid lines: the same answers
+#                                 but one, 3-10 ms less a line; docs/distance.md, "Cells
+#                                 integrated whole (stop 43)")
 LINE_RACE_HOPELESS = 100.0  # the starts race from the best placed; one whose misfit² where
 #                             it starts is over this × the best race's end is not raced (a
 #                             380 mm line in front of a 1 m focus: 3 of its 4 starts, 0.16-0.21
@@ -1795,8 +1799,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         race = model(coarse_rays, share_c, n_coarse)
         race_c, race_j = line_model(race, frame, n_coarse, steps)
         settling.append(race)
-    race_iterations = (LINE_RACE_ITERATIONS if coarse.cells or len(starts) > 1
-                       else COARSE_ITERATIONS)
+    race_iterations = (LINE_CELLS_RACE_ITERATIONS if coarse.cells
+                       else LINE_RACE_ITERATIONS if len(starts) > 1 else COARSE_ITERATIONS)
     # the starts race from the best placed: one whose misfit² where it starts is over
     # LINE_RACE_HOPELESS × the best race's end does not run (a far start, or an axis turned
     # the wrong way)
