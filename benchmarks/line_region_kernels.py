@@ -48,6 +48,8 @@ KERNELS = {  # kernel: how its items are counted (the size of which argument or 
     "trace_sample_rays": ("out", 0),
     "trace_model_rays": ("out", 0),
     "deposit_moments": ("arg", 0),
+    "cell_centres": ("out", 0),
+    "deposit_cells": ("arg", 1),
 }
 
 
