@@ -895,6 +895,40 @@ def _newton_pass(c_x, c_y, gx, gy, u, v, det, step, count):
         step[k] = abs(su) + abs(sv)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _newton_until(c_x, c_y, gx, gy, u, v, det, step, count, reach2):
+    """Newton passes (:func:`_newton_pass`), at most :data:`CELL_NEWTON`, until every point
+    whose iterate lies within ``reach2`` (squared pupil radii) has a step under
+    :data:`CELL_NEWTON_STEP`."""
+    for _ in range(CELL_NEWTON):
+        _newton_pass(c_x, c_y, gx, gy, u, v, det, step, count)
+        left = 0
+        for k in range(count):
+            left += (not (step[k] < CELL_NEWTON_STEP)) & (u[k] * u[k] + v[k] * v[k] < reach2)
+        if left == 0:
+            break
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse):
+    """The lattice coordinates' ranges (s lo, s hi, t lo, t hi) over an MLA box's corners."""
+    s_lo = math.inf
+    s_hi = -math.inf
+    t_lo = math.inf
+    t_hi = -math.inf
+    for cxr in (x_lo, x_hi):
+        for cyr in (y_lo, y_hi):
+            ex = cxr - origin[0]
+            ey = cyr - origin[1]
+            s = inverse[0, 0] * ex + inverse[0, 1] * ey
+            t = inverse[1, 0] * ex + inverse[1, 1] * ey
+            s_lo = min(s_lo, s)
+            s_hi = max(s_hi, s)
+            t_lo = min(t_lo, t)
+            t_hi = max(t_hi, t)
+    return s_lo, s_hi, t_lo, t_hi
+
+
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, skip):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
@@ -955,20 +989,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
             continue
         x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
         # the box's corners in lattice coordinates bound the cells to visit
-        s_lo = math.inf
-        s_hi = -math.inf
-        t_lo = math.inf
-        t_hi = -math.inf
-        for cxr in (x_lo, x_hi):
-            for cyr in (y_lo, y_hi):
-                ex = cxr - origin[0]
-                ey = cyr - origin[1]
-                s = inverse[0, 0] * ex + inverse[0, 1] * ey
-                t = inverse[1, 0] * ex + inverse[1, 1] * ey
-                s_lo = min(s_lo, s)
-                s_hi = max(s_hi, s)
-                t_lo = min(t_lo, t)
-                t_hi = max(t_hi, t)
+        s_lo, s_hi, t_lo, t_hi = _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse)
         r2 = reach[p, 2] * reach[p, 2]
         nc = 0
         # the sub-grid is a finer lattice: row by row (fixed s index), the points of the row
@@ -1029,14 +1050,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
         # Newton, one pass over all the candidates an iteration, until each within the reach
         # has a step under CELL_NEWTON_STEP (the root then within ~step² of it); those beyond
         # it lie past the pupil's rim (dropped below, converged or not)
-        for _ in range(CELL_NEWTON):
-            _newton_pass(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc)
-            left = 0
-            for k in range(nc):
-                left += (not (cstep[k] < CELL_NEWTON_STEP)) & (cu[k] * cu[k] + cv[k] * cv[k]
-                                                               < reach2)
-            if left == 0:
-                break
+        _newton_until(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc, reach2)
         for k in range(nc):
             conv[k] = (cstep[k] < CELL_NEWTON_STEP) & (cu[k] * cu[k] + cv[k] * cv[k] <= 16.0)
         # the area element at the roots: one more pass (it moves them by ~1e-8)
@@ -1155,20 +1169,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
         if det0 == 0.0 or not math.isfinite(det0):
             continue
         x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
-        s_lo = math.inf
-        s_hi = -math.inf
-        t_lo = math.inf
-        t_hi = -math.inf
-        for cxr in (x_lo, x_hi):
-            for cyr in (y_lo, y_hi):
-                ex = cxr - origin[0]
-                ey = cyr - origin[1]
-                s = inverse[0, 0] * ex + inverse[0, 1] * ey
-                t = inverse[1, 0] * ex + inverse[1, 1] * ey
-                s_lo = min(s_lo, s)
-                s_hi = max(s_hi, s)
-                t_lo = min(t_lo, t)
-                t_hi = max(t_hi, t)
+        s_lo, s_hi, t_lo, t_hi = _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse)
         i0 = int(math.floor(s_lo)) - 1
         j0 = int(math.floor(t_lo)) - 1
         ni = int(math.ceil(s_hi)) + 2 - i0
@@ -1226,13 +1227,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
                 nc += 1
         if nc == 0:
             continue
-        for _ in range(CELL_NEWTON):
-            _newton_pass(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc)
-            left = 0
-            for k in range(nc):
-                left += not (cstep[k] < CELL_NEWTON_STEP)
-            if left == 0:
-                break
+        _newton_until(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc, math.inf)
         # the whole cells, and their Gauss points' starts (appended after the nodes)
         nw = 0
         for k in range(nc):
@@ -1276,13 +1271,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
         v4 = cv[nc:nc + 4 * nw]
         det4 = cdet[nc:nc + 4 * nw]
         step4 = cstep[nc:nc + 4 * nw]
-        for _ in range(CELL_NEWTON):
-            _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw)
-            left = 0
-            for k in range(4 * nw):
-                left += not (step4[k] < CELL_NEWTON_STEP)
-            if left == 0:
-                break
+        _newton_until(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw, math.inf)
         _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw)
         if count + nw > cap:
             while count + nw > cap:
