@@ -14,7 +14,7 @@ the least CPU is reported:
 * each model the fit evaluated (the point fit's and the line fit's, ray-sampled or on the
   cells with n × n samples a cell): point evaluations and CPU.
 
-docs/distance.md, "Speed at stop 42".
+docs/distance.md, "Speed at stop 42" and "Cells integrated whole (stop 43)".
 """
 
 from __future__ import annotations

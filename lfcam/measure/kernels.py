@@ -27,6 +27,11 @@ Loops that numpy can only express as chains of frame- or ray-sized temporaries:
      ``(dx, dy)`` the pixel centre's offset from the micro-image centre in pitches.
 
   With numpy this cost ~75 % of a model evaluation.
+* :func:`cell_samples`, :func:`cell_centres`, :func:`deposit_cells`: a point's pupil samples
+  fixed on the lenslet cells (n × n a cell), and on a rectangular lattice the cells it lights
+  whole, integrated by a 2 × 2 Gauss rule and landed as their cell's linear image on the
+  sensor (docs/distance.md, "Samples fixed on the lenslet cells", "Cells integrated whole
+  (stop 43)").
 
 The numpy chains stay (:mod:`lfcam.optics.raytrace`, :mod:`lfcam.measure.fastfit` with
 ``kernel="numpy"``) as the references the tests compare these kernels with
