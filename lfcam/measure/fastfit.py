@@ -147,9 +147,9 @@ LINE_CELLS_COARSE = 2  # ... n of the coarse stage's model,
 LINE_CELLS_FINE = 4  # ... of the fine model,
 LINE_CELLS_FINE_WHOLE = 3  # ... of the fine model where the cells lit whole are integrated
 #                            whole (CELLS_WHOLE, rectangular lattice): the settled test's
-#                            answers the same (noise-free, 8 lines: mean |error| 0.019 % against
-#                            0.020 % at n = 4), 13 ms less a line (docs/distance.md, "Cells
-#                            integrated whole (stop 43)")
+#                            answers within 0.008 % of n = 4's (8 noise-free lines: mean
+#                            |error| 0.013 % against 0.014 %), 14 ms less a line
+#                            (docs/distance.md, "Cells integrated whole (stop 43)")
 LINE_CELLS_SETTLE = 6  # ... of the settled test's model (the answer steps to its minimum),
 LINE_CELLS_COARSE_STEP_LOG = 1e-3  # ... the coarse Gauss–Newton steps end on a step under this
 #                                   (log distance; the n = 2 model's own bias is 0.4-0.7 %)
@@ -228,8 +228,8 @@ CELL_MAP_TOLERANCE = 0.01  # a point's polynomial map off its ring's traced rays
 #                            (pitches), or the cells do not apply
 CELL_AREA_TOLERANCE = 0.005  # a point's samples' pupil area within this share of π: one to one
 CELLS_WHOLE = True  # on a rectangular lattice, the cells a point lights whole are integrated
-#                     exactly, the rest sampled (kernels.cell_centres; docs/distance.md, "Cells
-#                     integrated whole (stop 43)")
+#                     by a 2 × 2 Gauss rule, the rest sampled (kernels.cell_centres;
+#                     docs/distance.md, "Cells integrated whole (stop 43)")
 _GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points, ± this × a cell's side
 CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
@@ -348,7 +348,7 @@ class LensletModel:
         # moves, so no sample crosses a cell border and the Jacobian by differences is not
         # the sample's noise (docs/distance.md, "Samples fixed on the lenslet cells")
         self.cells = int(cells)
-        self.whole = CELLS_WHOLE  # ... the cells lit whole integrated exactly (rectangular)
+        self.whole = CELLS_WHOLE  # ... the cells lit whole by a Gauss rule (rectangular)
         self.folded = False  # cells did not apply (:meth:`invertible`): ray-sampled from then on
         # turn_every = c > 0: the k-th point of each run of c stacked points (a line's k-th
         # point, in every set of a Jacobian or a scan) has its pupil sample turned by
@@ -546,7 +546,12 @@ class LensletModel:
         (behind focus to 1e-4); where the map folds they do not (0.25–0.95 measured in front
         of a 1 m focus), and :data:`CELL_AREA_TOLERANCE` tells the two apart.
 
-        Returns ``(u, v, w, rows, du, maps, trace_args)`` (see ``cell_samples``).
+        On a rectangular lattice (:data:`CELLS_WHOLE`) the cells a point lights whole are
+        left out of the samples and integrated by a Gauss rule
+        (:func:`lfcam.measure.kernels.cell_centres`).
+
+        Returns ``(u, v, w, rows, du, maps, trace_args, whole)`` (see ``cell_samples``;
+        ``whole``: ``cell_centres``'s output, or None).
         """
         from lfcam.measure.kernels import (
             CELL_WHOLE_MARGIN,
@@ -697,9 +702,12 @@ class LensletModel:
                                                             v4.ravel() * half, *trace_args)
             cell, q = np.divmod(ray, 4)
             wq = wt * w4.ravel()[ray]
+            if not np.all(np.bincount(cell, minlength=nw) == 4):
+                # a Gauss ray stopped inside the lens (a cell lit whole is not): the cells do
+                # not apply, as where a pupil is vignetted
+                self.folded = True
+                return self._simulate_compiled(points, group, groups, np.zeros_like(out))
             weight = np.bincount(cell, wq, minlength=nw)
-            full = np.bincount(cell, minlength=nw) == 4  # (every Gauss ray passes: see
-            #                                                cell_centres)
             s1 = np.array([-1.0, -1.0, 1.0, 1.0])[q] / (4.0 * _GAUSS_2)
             s2 = np.array([-1.0, 1.0, -1.0, 1.0])[q] / (4.0 * _GAUSS_2)
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -711,8 +719,7 @@ class LensletModel:
                                      np.bincount(cell, s2 * sy, minlength=nw)])
             ax, ay = p.sensor.axis_xy_px
             x0, y0 = self.mom.box[:2]
-            deposit_cells(out, rows_c[full], ci[full], cj[full], lx[full], ly[full],
-                          weight[full], np.ascontiguousarray(sides[full]),
+            deposit_cells(out, rows_c, ci, cj, lx, ly, weight, sides,
                           np.zeros(m, dtype=np.int64) if group is None
                           else np.asarray(group, dtype=np.int64),
                           lat.origin, lat.basis, float(p.sensor.pixel_pitch_mm), float(ax),
