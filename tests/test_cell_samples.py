@@ -364,7 +364,7 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
     spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,
     lattice pitch 10 mm, the cell at the lattice origin, so that a landing's pixel
     coordinates are its offsets)."""
-    from lfcam.measure.kernels import deposit_cells, deposit_moments, inner_pixels
+    from lfcam.measure.kernels import deposit_cells, deposit_moments
 
     eye10 = 10.0 * np.eye(2)
     inv = np.linalg.inv(eye10)
@@ -380,8 +380,8 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
     n = sx.size
     ref = deposit_moments(np.zeros(n), np.zeros(n), sx, sy, np.full(n, 1.0 / n),
                           np.zeros(n, dtype=np.int64), np.ones(1), zero, 1, np.zeros(2), eye10,
-                          inv, True, 10.0, 10.0, 1.0, 0.0, 0.0, 0, 0, s_px, labels,
-                          inner_pixels(labels), centres_px, 10.0)
+                          inv, True, 10.0, 10.0, 1.0, 0.0, 0.0, 0, 0, s_px, labels, centres_px,
+                          10.0)
     return out, ref
 
 
@@ -437,20 +437,3 @@ def test_whole_cells_are_closer_to_a_dense_cell_sample(monkeypatch):
         # (measured 1.8e-4 at either n, against 1.4e-3 and 8.5e-4 sampled)
         assert e_whole < 3e-4
         assert e_whole < 0.25 * e_sampled
-
-
-def test_inner_pixels_change_no_sum():
-    # the deposit's one-read path for pixels whose neighbourhood is one lenslet's
-    # (kernels.inner_pixels) adds the same terms in the same order as the four-label check
-    prof, geom = _system2()
-    mom = _moments_box(prof, geom)
-    pts = _line_points(prof, 3400.0)
-    inner = mom.inner
-    assert 0.5 < inner.mean() < 1.0  # (most of a box's pixels)
-    rays = ff.LensletModel(prof, geom, mom, 4000, turn_every=12).simulate(pts)
-    cells = ff.LensletModel(prof, geom, mom, 1000, cells=4, turn_every=12).simulate(pts)
-    mom.__dict__["inner"] = np.zeros_like(inner)
-    assert np.array_equal(rays, ff.LensletModel(prof, geom, mom, 4000, turn_every=12)
-                          .simulate(pts))
-    assert np.array_equal(cells, ff.LensletModel(prof, geom, mom, 1000, cells=4, turn_every=12)
-                          .simulate(pts))

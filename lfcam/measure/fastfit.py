@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -253,14 +252,6 @@ class _Moments:
     data: np.ndarray  # (K, 4)
     norm: float
     noise_sums: tuple[float, float] = (math.nan, math.nan)  # noise.moment_noise_sums
-
-    @cached_property
-    def inner(self) -> np.ndarray:
-        """(h, w) where a pixel's 3 × 3 neighbourhood is one lenslet's
-        (:func:`lfcam.measure.kernels.inner_pixels`)."""
-        from lfcam.measure.kernels import inner_pixels
-
-        return inner_pixels(self.labels)
 
 
 def _moments_of(centres_px, pitch_px, x_px, y_px, w, k, group=None, groups=1):
@@ -529,7 +520,7 @@ class LensletModel:
             np.asarray(group, dtype=np.int64), int(groups),
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
             float(ax), float(ay), int(x0), int(y0), float(s_px), self.mom.labels,
-            self.mom.inner, self.mom.centres_px, float(self.geom.pitch_px))
+            self.mom.centres_px, float(self.geom.pitch_px))
 
     def _cell_samples(self, points: np.ndarray):
         """Each point's pupil samples on the cells (``cells`` > 0), or ``None`` where a point's

@@ -146,14 +146,12 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
 # the same sums, 10-17 % less CPU
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basis, inverse,
-                    rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, inner, centres_px,
-                    pitch_px):
+                    rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px):
     """Moments ``(groups·K, 4)`` of rays hitting the MLA at ``(x, y)`` mm with sensor offsets
     ``(sx, sy)`` mm (``f_x`` × slope) and weights ``wt``, ray ``r`` from source point
     ``rows[r]``, whose rays are ``spacing[rows[r]]`` apart on the MLA and go to group
     ``group[rows[r]]`` (module docstring; per point, so that no ray-sized copy of either is
     made for each call). ``labels`` is the region box's compact lenslet map (−1 none),
-    ``inner`` (:func:`inner_pixels`) where a pixel's 3 × 3 neighbourhood is one lenslet's,
     ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the pixel pitch
     (mm)."""
     n_k = centres_px.shape[0]
@@ -197,9 +195,8 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             if ((0 <= min(ic, inx)) & (max(ic, inx) < wd) & (0 <= min(ir, iny))
                     & (max(ir, iny) < h)):
                 k = labels[ir, ic]
-                # (the pixel's neighbourhood one lenslet's: one read, not three)
-                if inner[ir, ic] or ((k >= 0) & (labels[ir, inx] == k) & (labels[iny, ic] == k)
-                                     & (labels[iny, inx] == k)):
+                if ((k >= 0) & (labels[ir, inx] == k) & (labels[iny, ic] == k)
+                        & (labels[iny, inx] == k)):
                     # the (up to) four pixels belong to one lenslet: one update
                     cxk = centres_px[k, 0]
                     cyk = centres_px[k, 1]
@@ -225,25 +222,6 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             if ex > 0 and ey > 0:
                 _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, iny,
                        w * ex * ey)
-    return out
-
-
-def inner_pixels(labels: np.ndarray) -> np.ndarray:
-    """Where a box's pixel and its eight neighbours all lie in one lenslet's micro-image
-    (``labels`` ≥ 0, the same; the box's border pixels never): :func:`deposit_moments` lands a
-    ray's pixel box (at most the pixel and three of its neighbours) there without reading
-    the neighbours' labels."""
-    out = np.zeros(labels.shape, dtype=np.bool_)
-    if labels.shape[0] < 3 or labels.shape[1] < 3:
-        return out
-    c = labels[1:-1, 1:-1]
-    same = c >= 0
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy or dx:
-                same &= labels[1 + dy:labels.shape[0] - 1 + dy,
-                               1 + dx:labels.shape[1] - 1 + dx] == c
-    out[1:-1, 1:-1] = same
     return out
 
 
@@ -294,8 +272,7 @@ def warm_up() -> None:
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
-                    np.zeros((1, 1), dtype=np.int64), np.zeros((1, 1), dtype=np.bool_),
-                    np.zeros((1, 2)), 1.0)
+                    np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
