@@ -229,7 +229,6 @@ CELL_AREA_TOLERANCE = 0.005  # a point's samples' pupil area within this share o
 CELLS_WHOLE = True  # on a rectangular lattice, the cells a point lights whole are integrated
 #                     by a 2 × 2 Gauss rule, the rest sampled (kernels.cell_centres;
 #                     docs/distance.md, "Cells integrated whole (stop 43)")
-_GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points, ± this × a cell's side
 CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
@@ -339,7 +338,6 @@ class LensletModel:
         # moves, so no sample crosses a cell border and the Jacobian by differences is not
         # the sample's noise (docs/distance.md, "Samples fixed on the lenslet cells")
         self.cells = int(cells)
-        self.whole = CELLS_WHOLE  # ... the cells lit whole by a Gauss rule (rectangular)
         self.folded = False  # cells did not apply (:meth:`invertible`): ray-sampled from then on
         # turn_every = c > 0: the k-th point of each run of c stacked points (a line's k-th
         # point, in every set of a Jacobian or a scan) has its pupil sample turned by
@@ -359,6 +357,8 @@ class LensletModel:
         self.s_px = min(0.9, self.spacing * mag)
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
         self.cell_shape = None if self.lattice is None else _cell_shape(self.lattice)
+        # the cells a point lights whole integrated by a Gauss rule (rectangular lattices)
+        self.whole = bool(CELLS_WHOLE and self.cell_shape is not None and self.cell_shape[2])
         self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
         self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
@@ -623,7 +623,7 @@ class LensletModel:
             area = None
         whole = None
         skip = no_skip
-        if self.whole and self.cell_shape[2]:
+        if self.whole:
             # the cells lit whole: integrated by a Gauss rule, their light spread over the
             # landing's linear image of the cell; the others sampled
             whole = cell_centres(cx, cy, boxes, *args, CELL_WHOLE_MARGIN)
@@ -651,7 +651,7 @@ class LensletModel:
         Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
         from then on (``folded``).
         """
-        from lfcam.measure.kernels import deposit_cells, trace_sample_rays
+        from lfcam.measure.kernels import CELL_GAUSS_2, deposit_cells, trace_sample_rays
 
         got = None if self.folded else self._cell_samples(points)
         if got is None:
@@ -699,8 +699,8 @@ class LensletModel:
                 self.folded = True
                 return self._simulate_compiled(points, group, groups, np.zeros_like(out))
             weight = np.bincount(cell, wq, minlength=nw)
-            s1 = np.array([-1.0, -1.0, 1.0, 1.0])[q] / (4.0 * _GAUSS_2)
-            s2 = np.array([-1.0, 1.0, -1.0, 1.0])[q] / (4.0 * _GAUSS_2)
+            s1 = np.array([-1.0, -1.0, 1.0, 1.0])[q] / (4.0 * CELL_GAUSS_2)
+            s2 = np.array([-1.0, 1.0, -1.0, 1.0])[q] / (4.0 * CELL_GAUSS_2)
             with np.errstate(invalid="ignore", divide="ignore"):
                 lx = np.bincount(cell, wq * sx, minlength=nw) / weight
                 ly = np.bincount(cell, wq * sy, minlength=nw) / weight
@@ -1784,10 +1784,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         n_coarse = n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
     fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
-    lattice = lattice_of(geom, profile.mla.pitch_mm)
-    whole = CELLS_WHOLE and lattice is not None and _cell_shape(lattice)[2]
     fine = model(fine_rays, count=n_fine,
-                 cells=LINE_CELLS_FINE_WHOLE if whole else LINE_CELLS_FINE)
+                 cells=LINE_CELLS_FINE_WHOLE if coarse.whole else LINE_CELLS_FINE)
     # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
     # fine one itself where both budgets meet at the floor (small blurs)
     gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)

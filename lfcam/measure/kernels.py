@@ -1092,6 +1092,7 @@ CELL_WHOLE_MARGIN = 1.25  # a cell is integrated whole where its pupil patch (it
 CELL_WHOLE_MAX_PATCH = 0.1  # ... and whose patch reaches at most this far (pupil radii): the
 #                             2 × 2 Gauss rule leaves 1.4 % of a cell's light on patches of
 #                             0.25 (a small blur: 5 whole cells)
+CELL_GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points: ± this × a cell's sides
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
@@ -1122,7 +1123,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
     h1y = 0.5 * (basis[1, 0] + basis[1, 1])
     h2x = 0.5 * (basis[0, 0] - basis[0, 1])
     h2y = 0.5 * (basis[1, 0] - basis[1, 1])
-    g = 0.5 / math.sqrt(3.0)
+    g = CELL_GAUSS_2
     grid = np.zeros((m, 5), dtype=np.int64)
     cap = 1024
     rows = np.empty(cap, dtype=np.int64)
