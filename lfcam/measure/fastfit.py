@@ -233,6 +233,7 @@ CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
+_ONE_BOX = np.empty(0)  # deposit_moments' per-ray box sizes where one is for all rays
 
 
 def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
@@ -500,10 +501,12 @@ class LensletModel:
         return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
                              self.s_px)
 
-    def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m, s_px) -> np.ndarray:
+    def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m,
+                 s_px: float | np.ndarray) -> np.ndarray:
         """Moments of traced rays (:func:`lfcam.measure.kernels.deposit_moments`): ray ``r``
         from point ``rows[r]`` of ``m``, whose rays are ``spacing[rows[r]]`` apart on the MLA,
-        spread as ``s_px`` boxes on the sensor; ``group`` per point (None: one group)."""
+        spread as ``s_px`` boxes on the sensor (an array: ray ``r`` as an ``s_px[r]`` box);
+        ``group`` per point (None: one group)."""
         from lfcam.measure.kernels import deposit_moments  # numba
 
         p = self.profile
@@ -513,14 +516,16 @@ class LensletModel:
         la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
         ax, ay = p.sensor.axis_xy_px
         x0, y0 = self.mom.box[:2]
+        each = isinstance(s_px, np.ndarray)  # (the kernel's scalar then unread)
         # one argument signature for every call: the compiled code is cached on disk per
         # signature, and a new one would compile again (~3 s)
         return deposit_moments(
             x, y, sx, sy, wt, rows.astype(np.int64, copy=False), spacing,
             np.asarray(group, dtype=np.int64), int(groups),
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
-            float(ax), float(ay), int(x0), int(y0), float(s_px), self.mom.labels,
-            self.mom.centres_px, float(self.geom.pitch_px))
+            float(ax), float(ay), int(x0), int(y0), 1.0 if each else float(s_px),
+            self.mom.labels, self.mom.centres_px, float(self.geom.pitch_px),
+            s_px if each else _ONE_BOX)
 
     def _cell_samples(self, points: np.ndarray):
         """Each point's pupil samples on the cells (``cells`` > 0), or ``None`` where a point's
@@ -657,7 +662,7 @@ class LensletModel:
         if got is None:
             self.folded = True
             return self._simulate_compiled(points, group, groups, out)
-        u, v, w, srows, du, maps, trace_args, whole = got
+        u, v, w, srows, _, maps, trace_args, whole = got
         p = self.profile
         lens = p.main_lens
         half = 0.5 * lens.pupil_diameter_mm
@@ -678,10 +683,14 @@ class LensletModel:
                 # a hexagonal cell's border cuts its sub-cell (a rectangular lattice's samples
                 # lie exactly half a sub-cell from the borders: 0.9 × that keeps them whole)
                 spacing = np.full(m, CELL_SHARE * pitch / n)
+                # each sample spread as a box of its own pupil area's size on the sensor: one
+                # size for all, the mean, left the compressed centre of a large blur behind
+                # focus 4× farther from a dense sample (docs/distance.md, "Each sample its
+                # own box (stop 44)")
                 mag = (p.mla.focal_length_mm / (self.geom.d_in_mm - lens.exit_pupil_z_mm)
                        / p.sensor.pixel_pitch_mm)
-                s_px = min(0.9, max(float(np.mean(du[du > 0])) * half * mag, 1e-3))
-                out = self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, m, s_px)
+                s_ray = np.clip(np.sqrt(w[ray]) * (half * mag), 1e-3, 0.9)
+                out = self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, m, s_ray)
         if whole is not None and whole[0].size:
             # the whole cells: their Gauss points' rays traced exactly; a cell's light, their
             # sum, lands about their weighted mean as the linear image of the cell their

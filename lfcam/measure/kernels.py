@@ -146,14 +146,17 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
 # the same sums, 10-17 % less CPU
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basis, inverse,
-                    rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px):
+                    rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px,
+                    s_ray):
     """Moments ``(groups·K, 4)`` of rays hitting the MLA at ``(x, y)`` mm with sensor offsets
     ``(sx, sy)`` mm (``f_x`` × slope) and weights ``wt``, ray ``r`` from source point
     ``rows[r]``, whose rays are ``spacing[rows[r]]`` apart on the MLA and go to group
     ``group[rows[r]]`` (module docstring; per point, so that no ray-sized copy of either is
     made for each call). ``labels`` is the region box's compact lenslet map (−1 none),
     ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the pixel pitch
-    (mm)."""
+    (mm). Each ray is spread as an ``s_px`` box, or, where ``s_ray`` is not empty, ray ``r``
+    as an ``s_ray[r]`` box (samples on the cells, each its own pupil area's: docs/distance.md,
+    "Each sample its own box (stop 44)")."""
     n_k = centres_px.shape[0]
     out = np.zeros((groups * n_k, 4))
     inv_pitch = 1.0 / pitch_px
@@ -166,6 +169,9 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
         i, j, i2, j2, gap = _nearest_two(x[r] - origin[0], y[r] - origin[1], inverse, basis,
                                          rect, la, lb, seps)
         pt = rows[r]
+        if s_ray.size:
+            s = s_ray[r]
+            inv_s = 1.0 / s
         share = min(max(0.5 - gap / spacing[pt], 0.0), 0.5)
         base = group[pt] * n_k
         # the ray's share in its cell, then (share > 0) in the neighbour's. The landing is
@@ -272,7 +278,7 @@ def warm_up() -> None:
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
-                    np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
+                    np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0, np.empty(0))
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
@@ -815,6 +821,10 @@ CELL_NEWTON = 8  # Newton iterations of the pupil map's inverse, at most (from i
 #                 5-6 on system 2's large blurs behind focus)
 CELL_NEWTON_REACH = 1.5  # ... until every sample whose iterate is within this pupil radius
 #                          has converged (one beyond it lies past the rim)
+CELL_START_REACH2 = 16.0  # a lattice point whose preimage by the map's linear part lies beyond
+#                           this squared pupil radius is not inverted: past the rim however
+#                           strong the aberration (system 2 behind a 1 m focus: the rim's
+#                           cells at pupil radius 0.88-1 have linear preimages at 1.5-1.9)
 CELL_NEWTON_STEP = 1e-4  # Newton ends on a step under this (pupil radii): the root is then
 #                          within ~1e-8 of it, ~1e-6 pitch on the MLA
 
@@ -1020,7 +1030,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
                 ey = gy - c_y[0]
                 u = (a22 * ex - a12 * ey) / det0
                 v = (-a21 * ex + a11 * ey) / det0
-                if u * u + v * v > 16.0:
+                if u * u + v * v > CELL_START_REACH2:
                     continue
                 gxs[nc] = gx
                 gys[nc] = gy
@@ -1034,7 +1044,8 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
         # it lie past the pupil's rim (dropped below, converged or not)
         _newton_until(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc, reach2)
         for k in range(nc):
-            conv[k] = (cstep[k] < CELL_NEWTON_STEP) & (cu[k] * cu[k] + cv[k] * cv[k] <= 16.0)
+            conv[k] = ((cstep[k] < CELL_NEWTON_STEP)
+                       & (cu[k] * cu[k] + cv[k] * cv[k] <= CELL_START_REACH2))
         # the area element at the roots: one more pass (it moves them by ~1e-8)
         _newton_pass(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc)
         if count + nc > cap:
@@ -1199,7 +1210,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
                 ey = gy - c_y[0]
                 u = (a22 * ex - a12 * ey) / det0
                 v = (-a21 * ex + a11 * ey) / det0
-                if u * u + v * v > 2.25:  # (far outside: the linear part is within 0.1)
+                if u * u + v * v > CELL_START_REACH2:
                     continue
                 gxs[nc] = gx
                 gys[nc] = gy
@@ -1210,7 +1221,10 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
                 nc += 1
         if nc == 0:
             continue
-        _newton_until(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc, math.inf)
+        # (until those within CELL_NEWTON_REACH have converged: a node beyond it is past the
+        # rim, its cell not lit whole)
+        _newton_until(c_x, c_y, gxs, gys, cu, cv, cdet, cstep, nc,
+                      CELL_NEWTON_REACH * CELL_NEWTON_REACH)
         # the whole cells, and their Gauss points' starts (appended after the nodes)
         nw = 0
         for k in range(nc):
