@@ -142,6 +142,11 @@ LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log d
 #                                            each start's (3 points of the line at each; −0.22
 #                                            kept system 2's 1500 mm lines off: 0.42-0.46 s,
 #                                            0.13-0.16 s on the cells)
+POINT_CELLS = True  # a point blur lighting LINE_CELLS_MIN_LIT lenslets or more is fitted on the
+#                    cells too, where they apply at LINE_CELLS_PROBE_LOG from each start: the
+#                    coarse, fine and settled models' n as the line's, and no polish (its answer
+#                    steps to the settled model's minimum: docs/distance.md, "Large point
+#                    blurs on the cells (stop 44)")
 LINE_CELLS_COARSE = 2  # ... n of the coarse stage's model,
 LINE_CELLS_FINE = 4  # ... of the fine model,
 LINE_CELLS_FINE_WHOLE = 3  # ... of the fine model where the cells lit whole are integrated
@@ -1432,6 +1437,13 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``0`` always polishes, as the lens calibration does). ``mom``: the region's
     :func:`data_moments`, when the caller has them.
 
+    A large blur where the cells apply about every start (:func:`cells_apply`,
+    :data:`POINT_CELLS`) is fitted on them, as a line is: the coarse and fine models sample
+    the lenslet cells (n = :data:`LINE_CELLS_COARSE`, :data:`LINE_CELLS_FINE_WHOLE` or
+    :data:`LINE_CELLS_FINE`), the polishing model is the finer sub-grid
+    :data:`LINE_CELLS_SETTLE`, and the answer steps to its minimum with the fine model's
+    own Jacobian: no ray sample to settle, no polish.
+
     Yields twice: the fine fit with the polishing model's misfit at it (``polished=False``,
     no σ: a caller reads only its misfits), then the final fit. A caller that learns from the
     first that the region is no point (a line fits it far better) stops there and saves the
@@ -1452,9 +1464,6 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     steps = point_steps(profile, geom, n_lit)
     frame = _Frame(profile)
-    coarse = LensletModel(profile, geom, mom,
-                          int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)))
-    fine = LensletModel(profile, geom, mom, n_rays)
 
     def fun_of(model):
         return lambda q: model.residual(frame.source(q))
@@ -1465,6 +1474,17 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     scan = LensletModel(profile, geom, mom, SCAN_RAYS)
     starts, t_data = _starts(profile, geom, mom, frame, scan)
+    # a large blur on the cells where they apply about every start, as a line's
+    on_cells = POINT_CELLS and cells_apply(
+        profile, geom, mom, n_lit,
+        np.array([frame.source(q0 + [dl, 0.0, 0.0]) for q0 in starts
+                  for dl in LINE_CELLS_PROBE_LOG]))
+    coarse = LensletModel(profile, geom, mom,
+                          int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)),
+                          cells=LINE_CELLS_COARSE if on_cells else 0)
+    fine = LensletModel(profile, geom, mom, n_rays,
+                        cells=0 if not on_cells else LINE_CELLS_FINE_WHOLE if coarse.whole
+                        else LINE_CELLS_FINE)
     best = None
     for k, q0 in enumerate(starts):
         if (k > 0 and best[1] <= START_GOOD
@@ -1487,7 +1507,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # (or the step still to go) is over SETTLED_LOG is the fit polished with a model of
     # POLISH_RAYS and its own Jacobian (docs/distance.md, "The misses fixed", "Speed").
     turned = LensletModel(profile, geom, mom, n_rays, phase=1.0)
-    polish = LensletModel(profile, geom, mom, POLISH_RAYS)
+    # (on the cells the polishing model is the settled test's finer sub-grid)
+    polish = LensletModel(profile, geom, mom, POLISH_RAYS,
+                          cells=LINE_CELLS_SETTLE if on_cells else 0)
     fun_p = fun_of(polish)
     r_p = fun_p(q)
     model_misfit = math.sqrt(_sq(r - r_p))
@@ -1504,18 +1526,36 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above,
                                                 steps),
                      model_misfit=model_misfit)
-    # a misfit near a gate is polished whatever the settled test says: do not run it then
-    settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else _settled(
-        fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps)
-    polished = not settled
-    if not polished:  # the misfit as the polishing model sees it (the fine one adds its own noise)
-        jac, r, f = jac_q, r_p, _sq(r_p)
+    if on_cells:
+        # no ray sample to settle: the answer steps to the finer sub-grid's minimum with the
+        # fine model's own Jacobian, by Gauss–Newton on that model where the step is long (as
+        # a line's on the cells)
+        polished = False
+        jac = _fd_jacobian(fun, many_of(fine), q, r, steps)
+        shift = _linear_step(jac, r_p)
+        r, f = r_p, _sq(r_p)
+        if shift is not None and abs(float(shift[0][0])) > LINE_CELLS_SETTLED_LOG:
+            q, r, f = _gauss_newton_fixed(fun_p, q, r, jac, LINE_CELLS_SETTLE_STEPS,
+                                          skip_below=LINE_REFIT_STEP_LOG)
+        elif shift is not None:
+            r_step = fun_p(q - shift[0])
+            if _sq(r_step) < f:
+                q, r, f = q - shift[0], r_step, _sq(r_step)
     else:
-        q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
-                                                 1e-3, many_of(polish), r0=r_p, jac0=jac_q,
-                                                 broyden=True, settle_log=POLISH_SETTLE_LOG)
-        if jac_fine is not None:
-            jac = jac_fine
+        # a misfit near a gate is polished whatever the settled test says: do not run it then
+        settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else (
+            _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
+        polished = not settled
+        if not polished:  # the misfit as the polishing model sees it (the fine one adds its
+            #               own noise)
+            jac, r, f = jac_q, r_p, _sq(r_p)
+        else:
+            q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
+                                                     1e-3, many_of(polish), r0=r_p,
+                                                     jac0=jac_q, broyden=True,
+                                                     settle_log=POLISH_SETTLE_LOG)
+            if jac_fine is not None:
+                jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(_log_distance(q))
@@ -1592,6 +1632,18 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
                                 *lateral[0], *lateral[1]])
 
     return (lambda q: model.residual_of(moments(q).sum(0))), jac
+
+
+def cells_apply(profile: CameraProfile, geom: Geometry, mom: _Moments, n_lit: int,
+                points: np.ndarray) -> bool:
+    """Whether a blur of ``n_lit`` lit lenslets is modelled on the lenslet cells
+    (``LensletModel(cells=n)``): at least :data:`LINE_CELLS_MIN_LIT` lenslets, a lattice, and
+    every one of ``points`` (the starts' probes) with its whole pupil passing and a map to the
+    MLA that is one to one."""
+    return (n_lit >= LINE_CELLS_MIN_LIT
+            and lattice_of(geom, profile.mla.pitch_mm) is not None
+            and LensletModel(profile, geom, mom, LINE_MIN_RAYS, cells=LINE_CELLS_COARSE)
+            .invertible(points))
 
 
 def _footprint(geom: Geometry, mom: _Moments, energy: np.ndarray
@@ -1779,11 +1831,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # folds (and its models then turn to rays midway: 560 mm lines in front of a 1 m focus
     # took 0.16-0.30 s instead of 0.11-0.15 with the start alone checked). Behind a 1 m focus
     # the map folds nearer than ~1280 mm.
-    on_cells = (n_lit >= LINE_CELLS_MIN_LIT
-                and lattice_of(geom, profile.mla.pitch_mm) is not None
-                and LensletModel(profile, geom, mom, LINE_MIN_RAYS, cells=LINE_CELLS_COARSE)
-                .invertible(np.concatenate([_line_points(frame, st + [dl, 0, 0, 0, 0], 3)
-                                            for st in starts for dl in LINE_CELLS_PROBE_LOG])))
+    on_cells = cells_apply(profile, geom, mom, n_lit,
+                           np.concatenate([_line_points(frame, st + [dl, 0, 0, 0, 0], 3)
+                                           for st in starts for dl in LINE_CELLS_PROBE_LOG]))
     coarse_rays = np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
                           LINE_MAX_RAYS // 4)
     n_fine = n_pts
