@@ -544,20 +544,24 @@ def test_large_point_blur_is_fitted_on_the_cells_near_a_dense_ray_models_minimum
     src = np.array([23.0, 0.0, z])
     dense = ff.LensletModel(prof, geom, mom, 2_000_000).simulate(src[None])
     mom = dataclasses.replace(mom, data=dense, norm=float(np.sqrt((dense * dense).sum())))
-    applied = []
-    cells_apply = ff.cells_apply
+    made = []
 
-    def spy(*args):
-        applied.append(cells_apply(*args))
-        return applied[-1]
+    class Recorded(ff.LensletModel):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
 
-    monkeypatch.setattr(ff, "cells_apply", spy)
+    monkeypatch.setattr(ff, "LensletModel", Recorded)
     # (with ``mom`` given the fit reads neither the image nor the region)
     stages = ff.point_fit_stages(prof, geom, np.zeros((SIZE, SIZE)), None, mom=mom)
     next(stages)
     fit = next(stages)
-    assert applied == [True]
     assert fit.ok and not fit.polished
+    # the fine and the polishing models ran on the cells, and no ray-sampled one of the
+    # polish's size was evaluated
+    used = [(m.cells, m.rx.size) for m in made if m.evaluations and not m.folded]
+    assert (ff.LINE_CELLS_SETTLE, ff.POLISH_RAYS) in [(c, r) for c, r in used]
+    assert (0, ff.POLISH_RAYS) not in used
     d = frame.z_front - fit.source_mm[2]
     assert abs(d / 2900.0 - 1.0) < 6e-4
     assert np.hypot(*(fit.source_mm[:2] - src[:2])) < 0.1  # (mm; measured 0.006)

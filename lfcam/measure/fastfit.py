@@ -143,10 +143,11 @@ LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log d
 #                                            kept system 2's 1500 mm lines off: 0.42-0.46 s,
 #                                            0.13-0.16 s on the cells)
 POINT_CELLS = True  # a point blur lighting LINE_CELLS_MIN_LIT lenslets or more is fitted on the
-#                    cells too, where they apply at LINE_CELLS_PROBE_LOG from each start: the
-#                    coarse, fine and settled models' n as the line's, and no polish (its answer
-#                    steps to the settled model's minimum: docs/distance.md, "Large point
-#                    blurs on the cells (stop 44)")
+#                    cells too where they apply at LINE_CELLS_PROBE_LOG about its best start
+#                    (each start matched on them where they apply about it): the coarse, fine
+#                    and settled models' n as the line's, and no polish (its answer steps to
+#                    the settled model's minimum: docs/distance.md, "Large point blurs on the
+#                    cells (stop 44)")
 LINE_CELLS_COARSE = 2  # ... n of the coarse stage's model,
 LINE_CELLS_FINE = 4  # ... of the fine model,
 LINE_CELLS_FINE_WHOLE = 3  # ... of the fine model where the cells lit whole are integrated
@@ -1437,7 +1438,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``0`` always polishes, as the lens calibration does). ``mom``: the region's
     :func:`data_moments`, when the caller has them.
 
-    A large blur where the cells apply about every start (:func:`cells_apply`,
+    A large blur whose best start has the cells apply about it (:func:`cells_apply`,
     :data:`POINT_CELLS`) is fitted on them, as a line is: the coarse and fine models sample
     the lenslet cells (n = :data:`LINE_CELLS_COARSE`, :data:`LINE_CELLS_FINE_WHOLE` or
     :data:`LINE_CELLS_FINE`), the polishing model is the finer sub-grid
@@ -1474,27 +1475,35 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     scan = LensletModel(profile, geom, mom, SCAN_RAYS)
     starts, t_data = _starts(profile, geom, mom, frame, scan)
-    # a large blur on the cells where they apply about every start, as a line's
-    on_cells = POINT_CELLS and cells_apply(
-        profile, geom, mom, n_lit,
-        np.array([frame.source(q0 + [dl, 0.0, 0.0]) for q0 in starts
-                  for dl in LINE_CELLS_PROBE_LOG]))
-    coarse = LensletModel(profile, geom, mom,
-                          int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2)),
-                          cells=LINE_CELLS_COARSE if on_cells else 0)
-    fine = LensletModel(profile, geom, mom, n_rays,
-                        cells=0 if not on_cells else LINE_CELLS_FINE_WHOLE if coarse.whole
-                        else LINE_CELLS_FINE)
+    # a large blur on the cells where they apply about its start: each start is matched on
+    # them where they apply about it (a start on the caustic's side of focus, where they do
+    # not, on the rays), and the best start's model goes on
+    coarse_rays = int(np.clip(COARSE_PER_LENSLET * n_lit, COARSE_RAYS, MAX_RAYS // 2))
+    coarse_of = [LensletModel(profile, geom, mom, coarse_rays)]  # rays, cells
+    cells_ok = [False] * len(starts)
+    if POINT_CELLS and n_lit >= LINE_CELLS_MIN_LIT:
+        cells_ok = [cells_apply(profile, geom, mom, n_lit,
+                                np.array([frame.source(q0 + [dl, 0.0, 0.0])
+                                          for dl in LINE_CELLS_PROBE_LOG])) for q0 in starts]
+        if any(cells_ok):
+            coarse_of.append(LensletModel(profile, geom, mom, coarse_rays,
+                                          cells=LINE_CELLS_COARSE))
     best = None
     for k, q0 in enumerate(starts):
         if (k > 0 and best[1] <= START_GOOD
                 and _sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
             continue  # its light misses the data's: no summary matching has brought one back
-        q = _match_summary(profile, geom, mom, frame, coarse, q0, t_data)
-        r = coarse.residual(frame.source(q))
+        model = coarse_of[int(cells_ok[k])]
+        q = _match_summary(profile, geom, mom, frame, model, q0, t_data)
+        r = model.residual(frame.source(q))
         f = _sq(r)
         if best is None or f < best[1]:
-            best = (q, f, r)
+            best = (q, f, r, k)
+    on_cells = cells_ok[best[3]]
+    coarse = coarse_of[int(on_cells)]
+    fine = LensletModel(profile, geom, mom, n_rays,
+                        cells=0 if not on_cells else LINE_CELLS_FINE_WHOLE if coarse.whole
+                        else LINE_CELLS_FINE)
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
@@ -1517,7 +1526,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         polish_above, bound_above = gates(model_misfit)
 
     def evaluations() -> int:
-        return (scan.evaluations + coarse.evaluations + fine.evaluations + turned.evaluations
+        return (scan.evaluations + sum(m.evaluations for m in coarse_of) + fine.evaluations
+                + turned.evaluations
                 + polish.evaluations)
 
     far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
