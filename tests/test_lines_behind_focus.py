@@ -274,3 +274,28 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     monkeypatch.setattr(ff, "LINE_TURNS", False)  # ... and one pupil sample for every point
     err_unsettled, sigma_unsettled = line_error()
     assert err_unsettled > 0.01 and err_unsettled > 3.0 * sigma_unsettled  # measured +6.5 %
+
+
+def test_line_whose_point_fit_runs_to_the_far_bound_is_still_tried(tmp_path):
+    """System 2 at 1536² (focus 1 m), a 3 mm line image at 380 mm, in front of focus, centred
+    at 60 % of the half-field at 0° (``benchmarks/focus_grid.py --lines --systems system2
+    --size 1536 --line-field 0.6``'s capture and calibration). Its point fit, on the lenslet
+    cells, runs out to the far bound (`no-solution`, a misfit of 0.65); the region was given
+    up there without a line being tried. The line is tried now and answers within 0.05 %
+    (measured −0.015 %: docs/distance.md, "Large point blurs on the cells (stop 44)")."""
+    import focus_grid as fg
+
+    import lfcam.measure.fastfit as ff
+
+    cam = fg.Camera("system2", 1000.0, 1536, tmp_path, False)
+    img = _field_line(cam, 380.0, 0.6, 0.0, 1_000_000)
+    run = run_distance(img, cam.used, None, model="exact", method="lenslet",
+                       geometry=cam.geom, jobs=1)
+    best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1)
+    assert best.kind == "line" and best.status == "ok"
+    assert abs(best.distance_mm / 380.0 - 1.0) < 5e-4
+    # (the case this is about: the point fit alone reaches the far bound)
+    regions = find_regions(lenslet_stats(img, cam.geom.lmap), cam.geom.lmap, cam.geom.pitch_px)
+    region = max(regions, key=lambda r: len(r.lenslets))
+    first = next(ff.point_fit_stages(cam.used, cam.geom, img, region))
+    assert not first.ok and first.reason == "no-solution" and first.misfit > 0.3

@@ -33,6 +33,7 @@ from a distance scan. Point or line is decided from the two misfits (:func:`meas
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -2065,6 +2066,16 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fit = next(stages)  # the fine fit, before its polish and σ profile
     trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
     line = None
+    if not fit.ok and fit.reason == RegionStatus.NO_SOLUTION and fit.misfit > trigger:
+        # a point fit run out to the far bound that explains the data no better than the
+        # trigger: a line is tried before the region is given up (its own distance scan
+        # finds its start; system 2's lines at 380 mm, 60-80 % of the field, whose point fit
+        # ran out there: docs/distance.md, "Large point blurs on the cells (stop 44)")
+        stages.close()
+        line = line_for(dataclasses.replace(fit, ok=True))
+        if line.ok and line.misfit < beats(fit.misfit):
+            return _line_answer(profile, geom, line, limit, nm)
+        return Measurement.failed(fit.reason, geom.d_in_mm)
     if fit.ok and fit.polish_floor > trigger:
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
