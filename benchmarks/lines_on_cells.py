@@ -36,24 +36,37 @@ SIZE = 1024
 NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
 
 
-def line_capture(grid: str, distance_mm: float, angle_deg: float,
-                 rays: int = 1_000_000) -> tuple[np.ndarray, object, object]:
-    """System 2 with a ``grid`` MLA (focus 1 m, 1024², photon and read noise): a 3 mm line
-    (on the MLA) at ``distance_mm`` through the field centre at ``angle_deg``, rendered by
-    ``lfcam.sim`` (seed 3). Returns the image (float64), the profile the renderer used and
-    the renderer's own lenslet geometry."""
+def system2(grid: str) -> tuple[dict, object, object]:
+    """System 2 with a ``grid`` MLA, focus 1 m, a 1024² sensor: the camera overrides, the
+    profile file's profile and the profile with the overrides."""
     camera = {"mla": {"focus_mm": 1000.0, "grid": grid},
               "sensor": {"width_px": SIZE, "height_px": SIZE}}
     base = load_profile(ROOT / "calibration" / "system2.toml")
-    prof = apply_overrides(base, camera)
+    return camera, base, apply_overrides(base, camera)
+
+
+def render(grid: str, objects: list[dict],
+           sensor: dict = NOISE) -> tuple[np.ndarray, object, object]:
+    """``objects`` in :func:`system2` with a ``grid`` MLA, rendered by ``lfcam.sim`` (seed 3)
+    with ``sensor``'s noise. Returns the image (float64), the profile the renderer used and
+    the renderer's own lenslet geometry."""
+    camera, base, prof = system2(grid)
+    scene = {"seed": 3, "camera": camera, "sensor": sensor, "objects": objects}
+    raw, used, _ = simulate(base, scene_from_dict(scene))
+    return raw.astype(np.float64), used, truth_geometry(prof, (SIZE, SIZE))
+
+
+def line_capture(grid: str, distance_mm: float, angle_deg: float,
+                 rays: int = 1_000_000) -> tuple[np.ndarray, object, object]:
+    """System 2 with a ``grid`` MLA (focus 1 m, 1024², photon and read noise): a 3 mm line
+    (on the MLA) at ``distance_mm`` through the field centre at ``angle_deg`` (:func:`render`).
+    """
+    prof = system2(grid)[2]
     u = np.array([math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))])
     ends = [chief_ray_offset(prof, prof.d_in_mm, distance_mm, s * 1.5 * u).tolist()
             for s in (-1.0, 1.0)]
-    scene = {"seed": 3, "camera": camera, "sensor": NOISE,
-             "objects": [{"type": "line", "distance_mm": distance_mm, "start_mm": ends[0],
-                          "end_mm": ends[1], "rays": rays}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    return raw.astype(np.float64), used, truth_geometry(prof, (SIZE, SIZE))
+    return render(grid, [{"type": "line", "distance_mm": distance_mm, "start_mm": ends[0],
+                          "end_mm": ends[1], "rays": rays}])
 
 
 def main() -> None:

@@ -31,35 +31,24 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from lfcam.camera import load_profile  # noqa: E402
+from lines_on_cells import NOISE, SIZE, render  # noqa: E402
+
 from lfcam.measure import fastfit as ff  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
-from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
-from lfcam.sim.geometry import truth_geometry  # noqa: E402
-from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
-SIZE = 1024
-NOISE = {"photon_noise": True, "full_well_e": 20000, "read_noise_e": 3.0}
 QUIET = {"photon_noise": False, "read_noise_e": 0.0}
 
 
 def point_capture(grid: str, distance_mm: float, offset_per_m_mm: float, rays: int,
                   noise: bool) -> tuple[np.ndarray, object, object]:
-    """System 2 (``grid`` MLA, focus 1 m, 1024²): a point at ``distance_mm``,
-    ``offset_per_m_mm`` × the distance in metres off the axis. Returns the image, the profile
-    the renderer used and its own lenslet geometry."""
-    camera = {"mla": {"focus_mm": 1000.0, "grid": grid},
-              "sensor": {"width_px": SIZE, "height_px": SIZE}}
-    base = load_profile(ROOT / "calibration" / "system2.toml")
-    prof = apply_overrides(base, camera)
-    scene = {"seed": 3, "camera": camera, "sensor": NOISE if noise else QUIET,
-             "objects": [{"type": "point", "distance_mm": distance_mm,
+    """System 2 (``grid`` MLA, focus 1 m, 1024²: :func:`lines_on_cells.render`): a point at
+    ``distance_mm``, ``offset_per_m_mm`` × the distance in metres off the axis."""
+    return render(grid, [{"type": "point", "distance_mm": distance_mm,
                           "offset_mm": offset_per_m_mm * distance_mm / 1000.0,
-                          "azimuth_deg": 30.0, "rays": rays}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    return raw.astype(np.float64), used, truth_geometry(prof, (SIZE, SIZE))
+                          "azimuth_deg": 30.0, "rays": rays}], NOISE if noise else QUIET)
 
 
 def main() -> None:

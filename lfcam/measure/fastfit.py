@@ -1526,10 +1526,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if gates is not None:
         polish_above, bound_above = gates(model_misfit)
 
+    counted = [scan, *coarse_of, fine, turned, polish]  # the models whose evaluations count
+
     def evaluations() -> int:
-        return (scan.evaluations + sum(m.evaluations for m in coarse_of) + fine.evaluations
-                + turned.evaluations
-                + polish.evaluations)
+        return sum(m.evaluations for m in counted)
 
     far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
     yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(), not far,
@@ -1538,35 +1538,34 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                 steps),
                      model_misfit=model_misfit)
     if on_cells:
-        # no ray sample to settle: the answer steps to the finer sub-grid's minimum with the
-        # fine model's own Jacobian, by Gauss–Newton on that model where the step is long (as
-        # a line's on the cells)
-        polished = False
-        jac = _fd_jacobian(fun, many_of(fine), q, r, steps)
-        shift = _linear_step(jac, r_p)
-        r, f = r_p, _sq(r_p)
-        if shift is not None and abs(float(shift[0][0])) > LINE_CELLS_SETTLED_LOG:
-            q, r, f = _gauss_newton_fixed(fun_p, q, r, jac, LINE_CELLS_SETTLE_STEPS,
-                                          skip_below=LINE_REFIT_STEP_LOG)
-        elif shift is not None:
-            r_step = fun_p(q - shift[0])
-            if _sq(r_step) < f:
-                q, r, f = q - shift[0], r_step, _sq(r_step)
+        # A point's answer comes from the rays: on the cells the quintic pupil map's area
+        # element leaves points 0.04-0.07 % short (docs/distance.md, "Large point blurs on
+        # the cells (stop 44)"). The fine ray model's Gauss–Newton steps from the cells' fit,
+        # with the coarse cells' Jacobian; then the settled test and the polish as below.
+        fine = LensletModel(profile, geom, mom, n_rays)
+        polish = LensletModel(profile, geom, mom, POLISH_RAYS)
+        counted += [fine, polish]
+        fun, fun_p = fun_of(fine), fun_of(polish)
+        q_c = q
+        q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
+        r_fine = r
+        r_p = fun_p(q)
+        if gates is not None:  # (the polish's gate as the ray models' disagreement sets it)
+            polish_above, bound_above = gates(math.sqrt(_sq(r - r_p)))
+    # a misfit near a gate is polished whatever the settled test says: do not run it then
+    settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else (
+        _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
+    polished = not settled
+    if not polished:  # the misfit as the polishing model sees it (the fine one adds its
+        #               own noise)
+        jac, r, f = jac_q, r_p, _sq(r_p)
     else:
-        # a misfit near a gate is polished whatever the settled test says: do not run it then
-        settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else (
-            _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
-        polished = not settled
-        if not polished:  # the misfit as the polishing model sees it (the fine one adds its
-            #               own noise)
-            jac, r, f = jac_q, r_p, _sq(r_p)
-        else:
-            q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
-                                                     1e-3, many_of(polish), r0=r_p,
-                                                     jac0=jac_q, broyden=True,
-                                                     settle_log=POLISH_SETTLE_LOG)
-            if jac_fine is not None:
-                jac = jac_fine
+        q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
+                                                 1e-3, many_of(polish), r0=r_p,
+                                                 jac0=jac_q, broyden=True,
+                                                 settle_log=POLISH_SETTLE_LOG)
+        if jac_fine is not None:
+            jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(_log_distance(q))
