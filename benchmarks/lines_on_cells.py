@@ -102,11 +102,17 @@ def main() -> None:
                                else f" ({best.kind}, {best.status})"))
             ff.LINE_CELLS_MIN_LIT = shipped
             print(f"{d:.0f} {angle:.0f} | " + " | ".join(cols), flush=True)
+    print_means(totals, lambda cpu_s: f"CPU {cpu_s:.3f} s a line")
+
+
+def print_means(totals: dict[str, list[tuple[float, float, float]]], cpu_text) -> None:
+    """A line of means for each way of fitting: ``(|error| %, z, CPU s)`` rows; ``cpu_text``
+    words their mean CPU."""
     for tag, rows in totals.items():
         err = [r[0] for r in rows]
         print(f"{tag}: mean / max error {sum(err) / len(err):.3f} / {max(err):.3f} %, "
               f"within 3σ {sum(abs(r[1]) <= 3.0 for r in rows)} of {len(rows)}, "
-              f"CPU {sum(r[2] for r in rows) / len(rows):.3f} s a line")
+              + cpu_text(sum(r[2] for r in rows) / len(rows)))
 
 
 if __name__ == "__main__":

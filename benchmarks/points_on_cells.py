@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from lines_on_cells import NOISE, SIZE, render  # noqa: E402
+from lines_on_cells import NOISE, SIZE, print_means, render  # noqa: E402
 
 from lfcam.measure import fastfit as ff  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
@@ -87,11 +87,7 @@ def main() -> None:
             ff.POINT_CELLS = shipped
             print(f"{d:.0f} {off * d / 1000.0:.0f} {len(region.lenslets)} | "
                   + " | ".join(cols), flush=True)
-    for tag, rows in totals.items():
-        err = [r[0] for r in rows]
-        print(f"{tag}: mean / max error {sum(err) / len(err):.3f} / {max(err):.3f} %, "
-              f"within 3σ {sum(abs(r[1]) <= 3.0 for r in rows)} of {len(rows)}, "
-              f"region CPU {1e3 * sum(r[2] for r in rows) / len(rows):.0f} ms mean")
+    print_means(totals, lambda cpu_s: f"region CPU {1e3 * cpu_s:.0f} ms mean")
 
 
 if __name__ == "__main__":
