@@ -509,8 +509,8 @@ def test_each_samples_box_brings_a_blurs_compressed_centre_to_a_dense_sample(mon
     # the pupil (cells there stand for pupil patches over 0.1 of its radius, sampled n × n).
     # Each sample spread as a box of its own pupil area's size on the sensor brings n = 3's
     # moments of the central lenslets within 8e-4 of every cell sampled 24 × 24 (measured
-    # 5.1e-4; one box size for all, the mean, left 2.5e-3: docs/distance.md, "Each sample its
-    # own box (stop 44)")
+    # 5.1e-4; one box size for all, the mean, left 2.5e-3: docs/distance.md, "The whole cells
+    # reach the rim; each sample its own box (stop 44)")
     prof, geom = _system2()
     mom = _moments_box(prof, geom)
     pts = _line_points(prof, 3400.0, count=1)

@@ -692,8 +692,8 @@ class LensletModel:
                 spacing = np.full(m, CELL_SHARE * pitch / n)
                 # each sample spread as a box of its own pupil area's size on the sensor: one
                 # size for all, the mean, left the compressed centre of a large blur behind
-                # focus 4× farther from a dense sample (docs/distance.md, "Each sample its
-                # own box (stop 44)")
+                # focus 4-5× farther from a dense sample (docs/distance.md, "The whole cells
+                # reach the rim; each sample its own box (stop 44)")
                 mag = (p.mla.focal_length_mm / (self.geom.d_in_mm - lens.exit_pupil_z_mm)
                        / p.sensor.pixel_pitch_mm)
                 s_ray = np.clip(np.sqrt(w[ray]) * (half * mag), 1e-3, 0.9)

@@ -156,7 +156,7 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
     ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the pixel pitch
     (mm). Each ray is spread as an ``s_px`` box, or, where ``s_ray`` is not empty, ray ``r``
     as an ``s_ray[r]`` box (samples on the cells, each its own pupil area's: docs/distance.md,
-    "Each sample its own box (stop 44)")."""
+    "The whole cells reach the rim; each sample its own box (stop 44)")."""
     n_k = centres_px.shape[0]
     out = np.zeros((groups * n_k, 4))
     inv_pitch = 1.0 / pitch_px
