@@ -663,7 +663,7 @@ class LensletModel:
         Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
         from then on (``folded``).
         """
-        from lfcam.measure.kernels import CELL_GAUSS_2, deposit_cells, trace_sample_rays
+        from lfcam.measure.kernels import cell_landings, deposit_cells, trace_sample_rays
 
         got = None if self.folded else self._cell_samples(points)
         if got is None:
@@ -707,23 +707,12 @@ class LensletModel:
             cuts = np.searchsorted(rows_c, np.arange(m + 1)) * 4
             _, _, sx, sy, wt, _, ray, _ = trace_sample_rays(pts, maps, cuts, u4.ravel() * half,
                                                             v4.ravel() * half, *trace_args)
-            cell, q = np.divmod(ray, 4)
-            wq = wt * w4.ravel()[ray]
-            if not np.all(np.bincount(cell, minlength=nw) == 4):
+            every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4.ravel(), nw)
+            if not every:
                 # a Gauss ray stopped inside the lens (a cell lit whole is not): the cells do
                 # not apply, as where a pupil is vignetted
                 self.folded = True
                 return self._simulate_compiled(points, group, groups, np.zeros_like(out))
-            weight = np.bincount(cell, wq, minlength=nw)
-            s1 = np.array([-1.0, -1.0, 1.0, 1.0])[q] / (4.0 * CELL_GAUSS_2)
-            s2 = np.array([-1.0, 1.0, -1.0, 1.0])[q] / (4.0 * CELL_GAUSS_2)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                lx = np.bincount(cell, wq * sx, minlength=nw) / weight
-                ly = np.bincount(cell, wq * sy, minlength=nw) / weight
-            sides = np.column_stack([np.bincount(cell, s1 * sx, minlength=nw),
-                                     np.bincount(cell, s1 * sy, minlength=nw),
-                                     np.bincount(cell, s2 * sx, minlength=nw),
-                                     np.bincount(cell, s2 * sy, minlength=nw)])
             ax, ay = p.sensor.axis_xy_px
             x0, y0 = self.mom.box[:2]
             deposit_cells(out, rows_c, ci, cj, lx, ly, weight, sides,
