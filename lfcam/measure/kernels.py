@@ -904,6 +904,27 @@ def _newton_until(c_x, c_y, gx, gy, u, v, det, step, count, reach2):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, cx, cy, r2):
+    """Whether the MLA point (gx, gy) lies in a point's footprint box and its reach disc
+    (centre (cx, cy), squared radius r2)."""
+    ox = gx - cx
+    oy = gy - cy
+    return not (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi or ox * ox + oy * oy > r2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _linear_start(gx, gy, x0, y0, a11, a12, a21, a22, det0):
+    """The preimage (u, v) of the MLA point (gx, gy) under a map's linear part (constant
+    (x0, y0), matrix ``[[a11, a12], [a21, a22]]``, determinant det0): Newton's start, and
+    whether it lies within :data:`CELL_START_REACH2` (one beyond it is past the rim)."""
+    ex = gx - x0
+    ey = gy - y0
+    u = (a22 * ex - a12 * ey) / det0
+    v = (-a21 * ex + a11 * ey) / det0
+    return not (u * u + v * v > CELL_START_REACH2), u, v
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse):
     """The lattice coordinates' ranges (s lo, s hi, t lo, t hi) over an MLA box's corners."""
     s_lo = math.inf
@@ -1017,10 +1038,7 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
                 t = (fj + o) / n
                 gx = origin[0] + basis[0, 0] * s + basis[0, 1] * t
                 gy = origin[1] + basis[1, 0] * s + basis[1, 1] * t
-                ox = gx - reach[p, 0]
-                oy = gy - reach[p, 1]
-                if (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi
-                        or ox * ox + oy * oy > r2):
+                if not _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, reach[p, 0], reach[p, 1], r2):
                     continue
                 if skip_grid[p, 2] > 0:
                     ni = int(math.floor(s + 0.5)) - skip_grid[p, 0]
@@ -1028,11 +1046,8 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
                     if (0 <= ni < skip_grid[p, 2] and 0 <= nj < skip_grid[p, 3]
                             and skip[skip_grid[p, 4] + ni * skip_grid[p, 3] + nj]):
                         continue
-                ex = gx - c_x[0]
-                ey = gy - c_y[0]
-                u = (a22 * ex - a12 * ey) / det0
-                v = (-a21 * ex + a11 * ey) / det0
-                if u * u + v * v > CELL_START_REACH2:
+                near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
+                if not near:
                     continue
                 gxs[nc] = gx
                 gys[nc] = gy
@@ -1203,16 +1218,10 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
                 j = float(j0 + b)
                 gx = origin[0] + basis[0, 0] * i + basis[0, 1] * j
                 gy = origin[1] + basis[1, 0] * i + basis[1, 1] * j
-                ox = gx - reach[p, 0]
-                oy = gy - reach[p, 1]
-                if (gx < x_lo or gx > x_hi or gy < y_lo or gy > y_hi
-                        or ox * ox + oy * oy > r2):
+                if not _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, reach[p, 0], reach[p, 1], r2):
                     continue
-                ex = gx - c_x[0]
-                ey = gy - c_y[0]
-                u = (a22 * ex - a12 * ey) / det0
-                v = (-a21 * ex + a11 * ey) / det0
-                if u * u + v * v > CELL_START_REACH2:
+                near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
+                if not near:
                     continue
                 gxs[nc] = gx
                 gys[nc] = gy
