@@ -17,7 +17,7 @@ import pytest
 from lfcam.camera import load_profile
 from lfcam.measure import fastfit as ff
 from lfcam.measure.kernels import MAP_DEGREE, cell_samples
-from lfcam.measure.pointfit import chief_ray_offset
+from lfcam.measure.pointfit import LocalLattice, chief_ray_offset
 from lfcam.optics.trace import trace_sources_fast
 from lfcam.sim.capture import apply_overrides
 from lfcam.sim.geometry import truth_geometry
@@ -62,10 +62,12 @@ def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n, kappa):
     boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
                        centre[1] + reach]])
     offset = 0.5 * ((n + 1) % 2)  # the sub-cell centres: (index + ½)/n − ½ modulo 1
-    u, v, w, rows, du = cell_samples(cx[None], cy[None], boxes,
-                                     np.array([[centre[0], centre[1], reach]]), origin, basis,
-                                     np.linalg.inv(basis), n,
-                                     np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=bool))
+    u, v, w, rows, du, tx, _ = cell_samples(cx[None], cy[None], boxes,
+                                            np.array([[centre[0], centre[1], reach]]), origin,
+                                            basis, np.linalg.inv(basis), n,
+                                            np.zeros((1, 5), dtype=np.int64),
+                                            np.zeros(1, dtype=bool), 1.0)
+    assert tx.size == 0  # (no whole cells: no sample moved to a neighbour's node)
     r = np.hypot(u, v)
     inside = r < 1.0 - 1e-9  # (samples beyond the rim are placed on it, with their share)
     x = centre[0] + scale * (1.0 + kappa * r * r) * u
@@ -88,6 +90,13 @@ def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n, kappa):
         assert np.median(counts) == n * n
     assert w.sum() == pytest.approx(math.pi, rel=2e-3)
     assert np.all(rows == 0)
+
+
+def _lattice(origin, basis):
+    """A lattice of nodes ``origin + basis @ (i, j)`` (its lookup table unused here)."""
+    return LocalLattice(np.asarray(origin, float), np.asarray(basis, float),
+                        np.linalg.inv(basis), np.zeros((1, 1), dtype=np.int64), 0, 0,
+                        np.zeros((1, 2)))
 
 
 def _radial_preimage(x, y, scale, kappa, centre):
@@ -124,9 +133,11 @@ def test_whole_cells_are_every_cell_the_rule_admits_on_a_strongly_bent_map():
     reach = scale * (1.0 + kappa) + 2.0
     boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
                        centre[1] + reach]])
+    rule = ff.cell_rule(_lattice(origin, basis))
     rows, ci, cj = cell_centres(cx[None], cy[None], boxes,
                                 np.array([[centre[0], centre[1], reach]]), origin, basis,
-                                np.linalg.inv(basis), CELL_WHOLE_MARGIN)[:3]
+                                np.linalg.inv(basis), CELL_WHOLE_MARGIN, rule.corners,
+                                rule.points, rule.weights)[:3]
     got = set(zip(ci.astype(int).tolist(), cj.astype(int).tolist(), strict=True))
     assert np.all(rows == 0)
     span = int(reach) + 2
@@ -435,7 +446,7 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
     out = deposit_cells(np.zeros((len(centres_px), 4)), zero, np.zeros(1), np.zeros(1),
                         np.array([spot_centre[0]]), np.array([spot_centre[1]]), np.ones(1),
                         np.array([e], dtype=float), zero, np.zeros(2), eye10, 1.0, 0.0, 0.0,
-                        0, 0, labels, centres_px, 10.0)
+                        0, 0, labels, centres_px, 10.0, np.zeros((0, 3, 2)))
     t = (np.arange(dense) + 0.5) / dense - 0.5
     a, b = (g.ravel() for g in np.meshgrid(t, t))
     sx = spot_centre[0] + a * e[0] + b * e[2]
@@ -475,7 +486,7 @@ def test_whole_cells_are_closer_to_a_dense_cell_sample(monkeypatch):
     pts = _line_points(prof, 3400.0, count=1)
     monkeypatch.setattr(ff, "CELLS_WHOLE", True)
     model = ff.LensletModel(prof, geom, mom, 1000, cells=4)
-    u, v, w, rows, du, maps, args, whole = model._cell_samples(pts)
+    u, v, w, rows, du, maps, args, whole, _ = model._cell_samples(pts)
     lat = model.lattice
     nodes = lat.origin + np.column_stack([whole[1], whole[2]]) @ lat.basis.T
     lens = geom.lens_centres_mm[mom.ids]
@@ -580,7 +591,8 @@ def test_cell_landings_are_the_bincount_sums_bit_for_bit():
     ray = np.sort(ray[ray != 37])  # (the trace keeps its rays in order; cell 9 lost one)
     wt, sx, sy = rng.random(ray.size), rng.normal(size=ray.size), rng.normal(size=ray.size)
     w4 = rng.random(4 * n)
-    every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4, n)
+    rect = ff.cell_rule(_lattice(np.zeros(2), np.eye(2)))
+    every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4, n, rect.sides)
     cell, q = np.divmod(ray, 4)
     wq = wt * w4[ray]
     assert not every and np.all(np.bincount(cell, minlength=n)[np.arange(n) != 9] == 4)
@@ -594,4 +606,163 @@ def test_cell_landings_are_the_bincount_sums_bit_for_bit():
                                                   np.bincount(cell, s1 * sy, minlength=n),
                                                   np.bincount(cell, s2 * sx, minlength=n),
                                                   np.bincount(cell, s2 * sy, minlength=n)]))
-    assert cell_landings(np.arange(8), wt[:8], sx[:8], sy[:8], w4[:8], 2)[0]
+    assert cell_landings(np.arange(8), wt[:8], sx[:8], sy[:8], w4[:8], 2, rect.sides)[0]
+
+
+def _hexagon_moment(radius, px, py):
+    """∫ x^px y^py over the regular hexagon of circumradius ``radius`` with corners at
+    30° + k·60° (the lattice of pitch √3·radius whose neighbours lie at k·60°), exactly: the
+    hexagon is a rectangle |x| ≤ h, |y| ≤ radius/2 and two triangles above and below, h =
+    radius·√3/2 (polynomials integrated in closed form by numpy's)."""
+    from numpy.polynomial import polynomial as P
+
+    h = radius * math.sqrt(3.0) / 2.0
+    total = 0.0
+    # |y| ≤ radius − |x|/√3 for |x| ≤ h: ∫ x^px [y^(py+1)/(py+1)] between the two bounds
+    for sign in (1.0, -1.0):  # x ≥ 0 and x ≤ 0 halves
+        top = np.array([radius, -sign / math.sqrt(3.0)])  # y_max(x) as a polynomial in x
+        ypow = P.polypow(top, py + 1)
+        inner = (ypow - P.polypow(-top, py + 1)) / (py + 1)
+        f = P.polymul(inner, np.r_[np.zeros(px), 1.0])
+        anti = P.polyint(f)
+        lo, hi = (0.0, h) if sign > 0 else (-h, 0.0)
+        total += P.polyval(hi, anti) - P.polyval(lo, anti)
+    return total
+
+
+def test_hexagonal_cells_rule_integrates_cubics_exactly():
+    # a regular hexagonal lattice (pitch 0.25 mm, neighbours at 0°, 60°, …, and a lattice
+    # found with them at 0° and 120°): the whole cells' ring of six integrates every
+    # monomial up to degree 3 over the nearest-node hexagon to rounding, against its closed
+    # form; the quartic x⁴ it does not (the rule's degree). A lattice whose neighbours'
+    # distances differ by 5 % gets no rule (its cells are sampled); a rectangular one the
+    # 2 × 2 Gauss rule
+    pitch = 0.25
+    radius = pitch / math.sqrt(3.0)
+    area = 1.5 * math.sqrt(3.0) * radius**2
+    for b2 in ((0.5, math.sqrt(3.0) / 2.0), (-0.5, math.sqrt(3.0) / 2.0)):
+        rule = ff.cell_rule(_lattice((0.3, 0.1), pitch * np.array([[1.0, b2[0]], [0.0, b2[1]]])))
+        assert rule is not None and not rule.rect and len(rule.points) == 6
+        assert rule.weights.sum() == pytest.approx(1.0, abs=1e-15)
+        x, y = rule.points.T
+        for px in range(4):
+            for py in range(4 - px):
+                want = _hexagon_moment(radius, px, py) / area
+                got = float((rule.weights * x**px * y**py).sum())
+                assert got == pytest.approx(want, abs=1e-15 + 1e-12 * radius ** (px + py)), (
+                    px, py)
+        quartic = float((rule.weights * x**4).sum())
+        assert abs(quartic / (_hexagon_moment(radius, 4, 0) / area) - 1.0) > 0.1
+        # the corners: the hexagon's, at radius R, 60° apart
+        assert np.allclose(np.hypot(*rule.corners.T), radius)
+    stretched = pitch * np.array([[1.0, 0.5], [0.0, 1.05 * math.sqrt(3.0) / 2.0]])
+    assert ff.cell_rule(_lattice((0.0, 0.0), stretched)) is None
+    rect = ff.cell_rule(_lattice((0.0, 0.0), pitch * np.eye(2)))
+    assert rect.rect and len(rect.points) == 4
+
+
+def test_samples_left_to_whole_cells_are_the_rest_of_the_sub_grid():
+    # cell_samples with cells marked whole (rectangular and hexagonal lattices, a bent map)
+    # against its own output without them, filtered here by the rule: on a rectangular
+    # lattice exactly the samples whose nearest node is not whole, in order and to the bit;
+    # on a hexagonal one a sample with a whole nearest node keeps only its share in a
+    # neighbour that is not (placed on that node), one beside a whole neighbour only its own
+    # share, and one between two whole cells none
+    from lfcam.measure.kernels import cell_samples
+
+    scale, kappa, centre = 8.0, 0.3, (0.3, -0.2)
+    cx, cy = _radial_map(scale, kappa, centre)
+    reach = scale * (1.0 + kappa) + 2.0
+    boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
+                       centre[1] + reach]])
+    disc = np.array([[centre[0], centre[1], reach]])
+    origin = np.array([0.1, 0.05])
+    n = 4
+    share_spacing = ff.CELL_SHARE / n
+    for basis in (np.eye(2), np.array([[1.0, 0.5], [0.0, math.sqrt(3.0) / 2.0]])):
+        inv = np.linalg.inv(basis)
+        lat = _lattice(origin, basis)
+        i0, j0, ni, nj = -24, -24, 49, 49
+        grid = np.array([[i0, j0, ni, nj, 0]])
+        ii, jj = np.meshgrid(np.arange(ni) + i0, np.arange(nj) + j0, indexing="ij")
+        whole = ((ii - 0.7) ** 2 + (jj + 0.4) ** 2 < 30.0) & ((ii + jj) % 7 != 3)  # (holes)
+        none = (np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=bool))
+        u0, v0, w0, _, _, _, _ = cell_samples(cx[None], cy[None], boxes, disc, origin, basis,
+                                              inv, n, *none, share_spacing)
+        u, v, w, _, _, tx, ty = cell_samples(cx[None], cy[None], boxes, disc, origin, basis,
+                                             inv, n, grid, whole.ravel(), share_spacing)
+        r0 = np.hypot(u0, v0)
+        x0 = centre[0] + scale * (1.0 + kappa * r0 * r0) * u0  # the samples' MLA points
+        y0 = centre[1] + scale * (1.0 + kappa * r0 * r0) * v0
+        n1x, n1y, n2x, n2y, gap = ff._two_cells(lat, x0, y0)
+
+        w1, w2 = (whole[tuple(np.rint(inv @ np.vstack([nx - origin[0], ny - origin[1]]))
+                              .astype(int) - np.array([[i0], [j0]]))]
+                  for nx, ny in ((n1x, n1y), (n2x, n2y)))
+        if basis[0, 1] == 0.0:
+            keep = ~w1
+            assert np.array_equal(u, u0[keep]) and np.array_equal(w, w0[keep])
+            assert tx.size == 0
+            continue
+        share = np.clip(0.5 - gap / share_spacing, 0.0, 0.5)
+        keep = ~(w1 & ((share == 0.0) | w2))
+        fac = np.where(w1, share, np.where(w2 & (share > 0.0), 1.0 - share, 1.0))[keep]
+        assert np.count_nonzero(w1 & ~keep) > 1000  # (whole cells' samples left out)
+        assert np.count_nonzero((fac > 0.0) & (fac < 1.0)) > 100  # (border samples)
+        assert np.allclose(u, u0[keep], rtol=0, atol=1e-12)
+        assert np.allclose(w, w0[keep] * fac, rtol=1e-12, atol=0)
+        moved = np.isfinite(tx)
+        assert np.array_equal(moved, fac < 1.0)
+        to = np.where(w1[keep], n2x[keep], n1x[keep]), np.where(w1[keep], n2y[keep],
+                                                                n1y[keep])
+        assert np.allclose(tx[moved], to[0][moved]) and np.allclose(ty[moved], to[1][moved])
+
+
+def test_whole_hexagonal_cells_keep_a_large_blurs_moments(monkeypatch):
+    # system 2 with a hexagonal MLA, a point at 3400 mm behind a 1 m focus (~580 lit
+    # lenslets): with the cells it lights whole integrated by the ring of six, the model's
+    # moments stay as close to every cell sampled 24 × 24 as the sampled model's at n = 4
+    # and 6 (measured 2.9e-3 and 1.9e-3; sampled 3.1e-3 and 1.4e-3) on a quarter of its
+    # samples, and the pupil's area in all is π. Each hexagon's light spread as one
+    # parallelogram of its second moments, and a rim cell's spread over pixels of two
+    # lenslets by the product of its marginals, left 5.9e-3 at n = 6 (docs/distance.md,
+    # "Whole hexagonal cells (stop 45)")
+    prof = apply_overrides(load_profile("system2"),
+                           {**CAMERA, "mla": {"focus_mm": 1000.0, "grid": "hex"}})
+    geom = truth_geometry(prof, (SIZE, SIZE))
+    mom = _moments_box(prof, geom)
+    pts = _line_points(prof, 3400.0, count=1)
+    monkeypatch.setattr(ff, "CELLS_WHOLE", False)
+    want = _normalised(ff.LensletModel(prof, geom, mom, 1000, cells=24).simulate(pts))
+    lit = np.count_nonzero(want[:, 0] > 0.05 * want[:, 0].max())
+    sampled = {n: ff.LensletModel(prof, geom, mom, 1000, cells=n)._cell_samples(pts)[0].size
+               for n in (4, 6)}
+    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
+    for n, bound in ((4, 3.5e-3), (6, 2.5e-3)):
+        model = ff.LensletModel(prof, geom, mom, 1000, cells=n)
+        assert model.whole and not model.rule.rect
+        got = _normalised(model.simulate(pts))
+        assert not model.folded
+        u, _, w, _, _, _, _, whole, _ = model._cell_samples(pts)
+        assert whole[0].size > 0.7 * lit  # (measured 433 of 579)
+        assert u.size < 0.3 * sampled[n]  # (measured 0.26, 0.25)
+        assert abs((w.sum() + whole[5].sum()) / math.pi - 1.0) < 1e-4
+        assert np.linalg.norm(got - want) / np.linalg.norm(want) < bound
+    # n = 2 stays sampled on a hexagonal lattice (four samples a cell against six points)
+    assert not ff.LensletModel(prof, geom, mom, 1000, cells=2).whole
+
+
+def test_whole_cell_spread_across_a_slanted_label_border_is_a_dense_samples():
+    # a cell's landing (a sheared parallelogram) across two lenslets' pixels whose border runs
+    # diagonally: each pixel's share of it, cut into CELL_SPLIT² pieces, within 4e-3 of 57 600
+    # samples of it binned to their pixels (measured ≤ 3.3e-3; the product of the whole
+    # parallelogram's marginals, as before stop 45, was 0.02-0.06 off)
+    labels = np.zeros((12, 12), dtype=np.int64)
+    rr, cc = np.mgrid[0:12, 0:12]
+    labels[(rr + cc) > 11] = 1
+    centres = np.array([[3.0, 3.0], [9.0, 9.0]])
+    for spot, e in (((5.6, 5.7), (1.1, 0.35, -0.3, 0.8)), ((5.9, 5.4), (0.8, 0.0, 0.4, 0.69)),
+                    ((5.7, 5.6), (0.9, -0.5, 0.1, 0.7))):
+        out, ref = _deposit_pair(spot, e, labels, centres)
+        assert 0.3 < ref[0, 0] < 0.7  # (the border cuts it)
+        assert np.abs(out[:, 0] - ref[:, 0]).max() < 4e-3

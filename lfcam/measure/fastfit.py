@@ -233,12 +233,18 @@ PROFILE_START = 2.0  # the first trial step, in units of the Jacobian's σ
 CELL_MAP_TOLERANCE = 0.01  # a point's polynomial map off its ring's traced rays by at most this
 #                            (pitches), or the cells do not apply
 CELL_AREA_TOLERANCE = 0.005  # a point's samples' pupil area within this share of π: one to one
-CELLS_WHOLE = True  # on a rectangular lattice, the cells a point lights whole are integrated
-#                     by a 2 × 2 Gauss rule, the rest sampled (kernels.cell_centres;
-#                     docs/distance.md, "Cells integrated whole (stop 43)")
+CELLS_WHOLE = True  # the cells a point lights whole are integrated by a rule (a rectangular
+#                     lattice's: 2 × 2 Gauss; a hexagonal one's: a ring of six), the rest
+#                     sampled (kernels.cell_centres; docs/distance.md, "Cells integrated
+#                     whole (stop 43)", "Whole hexagonal cells (stop 45)")
+CELLS_WHOLE_HEX_MIN_N = 3  # ... on a hexagonal lattice from this n on (n = 2: 4 samples a
+#                            cell, fewer than the ring's 6)
+CELL_HEX_REGULAR = 0.02  # ... whose six nearest neighbours' distances agree within this share
+#                          (the ring is the regular hexagon's, through the lattice's affine map)
 CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
+_RULES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
 _ONE_BOX = np.empty(0)  # deposit_moments' per-ray box sizes where one is for all rays
 
@@ -365,11 +371,29 @@ class LensletModel:
         self.s_px = min(0.9, self.spacing * mag)
         self.lattice = lattice_of(geom, profile.mla.pitch_mm)
         self.cell_shape = None if self.lattice is None else _cell_shape(self.lattice)
-        # the cells a point lights whole integrated by a Gauss rule (rectangular lattices)
-        self.whole = bool(CELLS_WHOLE and self.cell_shape is not None and self.cell_shape[2])
+        # the cells a point lights whole integrated by a rule (cell_rule: None on a lattice
+        # that is neither rectangular nor nearly regular hexagonal)
+        self.rule = None if self.lattice is None else _RULES.get(
+            self.lattice, lambda: cell_rule(self.lattice))
+        self.whole = self.whole_at(self.cells)
         self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
         self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
+
+    def whole_at(self, n: int) -> bool:
+        """Whether a model on the cells with ``n`` × ``n`` samples a cell integrates the cells
+        a point lights whole (:data:`CELLS_WHOLE`, :func:`cell_rule`)."""
+        return bool(CELLS_WHOLE and self.rule is not None
+                    and (self.rule.rect or n >= CELLS_WHOLE_HEX_MIN_N))
+
+    def fine_cells(self) -> int:
+        """The fine stage's n on the cells: :data:`LINE_CELLS_FINE_WHOLE` where a rectangular
+        lattice's whole cells are integrated, else :data:`LINE_CELLS_FINE` (a hexagonal
+        lattice's n = 3 leaves its rim cells' samples too coarse, whole cells or not:
+        docs/distance.md, "Whole hexagonal cells (stop 45)")."""
+        rect = self.rule is not None and self.rule.rect
+        return (LINE_CELLS_FINE_WHOLE if rect and self.whole_at(LINE_CELLS_FINE_WHOLE)
+                else LINE_CELLS_FINE)
 
     def simulate(self, sources: np.ndarray) -> np.ndarray:
         """(K, 4) moments of unit-intensity source point(s) ``(3,)`` or ``(M, 3)``.
@@ -549,12 +573,11 @@ class LensletModel:
         (behind focus to 1e-4); where the map folds they do not (0.25–0.95 measured in front
         of a 1 m focus), and :data:`CELL_AREA_TOLERANCE` tells the two apart.
 
-        On a rectangular lattice (:data:`CELLS_WHOLE`) the cells a point lights whole are
-        left out of the samples and integrated by a Gauss rule
-        (:func:`lfcam.measure.kernels.cell_centres`).
+        The cells a point lights whole (:data:`CELLS_WHOLE`) are left out of the samples and
+        integrated by a rule (:func:`cell_rule`, :func:`lfcam.measure.kernels.cell_centres`).
 
-        Returns ``(u, v, w, rows, du, maps, trace_args, whole)`` (see ``cell_samples``;
-        ``whole``: ``cell_centres``'s output, or None).
+        Returns ``(u, v, w, rows, du, maps, trace_args, whole, (tx, ty))`` (see
+        ``cell_samples``; ``whole``: ``cell_centres``'s output, or None).
         """
         from lfcam.measure.kernels import (
             CELL_WHOLE_MARGIN,
@@ -628,7 +651,8 @@ class LensletModel:
         args = (reach, lat.origin, lat.basis, lat.inverse)
         no_skip = (np.zeros((m, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_))
         if n > 2 and not np.array_equal(cut, boxes):
-            _, _, w2, rows2, _ = cell_samples(cx, cy, boxes, *args, 2, *no_skip)
+            _, _, w2, rows2, *_ = cell_samples(cx, cy, boxes, *args, 2, *no_skip,
+                                               CELL_SHARE * pitch / 2)
             area = np.bincount(rows2, w2, minlength=m)
             boxes = cut
         else:
@@ -636,18 +660,23 @@ class LensletModel:
         whole = None
         skip = no_skip
         if self.whole:
-            # the cells lit whole: integrated by a Gauss rule, their light spread over the
-            # landing's linear image of the cell; the others sampled
-            whole = cell_centres(cx, cy, boxes, *args, CELL_WHOLE_MARGIN)
+            # the cells lit whole: integrated by a rule (cell_rule), their light spread over
+            # the landing's linear image of the cell; the others sampled
+            rule = self.rule
+            whole = cell_centres(cx, cy, boxes, *args, CELL_WHOLE_MARGIN, rule.corners,
+                                 rule.points, rule.weights)
             skip = whole[6:8]
-        u, v, w, srows, du = cell_samples(cx, cy, boxes, *args, n, *skip)
+        # (on a hexagonal lattice a sample across a whole cell's border keeps the other
+        # cell's share, weighted and placed on its node: (tx, ty))
+        u, v, w, srows, du, tx, ty = cell_samples(cx, cy, boxes, *args, n, *skip,
+                                                  CELL_SHARE * pitch / n)
         if area is None:
             area = np.bincount(srows, w, minlength=m)
             if whole is not None:
                 area += np.bincount(whole[0], whole[5].sum(axis=1), minlength=m)
         if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
             return None
-        return u, v, w, srows, du, maps, trace_args, whole
+        return u, v, w, srows, du, maps, trace_args, whole, (tx, ty)
 
     def invertible(self, points: np.ndarray) -> bool:
         """Whether every point's whole pupil passes and its map to the MLA is one to one
@@ -669,7 +698,7 @@ class LensletModel:
         if got is None:
             self.folded = True
             return self._simulate_compiled(points, group, groups, out)
-        u, v, w, srows, _, maps, trace_args, whole = got
+        u, v, w, srows, _, maps, trace_args, whole, (tx, ty) = got
         p = self.profile
         lens = p.main_lens
         half = 0.5 * lens.pupil_diameter_mm
@@ -685,6 +714,13 @@ class LensletModel:
                                                                v * half, *trace_args)
             if rows.size:
                 wt = wt * w[ray]
+                if tx.size:
+                    # a sample on a whole cell's border keeps only the other cell's share
+                    # and lands there alone: placed on that cell's node (cell_samples)
+                    moved = np.isfinite(tx[ray])
+                    if moved.any():
+                        x = np.where(moved, tx[ray], x)
+                        y = np.where(moved, ty[ray], y)
                 # a sample stands for its sub-cell, which lies in one lattice cell: shared
                 # across a border only when its ray lands off its sub-cell's centre, or where
                 # a hexagonal cell's border cuts its sub-cell (a rectangular lattice's samples
@@ -704,10 +740,11 @@ class LensletModel:
             # differences give (kernels.cell_centres, deposit_cells)
             rows_c, ci, cj, u4, v4, w4 = whole[:6]
             nw = rows_c.size
-            cuts = np.searchsorted(rows_c, np.arange(m + 1)) * 4
+            cuts = np.searchsorted(rows_c, np.arange(m + 1)) * u4.shape[1]
             _, _, sx, sy, wt, _, ray, _ = trace_sample_rays(pts, maps, cuts, u4.ravel() * half,
                                                             v4.ravel() * half, *trace_args)
-            every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4.ravel(), nw)
+            every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4.ravel(), nw,
+                                                         self.rule.sides)
             if not every:
                 # a Gauss ray stopped inside the lens (a cell lit whole is not): the cells do
                 # not apply, as where a pupil is vignetted
@@ -720,7 +757,7 @@ class LensletModel:
                           else np.asarray(group, dtype=np.int64),
                           lat.origin, lat.basis, float(p.sensor.pixel_pitch_mm), float(ax),
                           float(ay), int(x0), int(y0), self.mom.labels, self.mom.centres_px,
-                          float(self.geom.pitch_px))
+                          float(self.geom.pitch_px), self.rule.pieces)
         return out
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
@@ -825,6 +862,86 @@ def _cell_shape(lattice: LocalLattice) -> tuple[float, float, bool]:
     b = lattice.basis
     la, lb = float(np.hypot(*b[:, 0])), float(np.hypot(*b[:, 1]))
     return la, lb, bool(abs(b[:, 0] @ b[:, 1]) < 1e-4 * la * lb)
+
+
+class CellRule(NamedTuple):
+    """A lattice cell's corners and the quadrature rule that integrates a point's light over a
+    cell it lights whole (:func:`lfcam.measure.kernels.cell_centres`), all as offsets from
+    the cell's node on the MLA (mm)."""
+
+    rect: bool  # the lattice's cells are rectangles (else hexagons)
+    corners: np.ndarray  # (C, 2): the cell is the polygon of ±these
+    points: np.ndarray  # (K, 2): the rule's points
+    weights: np.ndarray  # (K,): their shares of the cell's area (sum 1)
+    sides: np.ndarray  # (K, 2): each point's landing's coefficient in the two sides of the
+    #                    parallelogram a cell's light is spread over (kernels.cell_landings;
+    #                    a hexagonal cell: in the landing's linear map's columns, ∂/∂x, ∂/∂y)
+    pieces: np.ndarray  # (P, 3, 2): the parallelograms a hexagonal cell's light is spread
+    #                     over, each's centre and two sides (none on a rectangular lattice)
+
+
+def cell_rule(lattice: LocalLattice) -> CellRule | None:
+    """The whole cells' quadrature rule of a lattice.
+
+    A rectangular lattice's cell ``[−½, ½]·b₁ + [−½, ½]·b₂`` takes the 2 × 2 Gauss–Legendre
+    rule (``± g·b₁ ± g·b₂``, g = 1/(2√3)) and its light is spread over the landing's linear
+    image of the cell (the sides' coefficients ``±1/(4g)``: the differences across it).
+
+    A hexagonal lattice's cell is the hexagon of the points nearest its node (Voronoi). On
+    the regular lattice of pitch L (neighbours at 60° steps) its corners lie at radius R =
+    L/√3 halfway between neighbours, and six equal weights on a ring at radius R·√(5/12)
+    toward them integrate every polynomial up to degree 3 (the ring's second moment is the
+    hexagon's 5R²/12 a unit area; odd ones and the fourth-degree anisotropic ones vanish
+    by symmetry): the Gauss rule's degree on four rays fewer than n = 3's nine samples. The
+    lattice's own is the regular one through its affine map ``[b₁ b₂][e₁ e₂]⁻¹``, as are the
+    corners; its six nearest neighbours must agree within :data:`CELL_HEX_REGULAR`, so that
+    the affine hexagon is the nearest-node cell the deposit shares samples by. A hexagon's
+    light is spread over its image by the landing's linear map (its least-squares fit over
+    the ring): three parallelograms, a third of the light each (``pieces``). One
+    parallelogram of the hexagon's second moments put a rim cell's light in its own
+    micro-image where the label's border cuts its landing by 61 % against the rays' 71 %
+    (docs/distance.md, "Whole hexagonal cells (stop 45)").
+    ``None`` on any other lattice: its cells are sampled.
+    """
+    b = lattice.basis
+    b1, b2 = b[:, 0], b[:, 1]
+    if _cell_shape(lattice)[2]:
+        g = _gauss_2()
+        signs = np.array([[2.0 * (q >> 1) - 1.0, 2.0 * (q & 1) - 1.0] for q in range(4)])
+        points = np.array([[g * (s1 * b[0, 0] + s2 * b[0, 1]), g * (s1 * b[1, 0] + s2 * b[1, 1])]
+                           for s1, s2 in signs])
+        corners = np.array([0.5 * (b1 + b2), 0.5 * (b1 - b2)])
+        return CellRule(True, corners, points, np.full(4, 0.25), signs / (4.0 * g),
+                        np.zeros((0, 3, 2)))
+    vecs = np.array([i * b1 + j * b2 for i in range(-2, 3) for j in range(-2, 3)
+                     if (i, j) != (0, 0)])
+    length = np.hypot(vecs[:, 0], vecs[:, 1])
+    order = np.argsort(length, kind="stable")
+    near, near_len = vecs[order[:6]], length[order[:6]]
+    if near_len.max() > (1.0 + CELL_HEX_REGULAR) * near_len.min() or length[order[6]] < (
+            1.5 * near_len.max()):
+        return None
+    near = near[np.argsort(np.arctan2(near[:, 1], near[:, 0]))]
+    # the lattice's affine map of the regular one (pitch 1, neighbours at 0°, 60°, …)
+    e = np.array([[1.0, 0.5], [0.0, math.sqrt(3.0) / 2.0]])
+    a = np.column_stack([near[0], near[1]]) @ np.linalg.inv(e)
+    ang = np.radians(30.0 + 60.0 * np.arange(6))
+    radius = 1.0 / math.sqrt(3.0)
+    verts = radius * np.column_stack([np.cos(ang), np.sin(ang)])
+    points = (math.sqrt(5.0 / 12.0) * verts) @ a.T
+    corners = verts @ a.T
+    # the hexagon is three parallelograms from its node: corners 0 and 2, 2 and 4, 4 and 0
+    pieces = np.array([[(corners[k] + corners[(k + 2) % 6]) / 2.0, corners[k],
+                        corners[(k + 2) % 6]] for k in (0, 2, 4)])
+    return CellRule(False, corners[:3], points, np.full(6, 1.0 / 6.0),
+                    points @ np.linalg.inv(points.T @ points), pieces)
+
+
+def _gauss_2() -> float:
+    """The 2 × 2 Gauss rule's offset (:data:`lfcam.measure.kernels.CELL_GAUSS_2`)."""
+    from lfcam.measure.kernels import CELL_GAUSS_2  # numba
+
+    return CELL_GAUSS_2
 
 
 def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
@@ -1492,8 +1609,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     on_cells = cells_ok[best[3]]
     coarse = coarse_of[int(on_cells)]
     fine = LensletModel(profile, geom, mom, n_rays,
-                        cells=0 if not on_cells else LINE_CELLS_FINE_WHOLE if coarse.whole
-                        else LINE_CELLS_FINE)
+                        cells=0 if not on_cells else coarse.fine_cells())
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
@@ -1843,7 +1959,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
     fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
     fine = model(fine_rays, count=n_fine,
-                 cells=LINE_CELLS_FINE_WHOLE if coarse.whole else LINE_CELLS_FINE)
+                 cells=coarse.fine_cells())
     # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
     # fine one itself where both budgets meet at the floor (small blurs)
     gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)

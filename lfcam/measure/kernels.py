@@ -292,13 +292,15 @@ def warm_up() -> None:
     terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
     poly = np.zeros((1, terms))
     cell_samples(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 2,
-                 np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_))
-    cell_centres(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 1.25)
+                 np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_), 1.0)
+    cell_centres(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 1.25,
+                 np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25))
     deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
                   np.zeros((1, 4)), np.zeros(1, dtype=np.int64), np.zeros(2), eye, 1.0, 0.0, 0.0,
-                  0, 0, np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0)
+                  0, 0, np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0,
+                  np.zeros((0, 3, 2)))
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
-                  np.ones(4), 1)
+                  np.ones(4), 1, np.zeros((4, 2)))
 
 
 def warm_up_frame() -> None:
@@ -945,7 +947,8 @@ def _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse):
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, skip):
+def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, skip,
+                 share_spacing):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
     every lattice cell: the centres of the n × n sub-cells of the cell about each node, the
     points ``(i + (a + o)/n, j + (b + o)/n)`` in lattice coordinates (``a, b = 0 … n−1``: n²
@@ -970,8 +973,17 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
     ``skip_grid`` (M, 5) and ``skip``: the cells left out (integrated whole by
     :func:`cell_centres`): point ``p``'s nodes ``(i, j)``, ``i0 ≤ i < i0 + ni``, ``j0 ≤ j <
     j0 + nj``, rows ``(i0, j0, ni, nj, offset)``, are left out where ``skip[offset + (i −
-    i0)·nj + (j − j0)]`` is set; a sub-grid point's node is its nearest (rectangular lattice
-    only: on a hexagonal one no cell is left out, ``ni = 0``).
+    i0)·nj + (j − j0)]`` is set. On a rectangular lattice a sub-grid point's cell is its
+    nearest node's, and no sample lies across a border. On a hexagonal one a sample belongs
+    to its nearest node's cell and is shared with the next nearest's as the deposit shares
+    it (linearly over ``share_spacing`` across their border: :func:`deposit_moments`).
+    Where one of the two cells is whole and the other not, the sample keeps only the other's
+    share (its weight × that share) and lands there alone: ``tx, ty`` (that node's MLA
+    position, for the deposit; NaN for a sample shared as usual; both empty where no sample
+    is moved). So every cell that is not whole keeps the light its samples gave it, and a
+    whole cell gets none of theirs.
+
+    Returns ``u, v, w, rows, du, tx, ty``.
     """
     m = cx.shape[0]
     area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) / (n * n)
@@ -994,6 +1006,20 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
     cstep = np.empty(ccap)
     conv = np.empty(ccap, dtype=np.bool_)
     qa = basis[0, 1] * basis[0, 1] + basis[1, 1] * basis[1, 1]
+    la = math.hypot(basis[0, 0], basis[1, 0])
+    lb = math.hypot(basis[0, 1], basis[1, 1])
+    rect = abs(basis[0, 0] * basis[0, 1] + basis[1, 0] * basis[1, 1]) < 1e-4 * la * lb
+    seps = _separations(basis)
+    half = 0.5 if rect else 0.0  # (the row's cells, below)
+    # (samples moved to a neighbour's node: only on a hexagonal lattice with whole cells;
+    # otherwise tx, ty are empty)
+    moves = (not rect) and skip_grid.shape[0] > 0 and skip_grid[:, 2].max() > 0
+    txs = np.empty(cap if moves else 0)
+    tys = np.empty(cap if moves else 0)
+    cfac = np.empty(ccap)
+    ctx = np.empty(ccap)
+    cty = np.empty(ccap)
+    blocks = np.zeros(64, dtype=np.int64)
     for p in range(m):
         c_x = cx[p]
         c_y = cy[p]
@@ -1007,6 +1033,25 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
         s_lo, s_hi, t_lo, t_hi = _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse)
         r2 = reach[p, 2] * reach[p, 2]
         nc = 0
+        hex_skip = (not rect) and skip_grid[p, 2] > 0
+        if hex_skip:
+            # each lattice cell [i, i + 1] × [j, j + 1] of the point's grid: how many of its
+            # four corners are whole
+            nbk = skip_grid[p, 2] * skip_grid[p, 3]
+            if nbk > blocks.size:
+                blocks = np.zeros(2 * nbk, dtype=np.int64)
+            gn = skip_grid[p, 3]
+            at = skip_grid[p, 4]
+            for a in range(skip_grid[p, 2]):
+                for b in range(gn):
+                    c = int(skip[at + a * gn + b])
+                    if b + 1 < gn:
+                        c += int(skip[at + a * gn + b + 1])
+                    if a + 1 < skip_grid[p, 2]:
+                        c += int(skip[at + (a + 1) * gn + b])
+                        if b + 1 < gn:
+                            c += int(skip[at + (a + 1) * gn + b + 1])
+                    blocks[a * gn + b] = c
         # the sub-grid is a finer lattice: row by row (fixed s index), the points of the row
         # inside the reach disc (an interval of t) and the box
         row_lo = (int(math.floor(t_lo)) - 1) * n
@@ -1034,26 +1079,64 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
                 cdet = np.empty(ccap)
                 cstep = np.empty(ccap)
                 conv = np.empty(ccap, dtype=np.bool_)
-            for fj in range(j_lo, j_hi):
-                t = (fj + o) / n
-                gx = origin[0] + basis[0, 0] * s + basis[0, 1] * t
-                gy = origin[1] + basis[1, 0] * s + basis[1, 1] * t
-                if not _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, reach[p, 0], reach[p, 1], r2):
-                    continue
-                if skip_grid[p, 2] > 0:
-                    ni = int(math.floor(s + 0.5)) - skip_grid[p, 0]
-                    nj = int(math.floor(t + 0.5)) - skip_grid[p, 1]
-                    if (0 <= ni < skip_grid[p, 2] and 0 <= nj < skip_grid[p, 3]
-                            and skip[skip_grid[p, 4] + ni * skip_grid[p, 3] + nj]):
+                cfac = _grow(cfac, ccap)
+                ctx = _grow(ctx, ccap)
+                cty = _grow(cty, ccap)
+            # the row's points cell by cell (a rectangular lattice's cell about node J holds
+            # the points J − ½ ≤ t < J + ½; a hexagonal one's points are matched with the
+            # parallelogram T ≤ t < T + 1 whose corners hold their nearest two nodes): a
+            # cell left out whole is skipped at once
+            bi = int(math.floor(s + half)) - skip_grid[p, 0]
+            for tb in range(int(math.floor((j_lo + o) / n + half)),
+                            int(math.floor((j_hi - 1 + o) / n + half)) + 1):
+                bj = tb - skip_grid[p, 1]
+                inside = 0 <= bi < skip_grid[p, 2] and 0 <= bj < skip_grid[p, 3]
+                corners_whole = 0
+                if inside and hex_skip:
+                    corners_whole = blocks[bi * skip_grid[p, 3] + bj]
+                    if corners_whole == 4:
                         continue
-                near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
-                if not near:
+                elif inside and skip[skip_grid[p, 4] + bi * skip_grid[p, 3] + bj]:
                     continue
-                gxs[nc] = gx
-                gys[nc] = gy
-                cu[nc] = u
-                cv[nc] = v
-                nc += 1
+                for fj in range(max(j_lo, int(math.ceil((tb - half) * n - o))),
+                                min(j_hi, int(math.ceil((tb + 1 - half) * n - o)))):
+                    t = (fj + o) / n
+                    gx = origin[0] + basis[0, 0] * s + basis[0, 1] * t
+                    gy = origin[1] + basis[1, 0] * s + basis[1, 1] * t
+                    if not _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, reach[p, 0], reach[p, 1],
+                                     r2):
+                        continue
+                    fac = 1.0
+                    tgx = math.nan
+                    tgy = math.nan
+                    if corners_whole > 0:
+                        i1, j1, i2, j2, gap = _nearest_two(gx - origin[0], gy - origin[1],
+                                                           inverse, basis, rect, la, lb, seps)
+                        share = min(max(0.5 - gap / share_spacing, 0.0), 0.5)
+                        w1 = _is_whole(skip_grid, skip, p, i1, j1)
+                        w2 = share > 0.0 and _is_whole(skip_grid, skip, p, i2, j2)
+                        if w1 and (share == 0.0 or w2):
+                            continue
+                        if w1:  # only its share in the neighbour, which is not whole
+                            fac = share
+                            tgx = origin[0] + basis[0, 0] * i2 + basis[0, 1] * j2
+                            tgy = origin[1] + basis[1, 0] * i2 + basis[1, 1] * j2
+                        elif w2:  # only its own share (the neighbour is whole)
+                            fac = 1.0 - share
+                            tgx = origin[0] + basis[0, 0] * i1 + basis[0, 1] * j1
+                            tgy = origin[1] + basis[1, 0] * i1 + basis[1, 1] * j1
+                    near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
+                    if not near:
+                        continue
+                    gxs[nc] = gx
+                    gys[nc] = gy
+                    cu[nc] = u
+                    cv[nc] = v
+                    if hex_skip:
+                        cfac[nc] = fac
+                        ctx[nc] = tgx
+                        cty[nc] = tgy
+                    nc += 1
         if nc == 0:
             continue
         # Newton, one pass over all the candidates an iteration, until each within the reach
@@ -1072,6 +1155,9 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
             vs = _grow(vs, cap)
             ws = _grow(ws, cap)
             rows = _grow_int(rows, cap)
+            if moves:
+                txs = _grow(txs, cap)
+                tys = _grow(tys, cap)
         n_du = 0.0
         n_kept = 0
         for k in range(nc):
@@ -1088,14 +1174,32 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
             scale = min(1.0, 1.0 / r)
             us[count] = u * scale
             vs[count] = v * scale
-            ws[count] = d_area * rim
+            if hex_skip:
+                ws[count] = d_area * rim * cfac[k]
+                txs[count] = ctx[k]
+                tys[count] = cty[k]
+            else:
+                ws[count] = d_area * rim
+                if moves:
+                    txs[count] = math.nan
+                    tys[count] = math.nan
             rows[count] = p
             count += 1
             n_du += spacing
             n_kept += 1
         if n_kept:
             du_mean[p] = n_du / n_kept
-    return us[:count], vs[:count], ws[:count], rows[:count], du_mean
+    return (us[:count], vs[:count], ws[:count], rows[:count], du_mean,
+            txs[:count if moves else 0], tys[:count if moves else 0])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _is_whole(skip_grid, skip, p, i, j):
+    """Whether point ``p``'s cell at node ``(i, j)`` is whole (:func:`cell_samples`)."""
+    a = int(i) - skip_grid[p, 0]
+    b = int(j) - skip_grid[p, 1]
+    return ((0 <= a) & (a < skip_grid[p, 2]) & (0 <= b) & (b < skip_grid[p, 3])
+            and skip[skip_grid[p, 4] + a * skip_grid[p, 3] + b])
 
 
 @njit(cache=True, nogil=True)
@@ -1120,46 +1224,47 @@ CELL_WHOLE_MARGIN = 1.25  # a cell is integrated whole where its pupil patch (it
 CELL_WHOLE_MAX_PATCH = 0.1  # ... and whose patch reaches at most this far (pupil radii): the
 #                             2 × 2 Gauss rule leaves 1.4 % of a cell's light on patches of
 #                             0.25 (a small blur: 5 whole cells)
+CELL_SPLIT = 4  # a whole cell's landing across lenslets' pixels: cut into this² pieces
 CELL_GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points: ± this × a cell's sides
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
-    """The lattice cells each point source lights whole, on a rectangular lattice (the cell
-    about each node is the parallelogram ``node + [−½, ½]·b₁ + [−½, ½]·b₂``), and the four
-    pupil points of each one's 2 × 2 Gauss rule.
+def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, rule, rule_w):
+    """The lattice cells each point source lights whole, and the pupil points of each one's
+    quadrature rule: the cell about a node is the polygon whose corners are ``±corners`` (C,
+    2; offsets from the node, MLA mm), the rule's points ``node + rule[q]`` (K, 2), weights
+    ``rule_w[q]`` (K,: shares of the cell's area, summing to 1). On a rectangular lattice
+    the cell is the parallelogram ``node + [−½, ½]·b₁ + [−½, ½]·b₂`` and the rule the 2 × 2
+    Gauss rule; on a hexagonal one the hexagon and a ring of six
+    (:func:`lfcam.measure.fastfit.cell_rule`).
 
     Each node inside the point's box and reach (as :func:`cell_samples`) is mapped back to the
     unit pupil disc through the inverse of the point's polynomial pupil → MLA map ``(cx[p],
     cy[p])`` by Newton (:func:`_newton_pass`). Where the preimages of the cell's corners by
     the map's linear part there reach within ``1 − r`` of the pupil's centre with ``margin``
     to spare (``r`` the node's pupil radius), the whole cell is lit. Its light is then
-    integrated by the 2 × 2 Gauss–Legendre rule on the cell (the points ``node ± g·b₁ ±
-    g·b₂``, g = 1/(2√3), each mapped back by Newton from the linear part's preimage): exact
-    for a density and a landing cubic across the cell, where the midpoint rule leaves the
-    density's curvature (1.8e-3 of a lenslet's light at the centre of a large blur behind
-    focus; docs/distance.md, "Cells integrated whole (stop 43)").
+    integrated by the rule (its points each mapped back by Newton from the linear part's
+    preimage): both rules are exact for a density and a landing cubic across the cell, where
+    the midpoint rule leaves the density's curvature (1.8e-3 of a lenslet's light at the
+    centre of a large blur behind focus; docs/distance.md, "Cells integrated whole (stop
+    43)" and "Whole hexagonal cells (stop 45)").
 
-    Returns ``rows`` (point), ``ci, cj`` (the cell's lattice indices), ``u, v`` (n, 4: the
-    Gauss points' pupil points, in the order (−,−), (−,+), (+,−), (+,+) of the signs of b₁,
-    b₂), ``w`` (n, 4: each one's pupil area, ``|cell| / 4 / |det ∂X/∂u|``), and
-    ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these cells left out of its samples).
+    Returns ``rows`` (point), ``ci, cj`` (the cell's lattice indices), ``u, v`` (n, K: the
+    rule's pupil points, in its order), ``w`` (n, K: each one's pupil area, ``|cell| ·
+    rule_w[q] / |det ∂X/∂u|``), and ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these
+    cells left out of its samples).
     """
     m = cx.shape[0]
+    nq = rule.shape[0]
     cell_area = abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0])
-    h1x = 0.5 * (basis[0, 0] + basis[0, 1])
-    h1y = 0.5 * (basis[1, 0] + basis[1, 1])
-    h2x = 0.5 * (basis[0, 0] - basis[0, 1])
-    h2y = 0.5 * (basis[1, 0] - basis[1, 1])
-    g = CELL_GAUSS_2
     grid = np.zeros((m, 5), dtype=np.int64)
     cap = 1024
     rows = np.empty(cap, dtype=np.int64)
     ci = np.empty(cap)
     cj = np.empty(cap)
-    us = np.empty((cap, 4))
-    vs = np.empty((cap, 4))
-    ws = np.empty((cap, 4))
+    us = np.empty((cap, nq))
+    vs = np.empty((cap, nq))
+    ws = np.empty((cap, nq))
     skip = np.zeros(1024, dtype=np.bool_)
     count = 0
     moff = 0
@@ -1199,8 +1304,8 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
             skip = grown
         skip[moff:moff + ni * nj] = False
         moff += ni * nj
-        if 5 * ni * nj > ccap:
-            while 5 * ni * nj > ccap:
+        if (1 + nq) * ni * nj > ccap:
+            while (1 + nq) * ni * nj > ccap:
                 ccap *= 2
             gxs = np.empty(ccap)
             gys = np.empty(ccap)
@@ -1251,19 +1356,19 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
             ib = -j12 / d
             ic = -j21 / d
             ie = j11 / d
-            p1 = math.hypot(ia * h1x + ib * h1y, ic * h1x + ie * h1y)
-            p2 = math.hypot(ia * h2x + ib * h2y, ic * h2x + ie * h2y)
-            if (math.sqrt(u * u + v * v) + margin * max(p1, p2) >= 1.0
-                    or max(p1, p2) > CELL_WHOLE_MAX_PATCH):
+            patch = 0.0
+            for q in range(corners.shape[0]):
+                patch = max(patch, math.hypot(ia * corners[q, 0] + ib * corners[q, 1],
+                                              ic * corners[q, 0] + ie * corners[q, 1]))
+            if (math.sqrt(u * u + v * v) + margin * patch >= 1.0
+                    or patch > CELL_WHOLE_MAX_PATCH):
                 continue
             ni_[nw] = ni_[k]
             nj_[nw] = nj_[k]
-            for q in range(4):
-                s1 = 2.0 * (q >> 1) - 1.0
-                s2 = 2.0 * (q & 1) - 1.0
-                ox = g * (s1 * basis[0, 0] + s2 * basis[0, 1])
-                oy = g * (s1 * basis[1, 0] + s2 * basis[1, 1])
-                at = nc + 4 * nw + q
+            for q in range(nq):
+                ox = rule[q, 0]
+                oy = rule[q, 1]
+                at = nc + nq * nw + q
                 gxs[at] = gxs[k] + ox
                 gys[at] = gys[k] + oy
                 cu[at] = u + ia * ox + ib * oy
@@ -1273,14 +1378,14 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
             continue
         # Newton on the Gauss points (from the linear part: 2-3 passes), and one more pass
         # for the area element at the roots
-        gx4 = gxs[nc:nc + 4 * nw]
-        gy4 = gys[nc:nc + 4 * nw]
-        u4 = cu[nc:nc + 4 * nw]
-        v4 = cv[nc:nc + 4 * nw]
-        det4 = cdet[nc:nc + 4 * nw]
-        step4 = cstep[nc:nc + 4 * nw]
-        _newton_until(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw, math.inf)
-        _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, 4 * nw)
+        gx4 = gxs[nc:nc + nq * nw]
+        gy4 = gys[nc:nc + nq * nw]
+        u4 = cu[nc:nc + nq * nw]
+        v4 = cv[nc:nc + nq * nw]
+        det4 = cdet[nc:nc + nq * nw]
+        step4 = cstep[nc:nc + nq * nw]
+        _newton_until(c_x, c_y, gx4, gy4, u4, v4, det4, step4, nq * nw, math.inf)
+        _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, nq * nw)
         if count + nw > cap:
             while count + nw > cap:
                 cap *= 2
@@ -1292,8 +1397,8 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
             ws = _grow2(ws, cap)
         for k in range(nw):
             ok = True
-            for q in range(4):
-                at = 4 * k + q
+            for q in range(nq):
+                at = nq * k + q
                 ok &= (step4[at] < CELL_NEWTON_STEP) & (det4[at] != 0.0)
                 ok &= u4[at] * u4[at] + v4[at] * v4[at] < 1.0
             if not ok:
@@ -1301,11 +1406,11 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin):
             rows[count] = p
             ci[count] = float(i0 + ni_[k])
             cj[count] = float(j0 + nj_[k])
-            for q in range(4):
-                at = 4 * k + q
+            for q in range(nq):
+                at = nq * k + q
                 us[count, q] = u4[at]
                 vs[count, q] = v4[at]
-                ws[count, q] = 0.25 * cell_area / abs(det4[at])
+                ws[count, q] = rule_w[q] * cell_area / abs(det4[at])
             skip[grid[p, 4] + ni_[k] * nj + nj_[k]] = True
             count += 1
     return (rows[:count], ci[:count], cj[:count], us[:count], vs[:count], ws[:count], grid,
@@ -1337,30 +1442,32 @@ def _sum_of_uniforms_cdf(t, a, b):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def cell_landings(ray, wt, sx, sy, w4, n_cells):
-    """Each whole cell's light from its four Gauss points' traced rays (:func:`cell_centres`'
-    order): ray ``k`` is Gauss point ``ray[k]`` (cell ``ray[k] // 4``, point ``ray[k] % 4``),
-    with transmitted weight ``wt[k]`` and sensor offsets ``(sx[k], sy[k])``; ``w4`` the Gauss
-    points' pupil areas, flat. Returns ``(every cell has its four rays, weight, lx, ly,
-    sides)``: each cell's light, its weighted mean landing and its landing's linear image of
-    the cell's sides (n_cells, 4: b₁'s x, y, then b₂'s), the sums :func:`deposit_cells`
-    takes, in the order numpy's ``bincount`` would add them (the same sums bit for bit, at a
-    fraction of the dozen array passes)."""
+def cell_landings(ray, wt, sx, sy, w4, n_cells, side_coef):
+    """Each whole cell's light from its K rule points' traced rays (:func:`cell_centres`'
+    order): ray ``k`` is rule point ``ray[k]`` (cell ``ray[k] // K``, point ``ray[k] % K``),
+    with transmitted weight ``wt[k]`` and sensor offsets ``(sx[k], sy[k])``; ``w4`` the rule
+    points' pupil areas, flat. Returns ``(every cell has its K rays, weight, lx, ly,
+    sides)``: each cell's light, its weighted mean landing and the two sides (n_cells, 4: the
+    first's x, y, then the second's) of the parallelogram its landing spreads it over, each
+    ``Σ_q side_coef[q, i] · (sx, sy)_q`` (K, 2: on a rectangular lattice the landing's linear
+    image of the cell's sides b₁, b₂; :func:`lfcam.measure.fastfit.cell_rule`): the sums
+    :func:`deposit_cells` takes, in the order numpy's ``bincount`` would add them (the same
+    sums bit for bit, at a fraction of the dozen array passes)."""
+    nq = side_coef.shape[0]
     weight = np.zeros(n_cells)
     lx = np.zeros(n_cells)
     ly = np.zeros(n_cells)
     sides = np.zeros((n_cells, 4))
     count = np.zeros(n_cells, dtype=np.int64)
-    inv = 1.0 / (4.0 * CELL_GAUSS_2)
     for k in range(ray.size):
-        c = ray[k] // 4
-        q = ray[k] % 4
+        c = ray[k] // nq
+        q = ray[k] % nq
         wq = wt[k] * w4[ray[k]]
         weight[c] += wq
         lx[c] += wq * sx[k]
         ly[c] += wq * sy[k]
-        s1 = -inv if q < 2 else inv
-        s2 = -inv if q % 2 == 0 else inv
+        s1 = side_coef[q, 0]
+        s2 = side_coef[q, 1]
         sides[c, 0] += s1 * sx[k]
         sides[c, 1] += s1 * sy[k]
         sides[c, 2] += s2 * sx[k]
@@ -1368,7 +1475,7 @@ def cell_landings(ray, wt, sx, sy, w4, n_cells):
         count[c] += 1
     whole = True
     for c in range(n_cells):
-        whole &= count[c] == 4
+        whole &= count[c] == nq
         lx[c] = lx[c] / weight[c]
         ly[c] = ly[c] / weight[c]
     return whole, weight, lx, ly, sides
@@ -1376,16 +1483,20 @@ def cell_landings(ray, wt, sx, sy, w4, n_cells):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax, ay, x0, y0,
-                  labels, centres_px, pitch_px):
+                  labels, centres_px, pitch_px, pieces):
     """Add whole cells' light (:func:`cell_centres`) to the moments ``out`` (groups·K, 4), as
     :func:`deposit_moments` would in the limit of infinitely many samples a cell: cell ``c``
     of point ``rows[c]`` (group ``group[rows[c]]``), lattice node ``(ci, cj)``, weight
     ``wt``, lands as a uniform parallelogram of sides ``e[c, 0:2]``, ``e[c, 2:4]`` (sensor
     mm) about the node plus ``(sx, sy)``. Each pixel's share is the parallelogram's area in
     it: along x the sum of two uniform offsets (a trapezoid), along y the same. Where the
-    pixels it covers are one lenslet's, the moments need only these two marginals; where they
-    are not (rare: a whole cell's light lies well inside its micro-image), each pixel takes
-    the product of its column's and its row's shares."""
+    pixels it covers are one lenslet's, the moments need only these two marginals. Where they
+    are not (a cell whose light lands on its micro-image's rim), the parallelogram is cut
+    into :data:`CELL_SPLIT`² smaller ones, and each pixel takes the product of its column's
+    and its row's shares of each: exact for an upright rectangle, and off for a sheared
+    parallelogram by a share of the pixel that shrinks with the piece (a hexagonal rim
+    cell's piece across a label's border: 66.6 % in its own micro-image whole, 70.5 % split
+    4 × 4, 70.7 % by a dense sample; docs/distance.md, "Whole hexagonal cells (stop 45)")."""
     n_k = centres_px.shape[0]
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
@@ -1397,62 +1508,101 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
         base = group[rows[c]] * n_k
         px = (origin[0] + basis[0, 0] * ci[c] + basis[0, 1] * cj[c] + sx[c]) * inv_pp + ax - x0
         py = (origin[1] + basis[1, 0] * ci[c] + basis[1, 1] * cj[c] + sy[c]) * inv_pp + ay - y0
-        ax1 = 0.5 * abs(e[c, 0]) * inv_pp
-        ax2 = 0.5 * abs(e[c, 2]) * inv_pp
-        ay1 = 0.5 * abs(e[c, 1]) * inv_pp
-        ay2 = 0.5 * abs(e[c, 3]) * inv_pp
-        hxa = max(ax1, ax2)
-        hxb = min(ax1, ax2)
-        hya = max(ay1, ay2)
-        hyb = min(ay1, ay2)
-        c_lo = int(math.floor(px - hxa - hxb + 0.5))
-        c_hi = int(math.floor(px + hxa + hxb + 0.5))
-        r_lo = int(math.floor(py - hya - hyb + 0.5))
-        r_hi = int(math.floor(py + hya + hyb + 0.5))
-        if c_hi - c_lo >= wxs.size or r_hi - r_lo >= wys.size:
-            wxs = np.empty(2 * max(c_hi - c_lo, r_hi - r_lo) + 2)
-            wys = np.empty(wxs.size)
-        f0 = _sum_of_uniforms_cdf(c_lo - 0.5 - px, hxa, hxb)
-        for col in range(c_lo, c_hi + 1):
-            f1 = _sum_of_uniforms_cdf(col + 0.5 - px, hxa, hxb)
-            wxs[col - c_lo] = f1 - f0
-            f0 = f1
-        f0 = _sum_of_uniforms_cdf(r_lo - 0.5 - py, hya, hyb)
-        for row in range(r_lo, r_hi + 1):
-            f1 = _sum_of_uniforms_cdf(row + 0.5 - py, hya, hyb)
-            wys[row - r_lo] = f1 - f0
-            f0 = f1
-        one = (c_lo >= 0) & (c_hi < wd) & (r_lo >= 0) & (r_hi < h)
-        k = -1
-        if one:
-            k = labels[r_lo, c_lo]
-            one = k >= 0
-            for row in range(r_lo, r_hi + 1):
-                for col in range(c_lo, c_hi + 1):
-                    one &= labels[row, col] == k
-        if one:
-            cxk = centres_px[k, 0]
-            cyk = centres_px[k, 1]
-            mx = 0.0
-            mxx = 0.0
+        n_q = max(pieces.shape[0], 1)
+        for q in range(n_q):
+            if pieces.shape[0] == 0:
+                pxq, pyq, wq = px, py, w
+                e0, e1, e2, e3 = e[c, 0], e[c, 1], e[c, 2], e[c, 3]
+            else:
+                mx_, my_ = pieces[q, 0, 0], pieces[q, 0, 1]
+                pxq = px + (mx_ * e[c, 0] + my_ * e[c, 2]) * inv_pp
+                pyq = py + (mx_ * e[c, 1] + my_ * e[c, 3]) * inv_pp
+                wq = w / n_q
+                e0 = pieces[q, 1, 0] * e[c, 0] + pieces[q, 1, 1] * e[c, 2]
+                e1 = pieces[q, 1, 0] * e[c, 1] + pieces[q, 1, 1] * e[c, 3]
+                e2 = pieces[q, 2, 0] * e[c, 0] + pieces[q, 2, 1] * e[c, 2]
+                e3 = pieces[q, 2, 0] * e[c, 1] + pieces[q, 2, 1] * e[c, 3]
+            ax1 = 0.5 * abs(e0) * inv_pp
+            ax2 = 0.5 * abs(e2) * inv_pp
+            ay1 = 0.5 * abs(e1) * inv_pp
+            ay2 = 0.5 * abs(e3) * inv_pp
+            hxa = max(ax1, ax2)
+            hxb = min(ax1, ax2)
+            hya = max(ay1, ay2)
+            hyb = min(ay1, ay2)
+            c_lo = int(math.floor(pxq - hxa - hxb + 0.5))
+            c_hi = int(math.floor(pxq + hxa + hxb + 0.5))
+            r_lo = int(math.floor(pyq - hya - hyb + 0.5))
+            r_hi = int(math.floor(pyq + hya + hyb + 0.5))
+            if c_hi - c_lo >= wxs.size or r_hi - r_lo >= wys.size:
+                wxs = np.empty(2 * max(c_hi - c_lo, r_hi - r_lo) + 2)
+                wys = np.empty(wxs.size)
+            f0 = _sum_of_uniforms_cdf(c_lo - 0.5 - pxq, hxa, hxb)
             for col in range(c_lo, c_hi + 1):
-                d = (col + x0 - cxk) * inv_pitch
-                mx += wxs[col - c_lo] * d
-                mxx += wxs[col - c_lo] * d * d
-            my = 0.0
-            myy = 0.0
+                f1 = _sum_of_uniforms_cdf(col + 0.5 - pxq, hxa, hxb)
+                wxs[col - c_lo] = f1 - f0
+                f0 = f1
+            f0 = _sum_of_uniforms_cdf(r_lo - 0.5 - pyq, hya, hyb)
             for row in range(r_lo, r_hi + 1):
-                d = (row + y0 - cyk) * inv_pitch
-                my += wys[row - r_lo] * d
-                myy += wys[row - r_lo] * d * d
-            n = base + k
-            out[n, 0] += w
-            out[n, 1] += w * mx
-            out[n, 2] += w * my
-            out[n, 3] += w * (mxx + myy)
-            continue
-        for row in range(max(r_lo, 0), min(r_hi + 1, h)):
-            for col in range(max(c_lo, 0), min(c_hi + 1, wd)):
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row,
-                       w * wxs[col - c_lo] * wys[row - r_lo])
+                f1 = _sum_of_uniforms_cdf(row + 0.5 - pyq, hya, hyb)
+                wys[row - r_lo] = f1 - f0
+                f0 = f1
+            one = (c_lo >= 0) & (c_hi < wd) & (r_lo >= 0) & (r_hi < h)
+            k = -1
+            if one:
+                k = labels[r_lo, c_lo]
+                one = k >= 0
+                for row in range(r_lo, r_hi + 1):
+                    for col in range(c_lo, c_hi + 1):
+                        one &= labels[row, col] == k
+            if one:
+                cxk = centres_px[k, 0]
+                cyk = centres_px[k, 1]
+                mx = 0.0
+                mxx = 0.0
+                for col in range(c_lo, c_hi + 1):
+                    d = (col + x0 - cxk) * inv_pitch
+                    mx += wxs[col - c_lo] * d
+                    mxx += wxs[col - c_lo] * d * d
+                my = 0.0
+                myy = 0.0
+                for row in range(r_lo, r_hi + 1):
+                    d = (row + y0 - cyk) * inv_pitch
+                    my += wys[row - r_lo] * d
+                    myy += wys[row - r_lo] * d * d
+                n = base + k
+                out[n, 0] += wq
+                out[n, 1] += wq * mx
+                out[n, 2] += wq * my
+                out[n, 3] += wq * (mxx + myy)
+                continue
+            ws = wq / (CELL_SPLIT * CELL_SPLIT)
+            for a in range(CELL_SPLIT):
+                ta = (a + 0.5) / CELL_SPLIT - 0.5
+                for b in range(CELL_SPLIT):
+                    tb = (b + 0.5) / CELL_SPLIT - 0.5
+                    qx = pxq + (ta * e0 + tb * e2) * inv_pp
+                    qy = pyq + (ta * e1 + tb * e3) * inv_pp
+                    sxa = hxa / CELL_SPLIT
+                    sxb = hxb / CELL_SPLIT
+                    sya = hya / CELL_SPLIT
+                    syb = hyb / CELL_SPLIT
+                    q_lo = int(math.floor(qx - sxa - sxb + 0.5))
+                    q_hi = int(math.floor(qx + sxa + sxb + 0.5))
+                    s_lo = int(math.floor(qy - sya - syb + 0.5))
+                    s_hi = int(math.floor(qy + sya + syb + 0.5))
+                    f0 = _sum_of_uniforms_cdf(q_lo - 0.5 - qx, sxa, sxb)
+                    for col in range(q_lo, q_hi + 1):
+                        f1 = _sum_of_uniforms_cdf(col + 0.5 - qx, sxa, sxb)
+                        wxs[col - q_lo] = f1 - f0
+                        f0 = f1
+                    f0 = _sum_of_uniforms_cdf(s_lo - 0.5 - qy, sya, syb)
+                    for row in range(s_lo, s_hi + 1):
+                        f1 = _sum_of_uniforms_cdf(row + 0.5 - qy, sya, syb)
+                        wys[row - s_lo] = f1 - f0
+                        f0 = f1
+                    for row in range(max(s_lo, 0), min(s_hi + 1, h)):
+                        for col in range(max(q_lo, 0), min(q_hi + 1, wd)):
+                            _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row,
+                                   ws * wxs[col - q_lo] * wys[row - s_lo])
     return out
