@@ -433,12 +433,14 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
     assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
 
 
-def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
+def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, pieces=None):
     """deposit_cells of one whole cell (weight 1) and deposit_moments of ``dense``² samples
     spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,
     lattice pitch 10 mm, the cell at the lattice origin, so that a landing's pixel
-    coordinates are its offsets)."""
+    coordinates are its offsets); ``pieces``: deposit_cells' (none: a rectangular cell's)."""
     from lfcam.measure.kernels import deposit_cells, deposit_moments
+
+    pieces = np.zeros((0, 3, 2)) if pieces is None else pieces
 
     eye10 = 10.0 * np.eye(2)
     inv = np.linalg.inv(eye10)
@@ -446,7 +448,7 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4):
     out = deposit_cells(np.zeros((len(centres_px), 4)), zero, np.zeros(1), np.zeros(1),
                         np.array([spot_centre[0]]), np.array([spot_centre[1]]), np.ones(1),
                         np.array([e], dtype=float), zero, np.zeros(2), eye10, 1.0, 0.0, 0.0,
-                        0, 0, labels, centres_px, 10.0, np.zeros((0, 3, 2)))
+                        0, 0, labels, centres_px, 10.0, pieces)
     t = (np.arange(dense) + 0.5) / dense - 0.5
     a, b = (g.ravel() for g in np.meshgrid(t, t))
     sx = spot_centre[0] + a * e[0] + b * e[2]
@@ -753,16 +755,18 @@ def test_whole_hexagonal_cells_keep_a_large_blurs_moments(monkeypatch):
 
 
 def test_whole_cell_spread_across_a_slanted_label_border_is_a_dense_samples():
-    # a cell's landing (a sheared parallelogram) across two lenslets' pixels whose border runs
-    # diagonally: each pixel's share of it, cut into CELL_SPLIT² pieces, within 4e-3 of 57 600
-    # samples of it binned to their pixels (measured ≤ 3.3e-3; the product of the whole
-    # parallelogram's marginals, as before stop 45, was 0.02-0.06 off)
+    # a hexagonal cell's landing piece (a sheared parallelogram) across two lenslets' pixels
+    # whose border runs diagonally: each pixel's share of it, cut into CELL_SPLIT² pieces,
+    # within 4e-3 of 57 600 samples of it binned to their pixels (measured ≤ 3.3e-3; the
+    # product of the whole parallelogram's marginals, as a rectangular cell's, 0.02-0.06 off)
     labels = np.zeros((12, 12), dtype=np.int64)
     rr, cc = np.mgrid[0:12, 0:12]
     labels[(rr + cc) > 11] = 1
     centres = np.array([[3.0, 3.0], [9.0, 9.0]])
     for spot, e in (((5.6, 5.7), (1.1, 0.35, -0.3, 0.8)), ((5.9, 5.4), (0.8, 0.0, 0.4, 0.69)),
                     ((5.7, 5.6), (0.9, -0.5, 0.1, 0.7))):
-        out, ref = _deposit_pair(spot, e, labels, centres)
+        # (as a hexagonal cell's piece: one, the parallelogram itself, e its map's columns)
+        out, ref = _deposit_pair(spot, e, labels, centres,
+                                 pieces=np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]]))
         assert 0.3 < ref[0, 0] < 0.7  # (the border cuts it)
         assert np.abs(out[:, 0] - ref[:, 0]).max() < 4e-3
