@@ -892,7 +892,7 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
     L/√3 halfway between neighbours, and six equal weights on a ring at radius R·√(5/12)
     toward them integrate every polynomial up to degree 3 (the ring's second moment is the
     hexagon's 5R²/12 a unit area; odd ones and the fourth-degree anisotropic ones vanish
-    by symmetry): the Gauss rule's degree on four rays fewer than n = 3's nine samples. The
+    by symmetry): the Gauss rule's degree on six rays, three fewer than n = 3's samples. The
     lattice's own is the regular one through its affine map ``[b₁ b₂][e₁ e₂]⁻¹``, as are the
     corners; its six nearest neighbours must agree within :data:`CELL_HEX_REGULAR`, so that
     the affine hexagon is the nearest-node cell the deposit shares samples by. A hexagon's
@@ -903,10 +903,11 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
     (docs/distance.md, "Whole hexagonal cells (stop 45)").
     ``None`` on any other lattice: its cells are sampled.
     """
+    from lfcam.measure.kernels import CELL_GAUSS_2 as g  # numba
+
     b = lattice.basis
     b1, b2 = b[:, 0], b[:, 1]
     if _cell_shape(lattice)[2]:
-        g = _gauss_2()
         signs = np.array([[2.0 * (q >> 1) - 1.0, 2.0 * (q & 1) - 1.0] for q in range(4)])
         points = np.array([[g * (s1 * b[0, 0] + s2 * b[0, 1]), g * (s1 * b[1, 0] + s2 * b[1, 1])]
                            for s1, s2 in signs])
@@ -935,13 +936,6 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
                         corners[(k + 2) % 6]] for k in (0, 2, 4)])
     return CellRule(False, corners[:3], points, np.full(6, 1.0 / 6.0),
                     points @ np.linalg.inv(points.T @ points), pieces)
-
-
-def _gauss_2() -> float:
-    """The 2 × 2 Gauss rule's offset (:data:`lfcam.measure.kernels.CELL_GAUSS_2`)."""
-    from lfcam.measure.kernels import CELL_GAUSS_2  # numba
-
-    return CELL_GAUSS_2
 
 
 def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
