@@ -24,7 +24,7 @@ to ``--csv`` and prints the table by side of focus × field bin.
 exact point renders) from ``benchmarks/render_independent.py`` instead of ``lfcam.sim``
 (per-pixel irradiance by the Jacobian of the exact ray map: no ray binning, docs/simulate.md);
 ``--white analytic`` calibrates on ``benchmarks/whites_analytic.py``'s per-pixel white
-instead of ``lfcam.sim``'s.
+instead of ``lfcam.sim``'s. ``--grid hex|rect`` sets the MLA's grid (both renderers).
 The CSV's ``renderer`` and ``white`` columns tell the rows apart.
 
 Run::
@@ -36,6 +36,9 @@ Run::
         --foci 1000 --method lenslet   # short lines: 3 pitches
     python benchmarks/focus_grid.py --quick --method lenslet --renderer independent \
         --white analytic --foci 1000 --csv /tmp/fg_indep.csv
+    python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000 \
+        --distances 2200,3400 --method lenslet --renderer independent --white analytic \
+        --grid hex   # hexagonal lines from the second renderer
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
     python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000 \
         --distances 1500,2200,2900,3400 --method lenslet --truth-centres --noise-free \
@@ -109,11 +112,15 @@ def parse_focus(text: str) -> float:
     return math.inf if text.strip().lower() in ("inf", "infinity") else float(text)
 
 
-def overrides(focus_mm: float, size: int | None, rotation_rad: float = 0.0) -> dict:
-    """Scene ``camera`` overrides: focus, MLA rotation, optionally a centred square crop."""
+def overrides(focus_mm: float, size: int | None, rotation_rad: float = 0.0,
+              grid: str | None = None) -> dict:
+    """Scene ``camera`` overrides: focus, MLA rotation and grid (None: the system's own),
+    optionally a centred square crop."""
     cam: dict = {"mla": {"focus_mm": "inf" if math.isinf(focus_mm) else focus_mm}}
     if rotation_rad:
         cam["mla"]["rotation_rad"] = rotation_rad
+    if grid:
+        cam["mla"]["grid"] = grid
     if size:
         cam["sensor"] = {"width_px": size, "height_px": size}
     return cam
@@ -157,19 +164,19 @@ class Camera:
 
     def __init__(self, system: str, focus_mm: float, size: int | None, cache: Path,
                  truth_centres: bool, rotation_rad: float = 0.0, renderer: str = "sim",
-                 white: str = "sim"):
+                 white: str = "sim", grid: str | None = None):
         self.system, self.focus_mm, self.size = system, focus_mm, size
         self.renderer, self.white = renderer, white
         self.base = load_profile(ROOT / "calibration" / f"{system}.toml")
-        self.cam = overrides(focus_mm, size, rotation_rad)
+        self.cam = overrides(focus_mm, size, rotation_rad, grid)
         used = apply_overrides(self.base, self.cam)
         self.used = used.with_d_in(used.d_in_mm)
         self.shape = (self.used.sensor.height_px, self.used.sensor.width_px)
         self.half_field_mm = 0.5 * self.shape[1] * self.used.sensor.pixel_pitch_mm
         self.half_t = 0.5 * self.used.main_lens.thickness_mm
         self.centres = "truth" if truth_centres else "calibrated"
-        key = f"{system}_{focus_mm:g}_{self.shape[1]}" + (f"_r{rotation_rad:g}" if rotation_rad
-                                                            else "")
+        key = (f"{system}_{focus_mm:g}_{self.shape[1]}"
+               + (f"_r{rotation_rad:g}" if rotation_rad else "") + (f"_{grid}" if grid else ""))
         t0 = time.perf_counter()
         self.geom = (truth_geometry(self.used, self.shape) if truth_centres else
                      calibrated_geometry(self.base, self.cam, self.used, self.shape, cache, key,
@@ -480,6 +487,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=0,
                     help="square sensor crop, px (0: the profile's sensor)")
     ap.add_argument("--rotation", type=float, default=0.0, help="MLA rotation, rad")
+    ap.add_argument("--grid", choices=("rect", "hex"), default=None,
+                    help="the MLA's grid (default: the system's own)")
     ap.add_argument("--rays", type=int, default=1_000_000, help="rays per source")
     ap.add_argument("--quick", action="store_true", help="2 distances a side, fields 0 and 0.8")
     ap.add_argument("--method", default="lightfield", choices=("lightfield", "lenslet", "auto"),
@@ -557,7 +566,7 @@ def main() -> None:
         for system in args.systems.split(","):
             for focus in [parse_focus(v) for v in args.foci.split(",")]:
                 cam = Camera(system, focus, args.size or None, args.cache, args.truth_centres,
-                             args.rotation, args.renderer, args.white)
+                             args.rotation, args.renderer, args.white, args.grid)
                 if args.lines:
                     dists = args.distances or LINE_DISTANCES
                     run_lines(cam, [float(v) for v in dists.split(",")], args.rays, emit,

@@ -1608,7 +1608,14 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                         COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
     fun = fun_of(fine)
     q_c = q
-    q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
+    r = fun(q_c)
+    if on_cells and not coarse.cell_shape[2]:
+        # a hexagonal lattice's borders cut n = 2's sub-cells, and its Jacobian is not fit
+        # for the steps (as the line fit's): the fine model's own, for them and the rays'
+        # below (a 3500 mm point's answer +0.17 % at 5σ on n = 2's: docs/distance.md, "Whole
+        # hexagonal cells (stop 45)")
+        jac = _fd_jacobian(fun, many_of(fine), q_c, r, steps)
+    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS)
     r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
