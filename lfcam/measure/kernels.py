@@ -927,6 +927,19 @@ def _linear_start(gx, gy, x0, y0, a11, a12, a21, a22, det0):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _candidate(gx, gy, c_x, c_y, a11, a12, a21, a22, det0, gxs, gys, cu, cv, nc):
+    """Put the MLA point ``(gx, gy)`` and its Newton start (:func:`_linear_start`) at ``nc`` of
+    the candidates' arrays, if the start is near enough to be one; whether it was."""
+    near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
+    if near:
+        gxs[nc] = gx
+        gys[nc] = gy
+        cu[nc] = u
+        cv[nc] = v
+    return near
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse):
     """The lattice coordinates' ranges (s lo, s hi, t lo, t hi) over an MLA box's corners."""
     s_lo = math.inf
@@ -1125,13 +1138,9 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
                             fac = 1.0 - share
                             tgx = origin[0] + basis[0, 0] * i1 + basis[0, 1] * j1
                             tgy = origin[1] + basis[1, 0] * i1 + basis[1, 1] * j1
-                    near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
-                    if not near:
+                    if not _candidate(gx, gy, c_x, c_y, a11, a12, a21, a22, det0, gxs, gys,
+                                      cu, cv, nc):
                         continue
-                    gxs[nc] = gx
-                    gys[nc] = gy
-                    cu[nc] = u
-                    cv[nc] = v
                     if hex_skip:
                         cfac[nc] = fac
                         ctx[nc] = tgx
@@ -1325,13 +1334,9 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                 gy = origin[1] + basis[1, 0] * i + basis[1, 1] * j
                 if not _in_reach(gx, gy, x_lo, x_hi, y_lo, y_hi, reach[p, 0], reach[p, 1], r2):
                     continue
-                near, u, v = _linear_start(gx, gy, c_x[0], c_y[0], a11, a12, a21, a22, det0)
-                if not near:
+                if not _candidate(gx, gy, c_x, c_y, a11, a12, a21, a22, det0, gxs, gys, cu, cv,
+                                  nc):
                     continue
-                gxs[nc] = gx
-                gys[nc] = gy
-                cu[nc] = u
-                cv[nc] = v
                 ni_[nc] = a
                 nj_[nc] = b
                 nc += 1
@@ -1441,6 +1446,24 @@ def _sum_of_uniforms_cdf(t, a, b):
     return 0.5 + g if t >= 0.0 else 0.5 - g
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_span(p, ha, hb):
+    """The pixels ``lo … hi`` (along one axis) that the sum of two uniform offsets of
+    half-widths ``ha ≥ hb`` about ``p`` (pixel coordinates) reaches."""
+    return int(math.floor(p - ha - hb + 0.5)), int(math.floor(p + ha + hb + 0.5))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_shares(p, ha, hb, lo, hi, out):
+    """Each pixel's share ``out[i − lo]``, ``i = lo … hi`` (:func:`_pixel_span`), of the sum of
+    two uniform offsets about ``p`` (:func:`_sum_of_uniforms_cdf`)."""
+    f0 = _sum_of_uniforms_cdf(lo - 0.5 - p, ha, hb)
+    for i in range(lo, hi + 1):
+        f1 = _sum_of_uniforms_cdf(i + 0.5 - p, ha, hb)
+        out[i - lo] = f1 - f0
+        f0 = f1
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def cell_landings(ray, wt, sx, sy, w4, n_cells, side_coef):
     """Each whole cell's light from its K rule points' traced rays (:func:`cell_centres`'
@@ -1533,23 +1556,13 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
             hxb = min(ax1, ax2)
             hya = max(ay1, ay2)
             hyb = min(ay1, ay2)
-            c_lo = int(math.floor(pxq - hxa - hxb + 0.5))
-            c_hi = int(math.floor(pxq + hxa + hxb + 0.5))
-            r_lo = int(math.floor(pyq - hya - hyb + 0.5))
-            r_hi = int(math.floor(pyq + hya + hyb + 0.5))
+            c_lo, c_hi = _pixel_span(pxq, hxa, hxb)
+            r_lo, r_hi = _pixel_span(pyq, hya, hyb)
             if c_hi - c_lo >= wxs.size or r_hi - r_lo >= wys.size:
                 wxs = np.empty(2 * max(c_hi - c_lo, r_hi - r_lo) + 2)
                 wys = np.empty(wxs.size)
-            f0 = _sum_of_uniforms_cdf(c_lo - 0.5 - pxq, hxa, hxb)
-            for col in range(c_lo, c_hi + 1):
-                f1 = _sum_of_uniforms_cdf(col + 0.5 - pxq, hxa, hxb)
-                wxs[col - c_lo] = f1 - f0
-                f0 = f1
-            f0 = _sum_of_uniforms_cdf(r_lo - 0.5 - pyq, hya, hyb)
-            for row in range(r_lo, r_hi + 1):
-                f1 = _sum_of_uniforms_cdf(row + 0.5 - pyq, hya, hyb)
-                wys[row - r_lo] = f1 - f0
-                f0 = f1
+            _pixel_shares(pxq, hxa, hxb, c_lo, c_hi, wxs)
+            _pixel_shares(pyq, hya, hyb, r_lo, r_hi, wys)
             one = (c_lo >= 0) & (c_hi < wd) & (r_lo >= 0) & (r_hi < h)
             k = -1
             if one:
@@ -1590,20 +1603,10 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
                     sxb = hxb / split
                     sya = hya / split
                     syb = hyb / split
-                    q_lo = int(math.floor(qx - sxa - sxb + 0.5))
-                    q_hi = int(math.floor(qx + sxa + sxb + 0.5))
-                    s_lo = int(math.floor(qy - sya - syb + 0.5))
-                    s_hi = int(math.floor(qy + sya + syb + 0.5))
-                    f0 = _sum_of_uniforms_cdf(q_lo - 0.5 - qx, sxa, sxb)
-                    for col in range(q_lo, q_hi + 1):
-                        f1 = _sum_of_uniforms_cdf(col + 0.5 - qx, sxa, sxb)
-                        wxs[col - q_lo] = f1 - f0
-                        f0 = f1
-                    f0 = _sum_of_uniforms_cdf(s_lo - 0.5 - qy, sya, syb)
-                    for row in range(s_lo, s_hi + 1):
-                        f1 = _sum_of_uniforms_cdf(row + 0.5 - qy, sya, syb)
-                        wys[row - s_lo] = f1 - f0
-                        f0 = f1
+                    q_lo, q_hi = _pixel_span(qx, sxa, sxb)
+                    s_lo, s_hi = _pixel_span(qy, sya, syb)
+                    _pixel_shares(qx, sxa, sxb, q_lo, q_hi, wxs)
+                    _pixel_shares(qy, sya, syb, s_lo, s_hi, wys)
                     for row in range(max(s_lo, 0), min(s_hi + 1, h)):
                         for col in range(max(q_lo, 0), min(q_hi + 1, wd)):
                             _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row,
