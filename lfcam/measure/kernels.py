@@ -1464,6 +1464,19 @@ def _pixel_shares(p, ha, hb, lo, hi, out):
         f0 = f1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _share_moments(shares, lo, hi, origin_px, centre_px, inv_pitch):
+    """First and second moments, in lenslet pitches about ``centre_px``, of the pixel shares
+    ``shares[i − lo]`` of pixels ``i = lo … hi`` along one axis (box offset ``origin_px``)."""
+    m1 = 0.0
+    m2 = 0.0
+    for i in range(lo, hi + 1):
+        d = (i + origin_px - centre_px) * inv_pitch
+        m1 += shares[i - lo] * d
+        m2 += shares[i - lo] * d * d
+    return m1, m2
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def cell_landings(ray, wt, sx, sy, w4, n_cells, side_coef):
     """Each whole cell's light from its K rule points' traced rays (:func:`cell_centres`'
@@ -1572,20 +1585,8 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
                     for col in range(c_lo, c_hi + 1):
                         one &= labels[row, col] == k
             if one:
-                cxk = centres_px[k, 0]
-                cyk = centres_px[k, 1]
-                mx = 0.0
-                mxx = 0.0
-                for col in range(c_lo, c_hi + 1):
-                    d = (col + x0 - cxk) * inv_pitch
-                    mx += wxs[col - c_lo] * d
-                    mxx += wxs[col - c_lo] * d * d
-                my = 0.0
-                myy = 0.0
-                for row in range(r_lo, r_hi + 1):
-                    d = (row + y0 - cyk) * inv_pitch
-                    my += wys[row - r_lo] * d
-                    myy += wys[row - r_lo] * d * d
+                mx, mxx = _share_moments(wxs, c_lo, c_hi, x0, centres_px[k, 0], inv_pitch)
+                my, myy = _share_moments(wys, r_lo, r_hi, y0, centres_px[k, 1], inv_pitch)
                 n = base + k
                 out[n, 0] += wq
                 out[n, 1] += wq * mx
@@ -1593,16 +1594,16 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
                 out[n, 3] += wq * (mxx + myy)
                 continue
             ws = wq / (split * split)
+            sxa = hxa / split
+            sxb = hxb / split
+            sya = hya / split
+            syb = hyb / split
             for a in range(split):
                 ta = (a + 0.5) / split - 0.5
                 for b in range(split):
                     tb = (b + 0.5) / split - 0.5
                     qx = pxq + (ta * e0 + tb * e2) * inv_pp
                     qy = pyq + (ta * e1 + tb * e3) * inv_pp
-                    sxa = hxa / split
-                    sxb = hxb / split
-                    sya = hya / split
-                    syb = hyb / split
                     q_lo, q_hi = _pixel_span(qx, sxa, sxb)
                     s_lo, s_hi = _pixel_span(qy, sya, syb)
                     _pixel_shares(qx, sxa, sxb, q_lo, q_hi, wxs)
