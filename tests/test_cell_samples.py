@@ -62,11 +62,12 @@ def test_samples_invert_a_known_map_and_tile_the_pupil(grid, n, kappa):
     boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
                        centre[1] + reach]])
     offset = 0.5 * ((n + 1) % 2)  # the sub-cell centres: (index + ½)/n − ½ modulo 1
+    la, lb, rect = ff._cell_shape(_lattice(origin, basis))
     u, v, w, rows, du, tx, _ = cell_samples(cx[None], cy[None], boxes,
                                             np.array([[centre[0], centre[1], reach]]), origin,
                                             basis, np.linalg.inv(basis), n,
                                             np.zeros((1, 5), dtype=np.int64),
-                                            np.zeros(1, dtype=bool), 1.0)
+                                            np.zeros(1, dtype=bool), 1.0, rect, la, lb)
     assert tx.size == 0  # (no whole cells: no sample moved to a neighbour's node)
     r = np.hypot(u, v)
     inside = r < 1.0 - 1e-9  # (samples beyond the rim are placed on it, with their share)
@@ -689,10 +690,12 @@ def test_samples_left_to_whole_cells_are_the_rest_of_the_sub_grid():
         ii, jj = np.meshgrid(np.arange(ni) + i0, np.arange(nj) + j0, indexing="ij")
         whole = ((ii - 0.7) ** 2 + (jj + 0.4) ** 2 < 30.0) & ((ii + jj) % 7 != 3)  # (holes)
         none = (np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=bool))
+        shape = ff._cell_shape(lat)
+        spacing_shape = (share_spacing, shape[2], shape[0], shape[1])  # (…, rect, la, lb)
         u0, v0, w0, _, _, _, _ = cell_samples(cx[None], cy[None], boxes, disc, origin, basis,
-                                              inv, n, *none, share_spacing)
+                                              inv, n, *none, *spacing_shape)
         u, v, w, _, _, tx, ty = cell_samples(cx[None], cy[None], boxes, disc, origin, basis,
-                                             inv, n, grid, whole.ravel(), share_spacing)
+                                             inv, n, grid, whole.ravel(), *spacing_shape)
         r0 = np.hypot(u0, v0)
         x0 = centre[0] + scale * (1.0 + kappa * r0 * r0) * u0  # the samples' MLA points
         y0 = centre[1] + scale * (1.0 + kappa * r0 * r0) * v0

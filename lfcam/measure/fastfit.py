@@ -649,10 +649,11 @@ class LensletModel:
         cut[:, 2] = np.maximum(boxes[:, 2], clip[2])
         cut[:, 3] = np.minimum(boxes[:, 3], clip[3])
         args = (reach, lat.origin, lat.basis, lat.inverse)
+        la, lb, rect = self.cell_shape
         no_skip = (np.zeros((m, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_))
         if n > 2 and not np.array_equal(cut, boxes):
             _, _, w2, rows2, *_ = cell_samples(cx, cy, boxes, *args, 2, *no_skip,
-                                               CELL_SHARE * pitch / 2)
+                                               CELL_SHARE * pitch / 2, rect, la, lb)
             area = np.bincount(rows2, w2, minlength=m)
             boxes = cut
         else:
@@ -669,7 +670,7 @@ class LensletModel:
         # (on a hexagonal lattice a sample across a whole cell's border keeps the other
         # cell's share, weighted and placed on its node: (tx, ty))
         u, v, w, srows, du, tx, ty = cell_samples(cx, cy, boxes, *args, n, *skip,
-                                                  CELL_SHARE * pitch / n)
+                                                  CELL_SHARE * pitch / n, rect, la, lb)
         if area is None:
             area = np.bincount(srows, w, minlength=m)
             if whole is not None:

@@ -292,7 +292,8 @@ def warm_up() -> None:
     terms = (MAP_DEGREE + 1) * (MAP_DEGREE + 2) // 2
     poly = np.zeros((1, terms))
     cell_samples(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 2,
-                 np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_), 1.0)
+                 np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_), 1.0, True,
+                 1.0, 1.0)
     cell_centres(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 1.25,
                  np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25))
     deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
@@ -961,7 +962,7 @@ def _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse):
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, skip,
-                 share_spacing):
+                 share_spacing, rect, la, lb):
     """Pupil samples of each point source whose images on the MLA form a fixed sub-grid of
     every lattice cell: the centres of the n × n sub-cells of the cell about each node, the
     points ``(i + (a + o)/n, j + (b + o)/n)`` in lattice coordinates (``a, b = 0 … n−1``: n²
@@ -996,6 +997,9 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
     is moved). So every cell that is not whole keeps the light its samples gave it, and a
     whole cell gets none of theirs.
 
+    ``rect, la, lb``: whether the lattice's cells are rectangles and its basis vectors'
+    lengths (``fastfit._cell_shape``, as :func:`deposit_moments` takes them).
+
     Returns ``u, v, w, rows, du, tx, ty``.
     """
     m = cx.shape[0]
@@ -1019,9 +1023,6 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
     cstep = np.empty(ccap)
     conv = np.empty(ccap, dtype=np.bool_)
     qa = basis[0, 1] * basis[0, 1] + basis[1, 1] * basis[1, 1]
-    la = math.hypot(basis[0, 0], basis[1, 0])
-    lb = math.hypot(basis[0, 1], basis[1, 1])
-    rect = abs(basis[0, 0] * basis[0, 1] + basis[1, 0] * basis[1, 1]) < 1e-4 * la * lb
     seps = _separations(basis)
     half = 0.5 if rect else 0.0  # (the row's cells, below)
     # (samples moved to a neighbour's node: only on a hexagonal lattice with whole cells;
