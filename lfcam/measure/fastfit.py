@@ -145,10 +145,10 @@ LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log d
 #                                            0.13-0.16 s on the cells)
 POINT_CELLS = True  # a point blur lighting LINE_CELLS_MIN_LIT lenslets or more is fitted on the
 #                    cells too where they apply at LINE_CELLS_PROBE_LOG about its best start
-#                    (each start matched on them where they apply about it): the coarse, fine
-#                    and settled models' n as the line's, and no polish (its answer steps to
-#                    the settled model's minimum: docs/distance.md, "Large point blurs on the
-#                    cells (stop 44)")
+#                    (each start matched on them where they apply about it): its first look
+#                    on the coarse, fine and settled models' n as the line's; its answer then
+#                    from the rays, started there (docs/distance.md, "Large point blurs on
+#                    the cells (stop 44)")
 LINE_CELLS_COARSE = 2  # ... n of the coarse stage's model,
 LINE_CELLS_FINE = 4  # ... of the fine model,
 LINE_CELLS_FINE_WHOLE = 3  # ... of the fine model where the cells lit whole are integrated
@@ -1541,11 +1541,11 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     :func:`data_moments`, when the caller has them.
 
     A large blur whose best start has the cells apply about it (:func:`cells_apply`,
-    :data:`POINT_CELLS`) is fitted on them, as a line is: the coarse and fine models sample
-    the lenslet cells (n = :data:`LINE_CELLS_COARSE`, :data:`LINE_CELLS_FINE_WHOLE` or
-    :data:`LINE_CELLS_FINE`), the polishing model is the finer sub-grid
-    :data:`LINE_CELLS_SETTLE`, and the answer steps to its minimum with the fine model's
-    own Jacobian: no ray sample to settle, no polish.
+    :data:`POINT_CELLS`) takes its first look on them, as a line does: the coarse and fine
+    models sample the lenslet cells (n = :data:`LINE_CELLS_COARSE`, then
+    :meth:`LensletModel.fine_cells`) and the first yield's polishing model is the finer
+    sub-grid :data:`LINE_CELLS_SETTLE`. Its answer comes from the ray models, their
+    Gauss–Newton steps started from the cells' fit, then the settled test and the polish.
 
     Yields twice: the fine fit with the polishing model's misfit at it (``polished=False``,
     no σ: a caller reads only its misfits), then the final fit. A caller that learns from the
@@ -1648,7 +1648,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # A point's answer comes from the rays: on the cells the quintic pupil map's area
         # element leaves points 0.04-0.07 % short (docs/distance.md, "Large point blurs on
         # the cells (stop 44)"). The fine ray model's Gauss–Newton steps from the cells' fit,
-        # with the coarse cells' Jacobian; then the settled test and the polish as below.
+        # with the cells' Jacobian (the coarse one's; the fine one's on a hexagonal
+        # lattice); then the settled test and the polish as below.
         fine = LensletModel(profile, geom, mom, n_rays)
         polish = LensletModel(profile, geom, mom, POLISH_RAYS)
         counted += [fine, polish]
