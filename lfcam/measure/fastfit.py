@@ -241,11 +241,16 @@ CELLS_WHOLE_HEX_MIN_N = 3  # ... on a hexagonal lattice from this n on (n = 2: 4
 #                            cell, fewer than the ring's 6)
 CELL_HEX_REGULAR = 0.02  # ... whose six nearest neighbours' distances agree within this share
 #                          (the ring is the regular hexagon's, through the lattice's affine map)
+CELLS_RIM = True  # on a hexagonal lattice the cells the pupil's rim cuts too, each over its
+#                   part inside it (the rim's image a line across the cell: kernels._rim_cut;
+#                   docs/distance.md, "Rim cells cut by the rim's line (stop 46)"); not on
+#                   a rectangular one, whose rim cells n = 3 samples cheaply and closer
 CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _RULES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
+_NO_POLYGON = np.zeros((0, 2))  # cell_centres without the rim's cut cells
 _ONE_BOX = np.empty(0)  # deposit_moments' per-ray box sizes where one is for all rays
 
 
@@ -665,16 +670,18 @@ class LensletModel:
             # the landing's linear image of the cell; the others sampled
             rule = self.rule
             whole = cell_centres(cx, cy, boxes, *args, CELL_WHOLE_MARGIN, rule.corners,
-                                 rule.points, rule.weights)
+                                 rule.points, rule.weights,
+                                 rule.polygon if CELLS_RIM and not rule.rect else _NO_POLYGON)
             skip = whole[6:8]
         # (on a hexagonal lattice a sample across a whole cell's border keeps the other
         # cell's share, weighted and placed on its node: (tx, ty))
         u, v, w, srows, du, tx, ty = cell_samples(cx, cy, boxes, *args, n, *skip,
                                                   CELL_SHARE * pitch / n, rect, la, lb)
         if area is None:
-            area = np.bincount(srows, w, minlength=m)
+            area = np.bincount(srows, w, minlength=m).astype(np.float64)  # (no samples: int)
             if whole is not None:
                 area += np.bincount(whole[0], whole[5].sum(axis=1), minlength=m)
+                area += np.bincount(whole[8], whole[13].sum(axis=1), minlength=m)
         if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
             return None
         return u, v, w, srows, du, maps, trace_args, whole, (tx, ty)
@@ -693,7 +700,15 @@ class LensletModel:
         Where a pupil is vignetted or a map is not one to one the model is the ray-sampled one
         from then on (``folded``).
         """
-        from lfcam.measure.kernels import cell_landings, deposit_cells, trace_sample_rays
+        from lfcam.measure.kernels import (
+            CELL_SPLIT,
+            RIM_PIECE,
+            RIM_SIDES,
+            RIM_SPLIT,
+            cell_landings,
+            deposit_cells,
+            trace_sample_rays,
+        )
 
         got = None if self.folded else self._cell_samples(points)
         if got is None:
@@ -735,19 +750,26 @@ class LensletModel:
                        / p.sensor.pixel_pitch_mm)
                 s_ray = np.clip(np.sqrt(w[ray]) * (half * mag), 1e-3, 0.9)
                 out = self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, m, s_ray)
-        if whole is not None and whole[0].size:
-            # the whole cells: their Gauss points' rays traced exactly; a cell's light, their
-            # sum, lands about their weighted mean as the linear image of the cell their
-            # differences give (kernels.cell_centres, deposit_cells)
-            rows_c, ci, cj, u4, v4, w4 = whole[:6]
+        if whole is None:
+            return out
+        # the whole cells (their rule's rays traced exactly; a cell's light, their sum, lands
+        # about their weighted mean as the linear image of the cell their differences give:
+        # kernels.cell_centres, deposit_cells), then the rim's cut cells (the 4-point rule of
+        # each one's part inside the rim, spread over the rectangle of its second moments)
+        for (rows_c, ci, cj, u4, v4, w4), sides_of, pieces, split in (
+                (whole[:6], self.rule.sides, self.rule.pieces,
+                 CELL_SPLIT if self.rule.pieces.shape[0] else 1),
+                (whole[8:14], RIM_SIDES, RIM_PIECE, RIM_SPLIT)):
+            if not rows_c.size:
+                continue
             nw = rows_c.size
             cuts = np.searchsorted(rows_c, np.arange(m + 1)) * u4.shape[1]
             _, _, sx, sy, wt, _, ray, _ = trace_sample_rays(pts, maps, cuts, u4.ravel() * half,
                                                             v4.ravel() * half, *trace_args)
             every, weight, lx, ly, sides = cell_landings(ray, wt, sx, sy, w4.ravel(), nw,
-                                                         self.rule.sides)
+                                                         sides_of)
             if not every:
-                # a Gauss ray stopped inside the lens (a cell lit whole is not): the cells do
+                # a rule's ray stopped inside the lens (a cell lit whole is not): the cells do
                 # not apply, as where a pupil is vignetted
                 self.folded = True
                 return self._simulate_compiled(points, group, groups, np.zeros_like(out))
@@ -758,7 +780,7 @@ class LensletModel:
                           else np.asarray(group, dtype=np.int64),
                           lat.origin, lat.basis, float(p.sensor.pixel_pitch_mm), float(ax),
                           float(ay), int(x0), int(y0), self.mom.labels, self.mom.centres_px,
-                          float(self.geom.pitch_px), self.rule.pieces)
+                          float(self.geom.pitch_px), pieces, split)
         return out
 
     def residual(self, sources: np.ndarray) -> np.ndarray:
@@ -879,6 +901,7 @@ class CellRule(NamedTuple):
     #                    a hexagonal cell: in the landing's linear map's columns, ∂/∂x, ∂/∂y)
     pieces: np.ndarray  # (P, 3, 2): the parallelograms a hexagonal cell's light is spread
     #                     over, each's centre and two sides (none on a rectangular lattice)
+    polygon: np.ndarray  # (V, 2): the cell's corners in counter-clockwise order
 
 
 def cell_rule(lattice: LocalLattice) -> CellRule | None:
@@ -914,7 +937,9 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
                            for s1, s2 in signs])
         corners = np.array([0.5 * (b1 + b2), 0.5 * (b1 - b2)])
         return CellRule(True, corners, points, np.full(4, 0.25), signs / (4.0 * g),
-                        np.zeros((0, 3, 2)))
+                        np.zeros((0, 3, 2)),
+                        _counter_clockwise(np.array([corners[0], -corners[1], -corners[0],
+                                                     corners[1]])))
     vecs = np.array([i * b1 + j * b2 for i in range(-2, 3) for j in range(-2, 3)
                      if (i, j) != (0, 0)])
     length = np.hypot(vecs[:, 0], vecs[:, 1])
@@ -936,7 +961,15 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
     pieces = np.array([[(corners[k] + corners[(k + 2) % 6]) / 2.0, corners[k],
                         corners[(k + 2) % 6]] for k in (0, 2, 4)])
     return CellRule(False, corners[:3], points, np.full(6, 1.0 / 6.0),
-                    points @ np.linalg.inv(points.T @ points), pieces)
+                    points @ np.linalg.inv(points.T @ points), pieces,
+                    _counter_clockwise(corners))
+
+
+def _counter_clockwise(poly: np.ndarray) -> np.ndarray:
+    """A polygon's corners (V, 2), in order about it, turned counter-clockwise."""
+    x, y = poly[:, 0], poly[:, 1]
+    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return np.ascontiguousarray(poly if area2 > 0 else poly[::-1])
 
 
 def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):

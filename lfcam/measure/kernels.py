@@ -295,11 +295,11 @@ def warm_up() -> None:
                  np.zeros((1, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_), 1.0, True,
                  1.0, 1.0)
     cell_centres(poly, poly, np.zeros((1, 4)), np.zeros((1, 3)), np.zeros(2), eye, eye, 1.25,
-                 np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25))
+                 np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25), np.zeros((4, 2)))
     deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
                   np.zeros((1, 4)), np.zeros(1, dtype=np.int64), np.zeros(2), eye, 1.0, 0.0, 0.0,
                   0, 0, np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0,
-                  np.zeros((0, 3, 2)))
+                  np.zeros((0, 3, 2)), 1)
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
                   np.ones(4), 1, np.zeros((4, 2)))
 
@@ -1235,11 +1235,14 @@ CELL_WHOLE_MAX_PATCH = 0.1  # ... and whose patch reaches at most this far (pupi
 #                             2 × 2 Gauss rule leaves 1.4 % of a cell's light on patches of
 #                             0.25 (a small blur: 5 whole cells)
 CELL_SPLIT = 4  # a whole hexagonal cell's landing across lenslets' pixels: cut into this²
+RIM_SPLIT = 2  # ... and a rim's cut cell's rectangle (_rim_cut) into this² (4: the same
+#                moments within 2e-5 of their norm, 20 % more deposit_cells CPU)
 CELL_GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points: ± this × a cell's sides
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, rule, rule_w):
+def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, rule, rule_w,
+                 polygon):
     """The lattice cells each point source lights whole, and the pupil points of each one's
     quadrature rule: the cell about a node is the polygon whose corners are ``±corners`` (C,
     2; offsets from the node, MLA mm), the rule's points ``node + rule[q]`` (K, 2), weights
@@ -1259,10 +1262,17 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
     centre of a large blur behind focus; docs/distance.md, "Cells integrated whole (stop
     43)" and "Whole hexagonal cells (stop 45)").
 
+    ``polygon`` (V, 2: the cell's corners in order about the node, or empty): the cells the
+    pupil's rim cuts are integrated too, each over its part inside the rim (the rim's image
+    a line across the cell: :func:`_rim_cut`) by the 4-point rule of that polygon's second
+    moments (:func:`_moment_rule`), and the cells wholly past the rim left out; neither is
+    then sampled (docs/distance.md, "Rim cells cut by the rim's line (stop 46)").
+
     Returns ``rows`` (point), ``ci, cj`` (the cell's lattice indices), ``u, v`` (n, K: the
     rule's pupil points, in its order), ``w`` (n, K: each one's pupil area, ``|cell| ·
-    rule_w[q] / |det ∂X/∂u|``), and ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these
-    cells left out of its samples).
+    rule_w[q] / |det ∂X/∂u|``), ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these
+    cells left out of its samples), and the rim cells' ``rows, ci, cj, u, v, w`` (n, 4:
+    the moment rule's points ``+e₁, −e₁, +e₂, −e₂``; all empty without ``polygon``).
     """
     m = cx.shape[0]
     nq = rule.shape[0]
@@ -1278,6 +1288,26 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
     skip = np.zeros(1024, dtype=np.bool_)
     count = 0
     moff = 0
+    rim = polygon.shape[0] > 0
+    rcap = 256
+    r_rows = np.empty(rcap, dtype=np.int64)
+    r_ci = np.empty(rcap)
+    r_cj = np.empty(rcap)
+    r_us = np.empty((rcap, 4))
+    r_vs = np.empty((rcap, 4))
+    r_ws = np.empty((rcap, 4))
+    r_count = 0
+    # one point's rim cells: node (a, b), the rule's MLA points and their Newton state
+    rim_a = np.empty(rcap, dtype=np.int64)
+    rim_b = np.empty(rcap, dtype=np.int64)
+    rim_w = np.empty(rcap)
+    rgx = np.empty(4 * rcap)
+    rgy = np.empty(4 * rcap)
+    rcu = np.empty(4 * rcap)
+    rcv = np.empty(4 * rcap)
+    rdet = np.empty(4 * rcap)
+    rstep = np.empty(4 * rcap)
+    cut = np.empty((polygon.shape[0] + 2, 2))
     ccap = 256
     gxs = np.empty(ccap)
     gys = np.empty(ccap)
@@ -1349,6 +1379,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                       CELL_NEWTON_REACH * CELL_NEWTON_REACH)
         # the whole cells, and their Gauss points' starts (appended after the nodes)
         nw = 0
+        nr = 0
         for k in range(nc):
             if not (cstep[k] < CELL_NEWTON_STEP):
                 continue
@@ -1366,8 +1397,52 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
             for q in range(corners.shape[0]):
                 patch = max(patch, math.hypot(ia * corners[q, 0] + ib * corners[q, 1],
                                               ic * corners[q, 0] + ie * corners[q, 1]))
-            if (math.sqrt(u * u + v * v) + margin * patch >= 1.0
-                    or patch > CELL_WHOLE_MAX_PATCH):
+            if patch > CELL_WHOLE_MAX_PATCH:
+                continue
+            rr = math.sqrt(u * u + v * v)
+            if rr + margin * patch >= 1.0:
+                if not rim:
+                    continue
+                at_skip = grid[p, 4] + ni_[k] * nj + nj_[k]
+                if rr - margin * patch > 1.0:
+                    skip[at_skip] = True  # wholly past the rim: no light
+                    continue
+                # cut by the rim: its part inside, and that part's moment rule
+                area_in = _rim_cut(c_x, c_y, gxs[k], gys[k], u / rr, v / rr, polygon,
+                                   polygon.shape[0], cut, rgx, rgy, 4 * nr)
+                if area_in <= 0.0:
+                    skip[at_skip] = True
+                    continue
+                if area_in < (1.0 - 1e-9) * cell_area:
+                    whole_here = False
+                else:
+                    whole_here = True  # not cut after all: the rule of the whole cell
+            else:
+                whole_here = True
+            if not whole_here:
+                skip[at_skip] = True
+                for q in range(4):
+                    ox = rgx[4 * nr + q]
+                    oy = rgy[4 * nr + q]
+                    rgx[4 * nr + q] = gxs[k] + ox
+                    rgy[4 * nr + q] = gys[k] + oy
+                    rcu[4 * nr + q] = u + ia * ox + ib * oy
+                    rcv[4 * nr + q] = v + ic * ox + ie * oy
+                rim_a[nr] = ni_[k]
+                rim_b[nr] = nj_[k]
+                rim_w[nr] = area_in
+                nr += 1
+                if nr == rcap:
+                    rcap *= 2
+                    rim_a = _grow_int(rim_a, rcap)
+                    rim_b = _grow_int(rim_b, rcap)
+                    rim_w = _grow(rim_w, rcap)
+                    rgx = _grow(rgx, 4 * rcap)
+                    rgy = _grow(rgy, 4 * rcap)
+                    rcu = _grow(rcu, 4 * rcap)
+                    rcv = _grow(rcv, 4 * rcap)
+                    rdet = np.empty(4 * rcap)
+                    rstep = np.empty(4 * rcap)
                 continue
             ni_[nw] = ni_[k]
             nj_[nw] = nj_[k]
@@ -1380,6 +1455,35 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                 cu[at] = u + ia * ox + ib * oy
                 cv[at] = v + ic * ox + ie * oy
             nw += 1
+        if nr:
+            # the rim cells' rule points: Newton from the node's linear part, and one more
+            # pass for the area element; a point the rim's curve leaves just outside the
+            # pupil is traced on its rim (as a sample there: cell_samples)
+            _newton_until(c_x, c_y, rgx, rgy, rcu, rcv, rdet, rstep, 4 * nr, math.inf)
+            _newton_pass(c_x, c_y, rgx, rgy, rcu, rcv, rdet, rstep, 4 * nr)
+            r_rows, r_ci, r_cj, r_us, r_vs, r_ws = _grow_cells(r_rows, r_ci, r_cj, r_us, r_vs,
+                                                               r_ws, r_count + nr)
+            for k in range(nr):
+                ok = True
+                for q in range(4):
+                    at = 4 * k + q
+                    ok &= (rstep[at] < CELL_NEWTON_STEP) & (rdet[at] != 0.0)
+                if not ok:
+                    # (left to the samples)
+                    skip[grid[p, 4] + rim_a[k] * nj + rim_b[k]] = False
+                    continue
+                r_rows[r_count] = p
+                r_ci[r_count] = float(i0 + rim_a[k])
+                r_cj[r_count] = float(j0 + rim_b[k])
+                for q in range(4):
+                    at = 4 * k + q
+                    uq = rcu[at]
+                    vq = rcv[at]
+                    sc = min(1.0, 1.0 / math.sqrt(uq * uq + vq * vq))
+                    r_us[r_count, q] = uq * sc
+                    r_vs[r_count, q] = vq * sc
+                    r_ws[r_count, q] = 0.25 * rim_w[k] / abs(rdet[at])
+                r_count += 1
         if nw == 0:
             continue
         # Newton on the Gauss points (from the linear part: 2-3 passes), and one more pass
@@ -1392,15 +1496,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
         step4 = cstep[nc:nc + nq * nw]
         _newton_until(c_x, c_y, gx4, gy4, u4, v4, det4, step4, nq * nw, math.inf)
         _newton_pass(c_x, c_y, gx4, gy4, u4, v4, det4, step4, nq * nw)
-        if count + nw > cap:
-            while count + nw > cap:
-                cap *= 2
-            rows = _grow_int(rows, cap)
-            ci = _grow(ci, cap)
-            cj = _grow(cj, cap)
-            us = _grow2(us, cap)
-            vs = _grow2(vs, cap)
-            ws = _grow2(ws, cap)
+        rows, ci, cj, us, vs, ws = _grow_cells(rows, ci, cj, us, vs, ws, count + nw)
         for k in range(nw):
             ok = True
             for q in range(nq):
@@ -1420,7 +1516,171 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
             skip[grid[p, 4] + ni_[k] * nj + nj_[k]] = True
             count += 1
     return (rows[:count], ci[:count], cj[:count], us[:count], vs[:count], ws[:count], grid,
-            skip[:max(moff, 1)])
+            skip[:max(moff, 1)], r_rows[:r_count], r_ci[:r_count], r_cj[:r_count],
+            r_us[:r_count], r_vs[:r_count], r_ws[:r_count])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rim_line(c_x, c_y, gx0, gy0, nx, ny):
+    """The tangent to the rim's image on the MLA at the rim point ``(nx, ny)`` (unit): its
+    outward unit normal ``(vx, vy)``, its offset ``h`` from the node ``(gx0, gy0)`` along it
+    (the inside: ``v · x ≤ h``), the rim point's image (offset from the node) and the map's
+    derivative along the rim ``T`` (MLA mm per radian)."""
+    fx, fy, j11, j12, j21, j22 = _map2(c_x, c_y, nx, ny)
+    tx = j11 * -ny + j12 * nx
+    ty = j21 * -ny + j22 * nx
+    vx = ty
+    vy = -tx
+    if vx * (j11 * nx + j12 * ny) + vy * (j21 * nx + j22 * ny) < 0.0:
+        vx = -vx
+        vy = -vy
+    norm = math.hypot(vx, vy)
+    vx /= norm
+    vy /= norm
+    gx = fx - gx0
+    gy = fy - gy0
+    return vx, vy, vx * gx + vy * gy, gx, gy, tx, ty
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip(poly, nv, vx, vy, h, out):
+    """The convex polygon ``poly[:nv]`` cut to ``v · x ≤ h`` (Sutherland–Hodgman, one line),
+    into ``out``: its vertex count, and the two points where the line crosses its border
+    (NaN where it does not)."""
+    m = 0
+    ex0 = ey0 = ex1 = ey1 = math.nan
+    crossings = 0
+    for i in range(nv):
+        ax = poly[i, 0]
+        ay = poly[i, 1]
+        bx = poly[(i + 1) % nv, 0]
+        by = poly[(i + 1) % nv, 1]
+        da = vx * ax + vy * ay - h
+        db = vx * bx + vy * by - h
+        if da <= 0.0:
+            out[m, 0] = ax
+            out[m, 1] = ay
+            m += 1
+        if (da < 0.0 < db) or (db < 0.0 < da):
+            t = da / (da - db)
+            out[m, 0] = ax + t * (bx - ax)
+            out[m, 1] = ay + t * (by - ay)
+            if crossings == 0:
+                ex0, ey0 = out[m, 0], out[m, 1]
+            else:
+                ex1, ey1 = out[m, 0], out[m, 1]
+            crossings += 1
+            m += 1
+    return m, ex0, ey0, ex1, ey1
+
+
+@njit(cache=True, nogil=True)
+def _rim_cut(c_x, c_y, gx0, gy0, nx, ny, poly, nv, cut, ox, oy, at):
+    """The part of the cell ``poly[:nv]`` (corners about its node ``(gx0, gy0)``, MLA mm, in
+    counter-clockwise order) inside the pupil's rim, whose image crosses the cell near the
+    rim point ``(nx, ny)`` (unit): its area (MLA mm²), and the 4-point rule of its second
+    moments at ``ox, oy[at : at + 4]`` (offsets from the node: :func:`_moment_rule`).
+
+    The rim's image is taken as a line across the cell: the tangent at the rim point where
+    the cut's chord is centred (two passes), moved inward by a third of the rim curve's
+    depth at the chord's ends (the exact map there), so that the cut keeps the area a
+    parabola would (the curve's depth over a chord of 0.05 pupil radii is ~3e-4 of the
+    pupil radius)."""
+    vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, nx, ny)
+    m, ex0, ey0, ex1, ey1 = _clip(poly, nv, vx, vy, h, cut)
+    if math.isfinite(ex1):
+        # the chord's ends along the rim (radians from the tangent point): the tangent again
+        # at its middle, and the curve's depth at its ends
+        t2 = tx * tx + ty * ty
+        s0 = ((ex0 - gx) * tx + (ey0 - gy) * ty) / t2
+        s1 = ((ex1 - gx) * tx + (ey1 - gy) * ty) / t2
+        sm = 0.5 * (s0 + s1)
+        ds = 0.5 * abs(s1 - s0)
+        cm = math.cos(sm)
+        sn = math.sin(sm)
+        mx = nx * cm - ny * sn
+        my = ny * cm + nx * sn
+        vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, mx, my)
+        depth = 0.0
+        for sg in (-1.0, 1.0):
+            c2 = math.cos(ds)
+            s2 = sg * math.sin(ds)
+            fx, fy = _map2(c_x, c_y, mx * c2 - my * s2, my * c2 + mx * s2)[:2]
+            depth += 0.5 * (vx * (fx - gx0) + vy * (fy - gy0) - h)
+        m = _clip(poly, nv, vx, vy, h + depth / 3.0, cut)[0]
+    if m < 3:
+        return 0.0
+    return _moment_rule(cut, m, ox, oy, at)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _moment_rule(poly, m, ox, oy, at):
+    """The area of the polygon ``poly[:m]`` (counter-clockwise), and at ``ox, oy[at : at +
+    4]`` the 4-point rule of equal weights with its area's mean and second moments, ``c ±
+    √(2λ₁)·e₁``, ``c ± √(2λ₂)·e₂`` (λ, e: the covariance's eigenvalues and vectors): exact
+    for polynomials up to degree 2. A uniform rectangle of that covariance has sides
+    ``√(12λ)·e``: √6/2 × the differences across its pairs (:data:`RIM_SIDES`)."""
+    a2 = 0.0
+    sx = 0.0
+    sy = 0.0
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    for i in range(m):
+        x0 = poly[i, 0]
+        y0 = poly[i, 1]
+        x1 = poly[(i + 1) % m, 0]
+        y1 = poly[(i + 1) % m, 1]
+        cr = x0 * y1 - x1 * y0
+        a2 += cr
+        sx += (x0 + x1) * cr
+        sy += (y0 + y1) * cr
+        sxx += (x0 * x0 + x0 * x1 + x1 * x1) * cr
+        syy += (y0 * y0 + y0 * y1 + y1 * y1) * cr
+        sxy += (x0 * y1 + 2.0 * x0 * y0 + 2.0 * x1 * y1 + x1 * y0) * cr
+    area = 0.5 * a2
+    if not area > 0.0:
+        return 0.0
+    cx = sx / (6.0 * area)
+    cy = sy / (6.0 * area)
+    vxx = sxx / (12.0 * area) - cx * cx
+    vyy = syy / (12.0 * area) - cy * cy
+    vxy = sxy / (24.0 * area) - cx * cy
+    half = 0.5 * (vxx + vyy)
+    rad = math.sqrt(max(0.25 * (vxx - vyy) ** 2 + vxy * vxy, 0.0))
+    l1 = half + rad
+    l2 = max(half - rad, 0.0)
+    phi = 0.5 * math.atan2(2.0 * vxy, vxx - vyy)
+    e1x = math.cos(phi)
+    e1y = math.sin(phi)
+    a1 = math.sqrt(2.0 * l1)
+    b1 = math.sqrt(2.0 * l2)
+    ox[at] = cx + a1 * e1x
+    oy[at] = cy + a1 * e1y
+    ox[at + 1] = cx - a1 * e1x
+    oy[at + 1] = cy - a1 * e1y
+    ox[at + 2] = cx - b1 * e1y
+    oy[at + 2] = cy + b1 * e1x
+    ox[at + 3] = cx + b1 * e1y
+    oy[at + 3] = cy - b1 * e1x
+    return area
+
+
+RIM_SIDES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * (
+    0.5 * math.sqrt(6.0))  # the rim rule's points' coefficients in its rectangle's sides
+RIM_PIECE = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])  # (deposit_cells: one piece, cut)
+
+
+@njit(cache=True, nogil=True)
+def _grow_cells(rows, ci, cj, us, vs, ws, need):
+    """:func:`cell_centres`' output arrays, doubled until they hold ``need`` cells."""
+    cap = rows.size
+    if need <= cap:
+        return rows, ci, cj, us, vs, ws
+    while need > cap:
+        cap *= 2
+    return (_grow_int(rows, cap), _grow(ci, cap), _grow(cj, cap), _grow2(us, cap),
+            _grow2(vs, cap), _grow2(ws, cap))
 
 
 @njit(cache=True, nogil=True)
@@ -1520,7 +1780,7 @@ def cell_landings(ray, wt, sx, sy, w4, n_cells, side_coef):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax, ay, x0, y0,
-                  labels, centres_px, pitch_px, pieces):
+                  labels, centres_px, pitch_px, pieces, split):
     """Add whole cells' light (:func:`cell_centres`) to the moments ``out`` (groups·K, 4), as
     :func:`deposit_moments` would in the limit of infinitely many samples a cell: cell ``c``
     of point ``rows[c]`` (group ``group[rows[c]]``), lattice node ``(ci, cj)``, weight
@@ -1531,7 +1791,8 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
     are not (a cell whose light lands on its micro-image's rim), each pixel takes the product
     of its column's and its row's shares: exact for an upright rectangle, and off for a
     sheared parallelogram by a share of the pixel that shrinks with its size. A hexagonal
-    cell's pieces (below) are sheared, and cut into :data:`CELL_SPLIT`² smaller ones there (a
+    cell's pieces (below) are sheared, and cut into ``split``² smaller ones there
+    (:data:`CELL_SPLIT`; a rim's cut cell :data:`RIM_SPLIT`; 1: not cut) (a
     rim cell's piece across a label's border: 66.6 % in its own micro-image whole, 70.5 %
     cut 4 × 4, 70.7 % by a dense sample; docs/distance.md, "Whole hexagonal cells (stop
     45)"); a rectangular cell's image is nearly upright (cut, 27 regions' answers moved by at
@@ -1548,7 +1809,6 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
         px = (origin[0] + basis[0, 0] * ci[c] + basis[0, 1] * cj[c] + sx[c]) * inv_pp + ax - x0
         py = (origin[1] + basis[1, 0] * ci[c] + basis[1, 1] * cj[c] + sy[c]) * inv_pp + ay - y0
         n_q = max(pieces.shape[0], 1)
-        split = CELL_SPLIT if pieces.shape[0] else 1
         for q in range(n_q):
             if pieces.shape[0] == 0:
                 pxq, pyq, wq = px, py, w
