@@ -245,7 +245,7 @@ class Camera:
         img, truth, took = self._render(objects, seed, rays)
         if key is not None:
             cen = np.array([s["centroid_px"] for s in truth["sources"]], dtype=np.float64)
-            tmp = key.with_suffix(".tmp.npz")
+            tmp = key.with_suffix(f".{os.getpid()}.tmp.npz")  # (runs side by side)
             np.savez_compressed(tmp, image=img, centroids=cen, render_s=took)
             os.replace(tmp, key)
         return img, truth, took

@@ -176,6 +176,11 @@ LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line 
 #                                of the points (LINE_POINTS at least): the settled test's
 #                                model keeps them all, and the answer goes to its minimum (the
 #                                fine model's minimum moves by 0.05-0.08 % with half of them)
+LINE_CELLS_COARSE_POINTS = 8  # ... and the coarse stage's (and its race's) a third of them, at
+LINE_CELLS_COARSE_SHARE = 1 / 3  # least this many: it only finds the basin, which the fine
+#                                  stage leaves (the 4 noise-free hexagonal lines 108 → 94 ms,
+#                                  the 8 rectangular 75 → 71 ms, the same answers within 0.005 %;
+#                                  docs/distance.md, "Fewer points in the coarse stage (stop 46)")
 LINE_CELLS_COARSE_GAIN = 0.05  # ... the coarse stage takes no further Jacobian after a round
 #                                 of steps that lowered the misfit² by under this share, or
 #                                 where the next step would, by its Jacobian's prediction
@@ -1989,9 +1994,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                           LINE_MAX_RAYS // 4)
     n_fine = n_pts
     if on_cells:
-        # the coarse and fine stages on half the points (the race too): the settled test's
-        # model has them all (LINE_CELLS_POINTS_SHARE)
-        n_coarse = n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
+        # the fine stage on half the points, the coarse stage (and the race) on a third: the
+        # settled test's model has them all (LINE_CELLS_POINTS_SHARE, LINE_CELLS_COARSE_SHARE)
+        n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
+        n_coarse = max(LINE_CELLS_COARSE_POINTS, math.ceil(LINE_CELLS_COARSE_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
     fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
     fine = model(fine_rays, count=n_fine,
