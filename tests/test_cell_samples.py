@@ -765,7 +765,9 @@ def test_whole_hexagonal_cells_keep_a_large_blurs_moments(monkeypatch):
         assert u.size < 0.3 * sampled[n]  # (measured 0.26, 0.25)
         assert abs((w.sum() + whole[5].sum()) / math.pi - 1.0) < 1e-4
         assert np.linalg.norm(got - want) / np.linalg.norm(want) < bound
-    # n = 2 stays sampled on a hexagonal lattice (four samples a cell against six points)
+    # without the coarse rule n = 2 stays sampled on a hexagonal lattice (four samples a cell
+    # against six points)
+    monkeypatch.setattr(ff, "CELLS_COARSE_HEX", False)
     assert not ff.LensletModel(prof, geom, mom, 1000, cells=2).whole
 
 
@@ -952,3 +954,75 @@ def test_hexagonal_rim_cells_cut_keep_a_large_blurs_moments(monkeypatch):
     assert abs((whole[5].sum() + whole[13].sum()) / math.pi - 1.0) < 1e-5
     assert err[True] < 2.3e-3
     assert err[True] < 0.75 * err[False]
+
+
+def test_hexagonal_coarse_rule_and_its_parallelogram_keep_the_hexagons_moments():
+    # CellRule.coarse, n = 2's rule on a hexagonal lattice: three points integrate every
+    # polynomial up to degree 2 over the hexagon (closed form), not its cubics; the parallelogram
+    # its light is spread over, its sides the landing's linear map (here the identity) of
+    # the side coefficients, has the hexagon's second moments
+    pitch = 0.25
+    radius = pitch / math.sqrt(3.0)
+    area = 1.5 * math.sqrt(3.0) * radius**2
+    for b2 in ((0.5, math.sqrt(3.0) / 2.0), (-0.5, math.sqrt(3.0) / 2.0)):
+        rule = ff.cell_rule(_lattice((0.3, 0.1), pitch * np.array([[1.0, b2[0]], [0.0, b2[1]]])))
+        coarse = rule.coarse
+        assert len(coarse.points) == 3 and coarse.pieces.shape[0] == 0
+        x, y = coarse.points.T
+        for px in range(3):
+            for py in range(3 - px):
+                want = _hexagon_moment(radius, px, py) / area
+                got = float((coarse.weights * x**px * y**py).sum())
+                assert got == pytest.approx(want, abs=1e-15 + 1e-12 * radius ** (px + py))
+        cubics = [abs(float((coarse.weights * x**a * y**(3 - a)).sum())) for a in range(4)]
+        assert max(cubics) > 0.01 * radius**3  # (the hexagon's are all 0)
+        sides = coarse.sides.T @ coarse.points  # (2, 2): each side, landing = the MLA offset
+        cov = sum(np.outer(v, v) for v in sides) / 12.0  # a uniform parallelogram's
+        want = np.array([[_hexagon_moment(radius, 2, 0), _hexagon_moment(radius, 1, 1)],
+                         [_hexagon_moment(radius, 1, 1), _hexagon_moment(radius, 0, 2)]]) / area
+        assert np.allclose(cov, want, rtol=1e-12, atol=1e-18)
+
+
+def test_hexagonal_coarse_model_is_closer_to_a_dense_sample(monkeypatch):
+    # the large hexagonal blur: n = 2 with the coarse rule and the rim's cut cells against
+    # every cell sampled 24 × 24 (measured 7.3e-3; n = 2 sampled 4.7e-2)
+    prof, geom, mom, pts, want = _hexagonal_blur(monkeypatch)
+    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
+    err = {}
+    for coarse in (False, True):
+        monkeypatch.setattr(ff, "CELLS_COARSE_HEX", coarse)
+        model = ff.LensletModel(prof, geom, mom, 1000, cells=2)
+        assert model.whole == coarse
+        got = _normalised(model.simulate(pts))
+        assert not model.folded
+        err[coarse] = np.linalg.norm(got - want) / np.linalg.norm(want)
+    assert err[True] < 1e-2 and err[True] < 0.3 * err[False]
+
+
+@pytest.mark.parametrize("scale, resolved", [(14.0, True), (2.5, False)])
+def test_a_point_whose_nodes_are_all_resolved_has_nothing_left_to_sample(scale, resolved):
+    # cell_centres with the rim's cut cells on a hexagonal lattice and a bent radial map: a
+    # blur 14 pitches across has every node whole, cut or dark (unresolved 0), and
+    # cell_samples over its whole box, with the skip table, indeed returns no sample; a blur
+    # 2.5 pitches across has patches over CELL_WHOLE_MAX_PATCH, nodes left, and samples
+    from lfcam.measure.kernels import CELL_WHOLE_MARGIN, cell_centres
+
+    kappa, centre = 0.3, (0.3, -0.2)
+    cx, cy = _radial_map(scale, kappa, centre)
+    basis = np.array([[1.0, 0.5], [0.0, math.sqrt(3.0) / 2.0]])
+    origin = np.array([0.1, 0.05])
+    rule = ff.cell_rule(_lattice(origin, basis))
+    reach = scale * (1.0 + kappa) + 2.0
+    boxes = np.array([[centre[0] - reach, centre[0] + reach, centre[1] - reach,
+                       centre[1] + reach]])
+    disc = np.array([[centre[0], centre[1], reach]])
+    inv = np.linalg.inv(basis)
+    out = cell_centres(cx[None], cy[None], boxes, disc, origin, basis, inv, CELL_WHOLE_MARGIN,
+                       rule.corners, rule.points, rule.weights, rule.polygon)
+    shape = ff._cell_shape(_lattice(origin, basis))
+    u, v, w, *_ = cell_samples(cx[None], cy[None], boxes, disc, origin, basis, inv, 4,
+                               out[6], out[7], ff.CELL_SHARE / 4, shape[2], shape[0], shape[1])
+    assert (out[14][0] == 0) == resolved
+    assert (u.size == 0) == resolved
+    # the pupil's area in all: whole cells, cut cells and samples
+    assert abs((out[5].sum() + out[13].sum() + w.sum()) / math.pi - 1.0) < 2e-3

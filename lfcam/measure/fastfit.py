@@ -242,8 +242,14 @@ CELLS_WHOLE = True  # the cells a point lights whole are integrated by a rule (a
 #                     lattice's: 2 × 2 Gauss; a hexagonal one's: a ring of six), the rest
 #                     sampled (kernels.cell_centres; docs/distance.md, "Cells integrated
 #                     whole (stop 43)", "Whole hexagonal cells (stop 45)")
-CELLS_WHOLE_HEX_MIN_N = 3  # ... on a hexagonal lattice from this n on (n = 2: 4 samples a
-#                            cell, fewer than the ring's 6)
+CELLS_WHOLE_HEX_MIN_N = 3  # ... on a hexagonal lattice by the ring of six from this n on (n = 2:
+#                            4 samples a cell, fewer than the ring's 6; CELLS_COARSE_HEX below)
+CELLS_COARSE_HEX = True  # a hexagonal lattice's coarse models (n < CELLS_WHOLE_HEX_MIN_N) integrate
+#                          the cells whole too, by three of the ring's points and one
+#                          parallelogram (CellRule.coarse): n = 2's samples left 4.7e-2 of
+#                          a large blur's moments, this 7.3e-3, at 0.21 against 0.23 ms a
+#                          point (docs/distance.md, "A coarse rule for the hexagonal lattice
+#                          (stop 46)")
 CELL_HEX_REGULAR = 0.02  # ... whose six nearest neighbours' distances agree within this share
 #                          (the ring is the regular hexagon's, through the lattice's affine map)
 CELLS_RIM = True  # on a hexagonal lattice the cells the pupil's rim cuts too, each over its
@@ -255,6 +261,7 @@ KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the re
 _LATTICES = ObjectCache(8)
 _RULES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
+_EMPTY_BOX = np.array([1.0, 0.0, 1.0, 0.0])  # cell_samples: no sample for this point
 _NO_POLYGON = np.zeros((0, 2))  # cell_centres without the rim's cut cells
 _ONE_BOX = np.empty(0)  # deposit_moments' per-ray box sizes where one is for all rays
 
@@ -385,6 +392,9 @@ class LensletModel:
         # that is neither rectangular nor nearly regular hexagonal)
         self.rule = None if self.lattice is None else _RULES.get(
             self.lattice, lambda: cell_rule(self.lattice))
+        if (self.rule is not None and self.rule.coarse is not None and CELLS_COARSE_HEX
+                and self.cells < CELLS_WHOLE_HEX_MIN_N):
+            self.rule = self.rule.coarse
         self.whole = self.whole_at(self.cells)
         self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
@@ -394,7 +404,7 @@ class LensletModel:
         """Whether a model on the cells with ``n`` × ``n`` samples a cell integrates the cells
         a point lights whole (:data:`CELLS_WHOLE`, :func:`cell_rule`)."""
         return bool(CELLS_WHOLE and self.rule is not None
-                    and (self.rule.rect or n >= CELLS_WHOLE_HEX_MIN_N))
+                    and (self.rule.rect or n >= CELLS_WHOLE_HEX_MIN_N or CELLS_COARSE_HEX))
 
     def fine_cells(self) -> int:
         """The fine stage's n on the cells: :data:`LINE_CELLS_FINE_WHOLE` where a rectangular
@@ -678,6 +688,9 @@ class LensletModel:
                                  rule.points, rule.weights,
                                  rule.polygon if CELLS_RIM and not rule.rect else _NO_POLYGON)
             skip = whole[6:8]
+            if CELLS_RIM and not rule.rect:
+                # a point whose nodes are all whole, cut or dark has nothing left to sample
+                boxes = np.where(whole[14][:, None] > 0, boxes, _EMPTY_BOX)
         # (on a hexagonal lattice a sample across a whole cell's border keeps the other
         # cell's share, weighted and placed on its node: (tx, ty))
         u, v, w, srows, du, tx, ty = cell_samples(cx, cy, boxes, *args, n, *skip,
@@ -907,6 +920,9 @@ class CellRule(NamedTuple):
     pieces: np.ndarray  # (P, 3, 2): the parallelograms a hexagonal cell's light is spread
     #                     over, each's centre and two sides (none on a rectangular lattice)
     polygon: np.ndarray  # (V, 2): the cell's corners in counter-clockwise order
+    coarse: CellRule | None = None  # a hexagonal lattice's rule for its coarse models
+    #                                 (n < CELLS_WHOLE_HEX_MIN_N): three points, one
+    #                                 parallelogram (pieces empty)
 
 
 def cell_rule(lattice: LocalLattice) -> CellRule | None:
@@ -965,9 +981,18 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
     # the hexagon is three parallelograms from its node: corners 0 and 2, 2 and 4, 4 and 0
     pieces = np.array([[(corners[k] + corners[(k + 2) % 6]) / 2.0, corners[k],
                         corners[(k + 2) % 6]] for k in (0, 2, 4)])
+    polygon = _counter_clockwise(corners)
+    # the coarse models' rule: three of the ring's points, 120° apart (their second moments
+    # are the hexagon's too, but not their third: exact to degree 2), and the hexagon's
+    # light spread as one parallelogram of its second moments, the image of a square of side
+    # √(5/6) pitches on the regular lattice (a mean x² of 5/72, the hexagon's)
+    three = points[::2]
+    square = math.sqrt(5.0 / 6.0) * a
+    coarse = CellRule(False, corners[:3], three, np.full(3, 1.0 / 3.0),
+                      three @ np.linalg.inv(three.T @ three) @ square, np.zeros((0, 3, 2)),
+                      polygon)
     return CellRule(False, corners[:3], points, np.full(6, 1.0 / 6.0),
-                    points @ np.linalg.inv(points.T @ points), pieces,
-                    _counter_clockwise(corners))
+                    points @ np.linalg.inv(points.T @ points), pieces, polygon, coarse)
 
 
 def _counter_clockwise(poly: np.ndarray) -> np.ndarray:

@@ -1043,6 +1043,8 @@ def cell_samples(cx, cy, boxes, reach, origin, basis, inverse, n, skip_grid, ski
         if det0 == 0.0 or not math.isfinite(det0):
             continue
         x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
+        if x_lo > x_hi:
+            continue  # (an empty box: nothing left to sample)
         # the box's corners in lattice coordinates bound the cells to visit
         s_lo, s_hi, t_lo, t_hi = _lattice_bounds(x_lo, x_hi, y_lo, y_hi, origin, inverse)
         r2 = reach[p, 2] * reach[p, 2]
@@ -1272,7 +1274,9 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
     rule's pupil points, in its order), ``w`` (n, K: each one's pupil area, ``|cell| ·
     rule_w[q] / |det ∂X/∂u|``), ``skip_grid``, ``skip`` (:func:`cell_samples`'s: these
     cells left out of its samples), and the rim cells' ``rows, ci, cj, u, v, w`` (n, 4:
-    the moment rule's points ``+e₁, −e₁, +e₂, −e₂``; all empty without ``polygon``).
+    the moment rule's points ``+e₁, −e₁, +e₂, −e₂``; all empty without ``polygon``), and
+    ``unresolved`` (M,): how many of each point's nodes its samples must still cover
+    (0: none; with ``polygon`` a point without any needs no :func:`cell_samples`).
     """
     m = cx.shape[0]
     nq = rule.shape[0]
@@ -1289,6 +1293,8 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
     count = 0
     moff = 0
     rim = polygon.shape[0] > 0
+    # each point's cells its samples must still cover (nodes neither whole, cut nor dark)
+    unresolved = np.zeros(m, dtype=np.int64)
     rcap = 256
     r_rows = np.empty(rcap, dtype=np.int64)
     r_ci = np.empty(rcap)
@@ -1322,6 +1328,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
         c_y = cy[p]
         a11, a12, a21, a22 = c_x[2], c_x[1], c_y[2], c_y[1]
         det0 = a11 * a22 - a12 * a21
+        unresolved[p] = 1  # (until its nodes are resolved, below)
         if det0 == 0.0 or not math.isfinite(det0):
             continue
         x_lo, x_hi, y_lo, y_hi = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
@@ -1357,6 +1364,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
             nj_ = np.empty(ccap, dtype=np.int64)
         r2 = reach[p, 2] * reach[p, 2]
         nc = 0
+        far = 0  # nodes past CELL_NEWTON_REACH (or whose linear start is): dark on a large blur
         for a in range(ni):
             for b in range(nj):
                 i = float(i0 + a)
@@ -1367,6 +1375,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                     continue
                 if not _candidate(gx, gy, c_x, c_y, a11, a12, a21, a22, det0, gxs, gys, cu, cv,
                                   nc):
+                    far += 1
                     continue
                 ni_[nc] = a
                 nj_[nc] = b
@@ -1380,14 +1389,21 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
         # the whole cells, and their Gauss points' starts (appended after the nodes)
         nw = 0
         nr = 0
+        left = 0
+        resolved = 0
         for k in range(nc):
             if not (cstep[k] < CELL_NEWTON_STEP):
+                if cu[k] * cu[k] + cv[k] * cv[k] < CELL_NEWTON_REACH * CELL_NEWTON_REACH:
+                    left += 1
+                else:
+                    far += 1
                 continue
             u = cu[k]
             v = cv[k]
             _, _, j11, j12, j21, j22 = _map2(c_x, c_y, u, v)
             d = j11 * j22 - j12 * j21
             if d == 0.0 or not math.isfinite(d):
+                left += 1
                 continue
             ia = j22 / d
             ib = -j12 / d
@@ -1398,10 +1414,13 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                 patch = max(patch, math.hypot(ia * corners[q, 0] + ib * corners[q, 1],
                                               ic * corners[q, 0] + ie * corners[q, 1]))
             if patch > CELL_WHOLE_MAX_PATCH:
+                left += 1
                 continue
+            resolved += 1
             rr = math.sqrt(u * u + v * v)
             if rr + margin * patch >= 1.0:
                 if not rim:
+                    left += 1
                     continue
                 at_skip = grid[p, 4] + ni_[k] * nj + nj_[k]
                 if rr - margin * patch > 1.0:
@@ -1471,6 +1490,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                 if not ok:
                     # (left to the samples)
                     skip[grid[p, 4] + rim_a[k] * nj + rim_b[k]] = False
+                    left += 1
                     continue
                 r_rows[r_count] = p
                 r_ci[r_count] = float(i0 + rim_a[k])
@@ -1484,6 +1504,9 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                     r_vs[r_count, q] = vq * sc
                     r_ws[r_count, q] = 0.25 * rim_w[k] / abs(rdet[at])
                 r_count += 1
+        # a node past the pupil's reach is dark where every node resolved has a patch under
+        # CELL_WHOLE_MAX_PATCH (its cell then reaches at most that far in)
+        unresolved[p] = left + (far if resolved == 0 else 0)
         if nw == 0:
             continue
         # Newton on the Gauss points (from the linear part: 2-3 passes), and one more pass
@@ -1504,6 +1527,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                 ok &= (step4[at] < CELL_NEWTON_STEP) & (det4[at] != 0.0)
                 ok &= u4[at] * u4[at] + v4[at] * v4[at] < 1.0
             if not ok:
+                unresolved[p] += 1
                 continue  # (left to the samples)
             rows[count] = p
             ci[count] = float(i0 + ni_[k])
@@ -1517,7 +1541,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
             count += 1
     return (rows[:count], ci[:count], cj[:count], us[:count], vs[:count], ws[:count], grid,
             skip[:max(moff, 1)], r_rows[:r_count], r_ci[:r_count], r_cj[:r_count],
-            r_us[:r_count], r_vs[:r_count], r_ws[:r_count])
+            r_us[:r_count], r_vs[:r_count], r_ws[:r_count], unresolved)
 
 
 @njit(cache=True, nogil=True, inline="always")
