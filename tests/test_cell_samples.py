@@ -880,9 +880,15 @@ def test_rim_cut_keeps_each_cells_area_inside_the_rims_circle(kappa):
             exact = _disc_polygon_area(poly, centre, radius)
             if not 1e-3 * cell_area < exact < (1.0 - 1e-3) * cell_area:
                 continue
-            n = (node - centre) / d  # the node's pupil direction (a radial map keeps it)
-            got = _rim_cut(cx, cy, node[0], node[1], n[0], n[1], rule.polygon,
-                           len(rule.polygon), np.empty((9, 2)), ox, oy, 0)
+            # the node's pupil point and the map's inverse Jacobian there
+            (u,), (v,) = _radial_preimage([node[0]], [node[1]], scale, kappa, centre)
+            r2 = u * u + v * v
+            jac = scale * ((1.0 + kappa * r2) * np.eye(2)
+                           + 2.0 * kappa * np.outer([u, v], [u, v]))
+            inv = np.linalg.inv(jac)
+            got = _rim_cut(cx, cy, node[0], node[1], u, v, inv[0, 0], inv[0, 1], inv[1, 0],
+                           inv[1, 1], rule.polygon, len(rule.polygon), np.empty((9, 2)), ox, oy,
+                           0)
             worst = max(worst, abs(got - exact) / cell_area)
             cut += 1
     assert cut > 60  # (a ring of 14 pitches crosses ~90 cells)

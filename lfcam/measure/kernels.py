@@ -872,6 +872,17 @@ def _poly5(c, u, v):
     return f, fu, fv
 
 
+@njit(cache=True, nogil=True, inline="always", fastmath={"contract"})
+def _poly5_value(c, u, v):
+    """:func:`_poly5`'s polynomial's value alone."""
+    p0 = c[0] + v * (c[1] + v * (c[3] + v * (c[6] + v * (c[10] + v * c[15]))))
+    p1 = c[2] + v * (c[4] + v * (c[7] + v * (c[11] + v * c[16])))
+    p2 = c[5] + v * (c[8] + v * (c[12] + v * c[17]))
+    p3 = c[9] + v * (c[13] + v * c[18])
+    p4 = c[14] + v * c[19]
+    return p0 + u * (p1 + u * (p2 + u * (p3 + u * (p4 + u * c[20]))))
+
+
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _newton_pass(c_x, c_y, gx, gy, u, v, det, step, count):
     """One Newton step of the inverse of the map ``(c_x, c_y)`` (:func:`_map2`) at each of the
@@ -1427,7 +1438,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                     skip[at_skip] = True  # wholly past the rim: no light
                     continue
                 # cut by the rim: its part inside, and that part's moment rule
-                area_in = _rim_cut(c_x, c_y, gxs[k], gys[k], u / rr, v / rr, polygon,
+                area_in = _rim_cut(c_x, c_y, gxs[k], gys[k], u, v, ia, ib, ic, ie, polygon,
                                    polygon.shape[0], cut, rgx, rgy, 4 * nr)
                 if area_in <= 0.0:
                     skip[at_skip] = True
@@ -1598,40 +1609,57 @@ def _clip(poly, nv, vx, vy, h, out):
     return m, ex0, ey0, ex1, ey1
 
 
-@njit(cache=True, nogil=True)
-def _rim_cut(c_x, c_y, gx0, gy0, nx, ny, poly, nv, cut, ox, oy, at):
-    """The part of the cell ``poly[:nv]`` (corners about its node ``(gx0, gy0)``, MLA mm, in
-    counter-clockwise order) inside the pupil's rim, whose image crosses the cell near the
-    rim point ``(nx, ny)`` (unit): its area (MLA mm²), and the 4-point rule of its second
-    moments at ``ox, oy[at : at + 4]`` (offsets from the node: :func:`_moment_rule`).
+@njit(cache=True, nogil=True, inline="always")
+def _cos_sin(x):
+    """cos and sin of an angle: by their series where it is small (under 0.2 rad: within
+    1e-7 and 3e-9), which a cell's angle along the rim is."""
+    if abs(x) > 0.2:
+        return math.cos(x), math.sin(x)
+    x2 = x * x
+    return 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 / 720.0)), x * (1.0 - x2 * (
+        1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 / 5040.0)))
 
-    The rim's image is taken as a line across the cell: the tangent at the rim point where
-    the cut's chord is centred (two passes), moved inward by a third of the rim curve's
-    depth at the chord's ends (the exact map there), so that the cut keeps the area a
-    parabola would (the curve's depth over a chord of 0.05 pupil radii is ~3e-4 of the
-    pupil radius)."""
-    vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, nx, ny)
-    m, ex0, ey0, ex1, ey1 = _clip(poly, nv, vx, vy, h, cut)
-    if math.isfinite(ex1):
-        # the chord's ends along the rim (radians from the tangent point): the tangent again
-        # at its middle, and the curve's depth at its ends
-        t2 = tx * tx + ty * ty
-        s0 = ((ex0 - gx) * tx + (ey0 - gy) * ty) / t2
-        s1 = ((ex1 - gx) * tx + (ey1 - gy) * ty) / t2
-        sm = 0.5 * (s0 + s1)
-        ds = 0.5 * abs(s1 - s0)
-        cm = math.cos(sm)
-        sn = math.sin(sm)
-        mx = nx * cm - ny * sn
-        my = ny * cm + nx * sn
-        vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, mx, my)
-        depth = 0.0
-        for sg in (-1.0, 1.0):
-            c2 = math.cos(ds)
-            s2 = sg * math.sin(ds)
-            fx, fy = _map2(c_x, c_y, mx * c2 - my * s2, my * c2 + mx * s2)[:2]
-            depth += 0.5 * (vx * (fx - gx0) + vy * (fy - gy0) - h)
-        m = _clip(poly, nv, vx, vy, h + depth / 3.0, cut)[0]
+
+@njit(cache=True, nogil=True)
+def _rim_cut(c_x, c_y, gx0, gy0, u, v, ia, ib, ic, ie, poly, nv, cut, ox, oy, at):
+    """The part of the cell ``poly[:nv]`` (corners about its node ``(gx0, gy0)``, MLA mm, in
+    counter-clockwise order) inside the pupil's rim: its area (MLA mm²), and the 4-point
+    rule of its second moments at ``ox, oy[at : at + 4]`` (offsets from the node:
+    :func:`_moment_rule`). ``(u, v)``: the node's pupil point, ``[[ia, ib], [ic, ie]]`` the
+    inverse of the map's Jacobian there.
+
+    The rim's image is taken as a line across the cell: first the rim seen through the
+    node's linear map, which finds the chord the rim cuts; then the tangent to the rim's
+    exact image at the chord's middle, moved inward by a third of the rim curve's depth at
+    the chord's ends (the exact map there), so that the cut keeps the area a parabola would
+    (the curve's depth over a chord of 0.05 pupil radii is ~3e-4 of the pupil radius)."""
+    rr = math.sqrt(u * u + v * v)
+    nx = u / rr
+    ny = v / rr
+    # the rim n · p = 1 with p = (u, v) + A·x: the line (Aᵀn) · x = 1 − rr; along it the rim's
+    # angle from n is (Aᵀτ) · x, τ = (−n_y, n_x)
+    wx = ia * nx + ic * ny
+    wy = ib * nx + ie * ny
+    norm = math.hypot(wx, wy)
+    m, ex0, ey0, ex1, ey1 = _clip(poly, nv, wx / norm, wy / norm, (1.0 - rr) / norm, cut)
+    if not math.isfinite(ex1):
+        return _moment_rule(cut, m, ox, oy, at) if m >= 3 else 0.0
+    tax = ia * -ny + ic * nx
+    tay = ib * -ny + ie * nx
+    s0 = tax * ex0 + tay * ey0
+    s1 = tax * ex1 + tay * ey1
+    cm, sn = _cos_sin(0.5 * (s0 + s1))
+    mx = nx * cm - ny * sn
+    my = ny * cm + nx * sn
+    vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, mx, my)
+    c2, s2 = _cos_sin(0.5 * abs(s1 - s0))
+    depth = 0.0
+    for sg in (-1.0, 1.0):
+        pu = mx * c2 - sg * my * s2
+        pv = my * c2 + sg * mx * s2
+        depth += 0.5 * (vx * (_poly5_value(c_x, pu, pv) - gx0)
+                        + vy * (_poly5_value(c_y, pu, pv) - gy0) - h)
+    m = _clip(poly, nv, vx, vy, h + depth / 3.0, cut)[0]
     if m < 3:
         return 0.0
     return _moment_rule(cut, m, ox, oy, at)
@@ -1674,9 +1702,22 @@ def _moment_rule(poly, m, ox, oy, at):
     rad = math.sqrt(max(0.25 * (vxx - vyy) ** 2 + vxy * vxy, 0.0))
     l1 = half + rad
     l2 = max(half - rad, 0.0)
-    phi = 0.5 * math.atan2(2.0 * vxy, vxx - vyy)
-    e1x = math.cos(phi)
-    e1y = math.sin(phi)
+    # the first eigenvector, from whichever row of (C − λ₁I) is the longer (any axis where
+    # the moments are isotropic)
+    ax_ = l1 - vyy
+    ay_ = vxy
+    bx_ = vxy
+    by_ = l1 - vxx
+    if ax_ * ax_ + ay_ * ay_ >= bx_ * bx_ + by_ * by_:
+        e1x, e1y = ax_, ay_
+    else:
+        e1x, e1y = bx_, by_
+    en = math.hypot(e1x, e1y)
+    if en > 0.0:
+        e1x /= en
+        e1y /= en
+    else:
+        e1x, e1y = 1.0, 0.0
     a1 = math.sqrt(2.0 * l1)
     b1 = math.sqrt(2.0 * l2)
     ox[at] = cx + a1 * e1x
