@@ -394,7 +394,7 @@ class LensletModel:
             self.lattice, lambda: cell_rule(self.lattice))
         if (self.rule is not None and self.rule.coarse is not None and CELLS_COARSE_HEX
                 and self.cells < CELLS_WHOLE_HEX_MIN_N):
-            self.rule = self.rule.coarse
+            self.rule = self.rule.coarse  # (a hexagonal lattice's coarse models: three points)
         self.whole = self.whole_at(self.cells)
         self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
@@ -409,8 +409,10 @@ class LensletModel:
     def fine_cells(self) -> int:
         """The fine stage's n on the cells: :data:`LINE_CELLS_FINE_WHOLE` where a rectangular
         lattice's whole cells are integrated, else :data:`LINE_CELLS_FINE` (a hexagonal
-        lattice's n = 3 leaves its rim cells' samples too coarse, whole cells or not:
-        docs/distance.md, "Whole hexagonal cells (stop 45)")."""
+        lattice's n = 3 left its rim cells' samples too coarse, whole cells or not:
+        docs/distance.md, "Whole hexagonal cells (stop 45)"; with the rim's cells cut, stop
+        46, n there sets only the cells still sampled, whose pupil patch is over
+        ``kernels.CELL_WHOLE_MAX_PATCH``)."""
         rect = self.rule is not None and self.rule.rect
         return (LINE_CELLS_FINE_WHOLE if rect and self.whole_at(LINE_CELLS_FINE_WHOLE)
                 else LINE_CELLS_FINE)
@@ -594,7 +596,9 @@ class LensletModel:
         of a 1 m focus), and :data:`CELL_AREA_TOLERANCE` tells the two apart.
 
         The cells a point lights whole (:data:`CELLS_WHOLE`) are left out of the samples and
-        integrated by a rule (:func:`cell_rule`, :func:`lfcam.measure.kernels.cell_centres`).
+        integrated by a rule (:func:`cell_rule`, :func:`lfcam.measure.kernels.cell_centres`);
+        on a hexagonal lattice so are the cells the pupil's rim cuts (:data:`CELLS_RIM`), and
+        a point with no other cell left is not sampled at all.
 
         Returns ``(u, v, w, rows, du, maps, trace_args, whole, (tx, ty))`` (see
         ``cell_samples``; ``whole``: ``cell_centres``'s output, or None).
