@@ -940,6 +940,18 @@ def test_rim_cells_moment_rule_integrates_quadratics_exactly():
     assert np.allclose(rect_cov, cov - np.outer(c, c), rtol=1e-10, atol=1e-15)
 
 
+def _moments_error(monkeypatch, prof, geom, mom, pts, want, n, **flags):
+    """The cells model's (n, whole cells, ``flags`` set on fastfit) normalised moments' error
+    against ``want``: the norm of the difference over the norm."""
+    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
+    for name, value in flags.items():
+        monkeypatch.setattr(ff, name, value)
+    model = ff.LensletModel(prof, geom, mom, 1000, cells=n)
+    got = _normalised(model.simulate(pts))
+    assert not model.folded
+    return np.linalg.norm(got - want) / np.linalg.norm(want)
+
+
 def test_hexagonal_rim_cells_cut_keep_a_large_blurs_moments(monkeypatch):
     # the blur above with the rim's cells cut by the rim's line (kernels._rim_cut) and
     # integrated by their 4-point rule: no sample left at n = 4, the pupil's area π to 1e-5
@@ -947,14 +959,9 @@ def test_hexagonal_rim_cells_cut_keep_a_large_blurs_moments(monkeypatch):
     # sampled 4 × 4 (measured 1.9e-3 against 2.9e-3; 6 × 6: 1.9e-3; docs/distance.md, "Rim
     # cells cut by the rim's line (stop 46)")
     prof, geom, mom, pts, want = _hexagonal_blur(monkeypatch)
-    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
-    err = {}
-    for rim in (False, True):
-        monkeypatch.setattr(ff, "CELLS_RIM", rim)
-        model = ff.LensletModel(prof, geom, mom, 1000, cells=4)
-        got = _normalised(model.simulate(pts))
-        assert not model.folded
-        err[rim] = np.linalg.norm(got - want) / np.linalg.norm(want)
+    err = {rim: _moments_error(monkeypatch, prof, geom, mom, pts, want, 4, CELLS_RIM=rim)
+           for rim in (False, True)}
+    model = ff.LensletModel(prof, geom, mom, 1000, cells=4)
     u, _, w, _, _, _, _, whole, _ = model._cell_samples(pts)
     assert u.size == 0 and whole[8].size > 60  # (measured 84 cut cells)
     assert abs((whole[5].sum() + whole[13].sum()) / math.pi - 1.0) < 1e-5
@@ -993,15 +1000,10 @@ def test_hexagonal_coarse_model_is_closer_to_a_dense_sample(monkeypatch):
     # the large hexagonal blur: n = 2 with the coarse rule and the rim's cut cells against
     # every cell sampled 24 × 24 (measured 7.3e-3; n = 2 sampled 4.7e-2)
     prof, geom, mom, pts, want = _hexagonal_blur(monkeypatch)
-    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
-    err = {}
-    for coarse in (False, True):
-        monkeypatch.setattr(ff, "CELLS_COARSE_HEX", coarse)
-        model = ff.LensletModel(prof, geom, mom, 1000, cells=2)
-        assert model.whole == coarse
-        got = _normalised(model.simulate(pts))
-        assert not model.folded
-        err[coarse] = np.linalg.norm(got - want) / np.linalg.norm(want)
+    err = {coarse: _moments_error(monkeypatch, prof, geom, mom, pts, want, 2,
+                                  CELLS_COARSE_HEX=coarse)
+           for coarse in (False, True)}
+    assert ff.LensletModel(prof, geom, mom, 1000, cells=2).whole  # (and without it, not)
     assert err[True] < 1e-2 and err[True] < 0.3 * err[False]
 
 
