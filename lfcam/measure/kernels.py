@@ -1558,9 +1558,8 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
 @njit(cache=True, nogil=True, inline="always")
 def _rim_line(c_x, c_y, gx0, gy0, nx, ny):
     """The tangent to the rim's image on the MLA at the rim point ``(nx, ny)`` (unit): its
-    outward unit normal ``(vx, vy)``, its offset ``h`` from the node ``(gx0, gy0)`` along it
-    (the inside: ``v · x ≤ h``), the rim point's image (offset from the node) and the map's
-    derivative along the rim ``T`` (MLA mm per radian)."""
+    outward unit normal ``(vx, vy)`` and its offset ``h`` from the node ``(gx0, gy0)`` along
+    it (the inside: ``v · x ≤ h``)."""
     fx, fy, j11, j12, j21, j22 = _map2(c_x, c_y, nx, ny)
     tx = j11 * -ny + j12 * nx
     ty = j21 * -ny + j22 * nx
@@ -1572,9 +1571,7 @@ def _rim_line(c_x, c_y, gx0, gy0, nx, ny):
     norm = math.hypot(vx, vy)
     vx /= norm
     vy /= norm
-    gx = fx - gx0
-    gy = fy - gy0
-    return vx, vy, vx * gx + vy * gy, gx, gy, tx, ty
+    return vx, vy, vx * (fx - gx0) + vy * (fy - gy0)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1651,7 +1648,7 @@ def _rim_cut(c_x, c_y, gx0, gy0, u, v, ia, ib, ic, ie, poly, nv, cut, ox, oy, at
     cm, sn = _cos_sin(0.5 * (s0 + s1))
     mx = nx * cm - ny * sn
     my = ny * cm + nx * sn
-    vx, vy, h, gx, gy, tx, ty = _rim_line(c_x, c_y, gx0, gy0, mx, my)
+    vx, vy, h = _rim_line(c_x, c_y, gx0, gy0, mx, my)
     c2, s2 = _cos_sin(0.5 * abs(s1 - s0))
     depth = 0.0
     for sg in (-1.0, 1.0):
