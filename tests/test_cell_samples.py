@@ -955,9 +955,9 @@ def _moments_error(monkeypatch, prof, geom, mom, pts, want, n, **flags):
 def test_hexagonal_rim_cells_cut_keep_a_large_blurs_moments(monkeypatch):
     # the blur above with the rim's cells cut by the rim's line (kernels._rim_cut) and
     # integrated by their 4-point rule: no sample left at n = 4, the pupil's area π to 1e-5
-    # (measured 5e-7), and the moments closer to every cell sampled 24 × 24 than the rim
-    # sampled 4 × 4 (measured 1.9e-3 against 2.9e-3; 6 × 6: 1.9e-3; docs/distance.md, "Rim
-    # cells cut by the rim's line (stop 46)")
+    # (measured 2e-6; 5e-7 with the first pass on the exact map), and the moments closer to
+    # every cell sampled 24 × 24 than the rim sampled 4 × 4 (measured 1.9e-3 against
+    # 2.9e-3; 6 × 6: 1.9e-3; docs/distance.md, "Rim cells cut by the rim's line (stop 46)")
     prof, geom, mom, pts, want = _hexagonal_blur(monkeypatch)
     err = {rim: _moments_error(monkeypatch, prof, geom, mom, pts, want, 4, CELLS_RIM=rim)
            for rim in (False, True)}
