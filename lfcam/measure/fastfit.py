@@ -688,11 +688,11 @@ class LensletModel:
             # the cells lit whole: integrated by a rule (cell_rule), their light spread over
             # the landing's linear image of the cell; the others sampled
             rule = self.rule
+            rim = CELLS_RIM and not rule.rect
             whole = cell_centres(cx, cy, boxes, *args, CELL_WHOLE_MARGIN, rule.corners,
-                                 rule.points, rule.weights,
-                                 rule.polygon if CELLS_RIM and not rule.rect else _NO_POLYGON)
+                                 rule.points, rule.weights, rule.polygon if rim else _NO_POLYGON)
             skip = whole[6:8]
-            if CELLS_RIM and not rule.rect:
+            if rim:
                 # a point whose nodes are all whole, cut or dark has nothing left to sample
                 boxes = np.where(whole[14][:, None] > 0, boxes, _EMPTY_BOX)
         # (on a hexagonal lattice a sample across a whole cell's border keeps the other

@@ -1444,36 +1444,31 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                     skip[at_skip] = True
                     continue
                 if area_in < (1.0 - 1e-9) * cell_area:
-                    whole_here = False
-                else:
-                    whole_here = True  # not cut after all: the rule of the whole cell
-            else:
-                whole_here = True
-            if not whole_here:
-                skip[at_skip] = True
-                for q in range(4):
-                    ox = rgx[4 * nr + q]
-                    oy = rgy[4 * nr + q]
-                    rgx[4 * nr + q] = gxs[k] + ox
-                    rgy[4 * nr + q] = gys[k] + oy
-                    rcu[4 * nr + q] = u + ia * ox + ib * oy
-                    rcv[4 * nr + q] = v + ic * ox + ie * oy
-                rim_a[nr] = ni_[k]
-                rim_b[nr] = nj_[k]
-                rim_w[nr] = area_in
-                nr += 1
-                if nr == rcap:
-                    rcap *= 2
-                    rim_a = _grow_int(rim_a, rcap)
-                    rim_b = _grow_int(rim_b, rcap)
-                    rim_w = _grow(rim_w, rcap)
-                    rgx = _grow(rgx, 4 * rcap)
-                    rgy = _grow(rgy, 4 * rcap)
-                    rcu = _grow(rcu, 4 * rcap)
-                    rcv = _grow(rcv, 4 * rcap)
-                    rdet = np.empty(4 * rcap)
-                    rstep = np.empty(4 * rcap)
-                continue
+                    skip[at_skip] = True
+                    for q in range(4):
+                        ox = rgx[4 * nr + q]
+                        oy = rgy[4 * nr + q]
+                        rgx[4 * nr + q] = gxs[k] + ox
+                        rgy[4 * nr + q] = gys[k] + oy
+                        rcu[4 * nr + q] = u + ia * ox + ib * oy
+                        rcv[4 * nr + q] = v + ic * ox + ie * oy
+                    rim_a[nr] = ni_[k]
+                    rim_b[nr] = nj_[k]
+                    rim_w[nr] = area_in
+                    nr += 1
+                    if nr == rcap:
+                        rcap *= 2
+                        rim_a = _grow_int(rim_a, rcap)
+                        rim_b = _grow_int(rim_b, rcap)
+                        rim_w = _grow(rim_w, rcap)
+                        rgx = _grow(rgx, 4 * rcap)
+                        rgy = _grow(rgy, 4 * rcap)
+                        rcu = _grow(rcu, 4 * rcap)
+                        rcv = _grow(rcv, 4 * rcap)
+                        rdet = np.empty(4 * rcap)
+                        rstep = np.empty(4 * rcap)
+                    continue
+                # (not cut after all: the whole cell's rule, below)
             ni_[nw] = ni_[k]
             nj_[nw] = nj_[k]
             for q in range(nq):
