@@ -1247,7 +1247,10 @@ CELL_WHOLE_MARGIN = 1.25  # a cell is integrated whole where its pupil patch (it
 CELL_WHOLE_MAX_PATCH = 0.1  # ... and whose patch reaches at most this far (pupil radii): the
 #                             2 × 2 Gauss rule leaves 1.4 % of a cell's light on patches of
 #                             0.25 (a small blur: 5 whole cells)
-CELL_SPLIT = 4  # a whole hexagonal cell's landing across lenslets' pixels: cut into this²
+CELL_SPLIT = 3  # a whole hexagonal cell's landing across lenslets' pixels: cut into this²
+#                 (4 until stop 47: as many moments, a piece's pixels 3.3e-3 off a dense
+#                 sample's where 3 × 3 leave 7.2e-4, 16 pieces for 9; docs/distance.md,
+#                 "Cheaper kernels (stop 47)")
 RIM_SPLIT = 2  # ... and a rim's cut cell's rectangle (_rim_cut) into this² (4: the same
 #                moments within 2e-5 of their norm, 20 % more deposit_cells CPU)
 CELL_GAUSS_2 = 0.5 / math.sqrt(3.0)  # the 2 × 2 Gauss rule's points: ± this × a cell's sides
@@ -1420,10 +1423,14 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
             ib = -j12 / d
             ic = -j21 / d
             ie = j11 / d
-            patch = 0.0
+            # the cell's reach in the pupil: its farthest corner's linear image (squared
+            # lengths, one root: math.hypot a corner cost ~10 % of this kernel)
+            patch2 = 0.0
             for q in range(corners.shape[0]):
-                patch = max(patch, math.hypot(ia * corners[q, 0] + ib * corners[q, 1],
-                                              ic * corners[q, 0] + ie * corners[q, 1]))
+                du = ia * corners[q, 0] + ib * corners[q, 1]
+                dv = ic * corners[q, 0] + ie * corners[q, 1]
+                patch2 = max(patch2, du * du + dv * dv)
+            patch = math.sqrt(patch2)
             if patch > CELL_WHOLE_MAX_PATCH:
                 left += 1
                 continue
@@ -1852,8 +1859,8 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
     (:data:`CELL_SPLIT`; a rim's cut cell :data:`RIM_SPLIT`; 1: not cut) (a
     rim cell's piece across a label's border: 66.6 % in its own micro-image whole, 70.5 %
     cut 4 × 4, 70.7 % by a dense sample; docs/distance.md, "Whole hexagonal cells (stop
-    45)"); a rectangular cell's image is nearly upright (cut, 27 regions' answers moved by at
-    most 5e-6 of their distance, at 20 % more CPU here)."""
+    45)"; 3 × 3 since stop 47); a rectangular cell's image is nearly upright (cut, 27
+    regions' answers moved by at most 5e-6 of their distance, at 20 % more CPU here)."""
     n_k = centres_px.shape[0]
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
