@@ -143,6 +143,8 @@ LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log d
 #                                            each start's (3 points of the line at each; −0.22
 #                                            kept system 2's 1500 mm lines off: 0.42-0.46 s,
 #                                            0.13-0.16 s on the cells)
+LINE_AT_COARSE = True  # on the cells a line is tried at the point fit's coarse stage already
+#                       where its floor is over the trigger (measure_lenslet)
 POINT_CELLS = True  # a point blur lighting LINE_CELLS_MIN_LIT lenslets or more is fitted on the
 #                    cells too where they apply at LINE_CELLS_PROBE_LOG about its best start
 #                    (each start matched on them where they apply about it): its first look
@@ -1169,6 +1171,8 @@ class LensletFit:
     model_misfit: float = math.nan  # the fine and polishing models' disagreement at the fine
     #                                 fit (point fits): the share of a misfit that is the
     #                                 models' own ray samples, not the data
+    coarse: bool = False  # a point fit's coarse stage on the cells, before the fine model's
+    #                       steps (point_fit_stages' ``early`` yield)
 
 
 LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
@@ -1456,21 +1460,23 @@ def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarra
 
 
 def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
-                  bound_above: float, steps: np.ndarray) -> float:
+                  bound_above: float, steps: np.ndarray, jac: np.ndarray | None = None
+                  ) -> float:
     """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
     of the polishing model) can reach, bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
     ``steps``: the fit's difference steps (:func:`point_steps`).
 
     Over ``bound_above`` the bound is raised by the Gauss–Newton step on ``r_check`` with the
-    fine model's own Jacobian at ``q``: the polish removes at most ``POLISH_GAIN_SAFETY`` × the
-    misfit² that linear step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md, "The
-    polish's reach").
+    fine model's own Jacobian at ``q`` (``jac``, when the caller has it; else by
+    differences): the polish removes at most ``POLISH_GAIN_SAFETY`` × the misfit² that linear
+    step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md, "The polish's reach").
     """
     f = _sq(r_check)
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
     if not math.sqrt(f) > bound_above:
         return floor
-    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, steps), r_check)
+    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, steps) if jac is None else jac,
+                             r_check)
     if step_gain is None:
         return floor
     gain = step_gain[1]
@@ -1594,8 +1600,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, polish_above: float = math.inf,
                      mom: _Moments | None = None,
                      bound_above: float = math.inf,
-                     gates: Callable[[float], tuple[float, float]] | None = None
-                     ) -> Iterator[LensletFit]:
+                     gates: Callable[[float], tuple[float, float]] | None = None,
+                     early: bool = False) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -1623,6 +1629,13 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     the fine and polishing models' disagreement at the fine fit (``‖r_fine − r_polish‖``, the
     first yield's ``model_misfit``): a gate that reads the data's misfit need not look below
     what the models' own ray samples leave (:func:`measure_lenslet`).
+
+    ``early``: a fit on the cells yields once more before those two, at the coarse stage's
+    minimum (``coarse=True``): its misfit and ``polish_floor`` as the first yield's, read
+    there (the polishing model's residual, the floor's linear step with the Jacobian the fine
+    steps would take). On a line's blur the fine steps do not move a point's misfit (0.96-1.04
+    × the coarse stage's on the focus grid's lines), and a caller that finds a line there
+    saves them (docs/distance.md, "A line tried at the point's coarse stage (stop 47)").
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1683,8 +1696,6 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # below (a 3500 mm point's answer +0.17 % at 5σ on n = 2's: docs/distance.md, "Whole
         # hexagonal cells (stop 45)")
         jac = _fd_jacobian(fun, many_of(fine), q_c, r, steps)
-    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS)
-    r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
     # at 80 000. The same fit through a turned pupil sample measures that shift; only when it
@@ -1695,22 +1706,35 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     polish = LensletModel(profile, geom, mom, POLISH_RAYS,
                           cells=LINE_CELLS_SETTLE if on_cells else 0)
     fun_p = fun_of(polish)
-    r_p = fun_p(q)
-    model_misfit = math.sqrt(_sq(r - r_p))
-    if gates is not None:
-        polish_above, bound_above = gates(model_misfit)
-
     counted = [scan, *coarse_of, fine, turned, polish]  # the models whose evaluations count
 
     def evaluations() -> int:
         return sum(m.evaluations for m in counted)
 
-    far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
-    yield LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(), not far,
-                     RegionStatus.NO_SOLUTION if far else "",
-                     polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p, bound_above,
-                                                steps),
-                     model_misfit=model_misfit)
+    def first_look(q: np.ndarray, r: np.ndarray, jac_q: np.ndarray | None,
+                   coarse_stage: bool) -> tuple[LensletFit, np.ndarray]:
+        # the fit at q (the fine model's residual r there) as the polishing model reads it,
+        # with the floor its polish could reach (jac_q: the fine steps' Jacobian at q, else by
+        # differences), the gates set from the two models' disagreement; and the polishing
+        # model's residual
+        nonlocal polish_above, bound_above
+        r_p = fun_p(q)
+        model_misfit = math.sqrt(_sq(r - r_p))
+        if gates is not None:
+            polish_above, bound_above = gates(model_misfit)
+        far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
+        return LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(),
+                          not far, RegionStatus.NO_SOLUTION if far else "",
+                          polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p,
+                                                     bound_above, steps, jac_q),
+                          model_misfit=model_misfit, coarse=coarse_stage), r_p
+
+    if early and on_cells:
+        yield first_look(q_c, r, jac, True)[0]
+    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS)
+    r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
+    look, r_p = first_look(q, r, None, False)
+    yield look
     if on_cells:
         # A point's answer comes from the rays: on the cells the quintic pupil map's area
         # element leaves points 0.04-0.07 % short (docs/distance.md, "Large point blurs on
@@ -2237,17 +2261,31 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                 useful_below=min(beats(point.misfit), limit), mom=mom,
                                 accept=accept)
 
-    stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates)
-    fit = next(stages)  # the fine fit, before its polish and σ profile
-    trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
+    stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates,
+                              early=LINE_AT_COARSE)
+    fit = next(stages)  # the fine fit, before its polish and σ profile (or the coarse one)
     line = None
+    if fit.coarse:
+        # On the cells the point's coarse stage is read first. A line's blur leaves a point's
+        # misfit where it is through the fine steps, so a line that wins there by more than
+        # any polish could take back needs no fine point fit (docs/distance.md, "A line tried
+        # at the point's coarse stage (stop 47)"). One that does not is kept for the tests
+        # below, which compare its misfit with the fine fit's.
+        if fit.ok and fit.polish_floor > trigger_of(fit.model_misfit):
+            line = line_for(fit)
+            if line.ok and line.misfit < beats(fit.polish_floor):
+                stages.close()
+                return _line_answer(profile, geom, line, limit, nm)
+        fit = next(stages)
+    trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
     if not fit.ok and fit.reason == RegionStatus.NO_SOLUTION and fit.misfit > trigger:
         # a point fit run out to the far bound that explains the data no better than the
         # trigger: a line is tried before the region is given up (its own distance scan
         # finds its start; system 2's lines at 380 mm, 60-80 % of the field, whose point fit
         # ran out there: docs/distance.md, "Large point blurs on the cells (stop 44)")
         stages.close()
-        line = line_for(dataclasses.replace(fit, ok=True))
+        if line is None:
+            line = line_for(dataclasses.replace(fit, ok=True))
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
         return Measurement.failed(fit.reason, geom.d_in_mm)
@@ -2255,7 +2293,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (fit.polish_floor), the point's polish and σ profile are not needed
-        line = line_for(fit)
+        if line is None:
+            line = line_for(fit)
         if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
