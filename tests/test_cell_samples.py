@@ -1035,3 +1035,47 @@ def test_a_point_whose_nodes_are_all_resolved_has_nothing_left_to_sample(scale, 
     assert (u.size == 0) == resolved
     # the pupil's area in all: whole cells, cut cells and samples
     assert abs((out[5].sum() + out[13].sum() + w.sum()) / math.pi - 1.0) < 2e-3
+
+
+def test_one_to_one_reads_the_radial_maps_fold_and_squeeze_analytically():
+    # X = s·(1 + κ r²)·u: |det| = s²·(1 + κ r²)(1 + 3κ r²), zero at r² = −1/(3κ). With κ = −0.3
+    # it stays positive on the disc (at the rim 0.7 · 0.1 = 0.07 of its centre's); with
+    # κ = −0.34 it changes sign at r = 0.99 (a fold inside the rim); with κ = −0.325 its rim's
+    # |det| is 0.675 · 0.025 = 0.017 of the centre's, under FOLD_MIN_DET_RATIO (0.03): the
+    # cells could not resolve that squeeze. Behind focus the map is turned over (s < 0).
+    cases = ((0.6, -0.3, True), (-0.6, -0.3, True), (0.6, -0.34, False), (-0.6, -0.34, False),
+             (0.6, -0.325, False), (0.6, 0.5, True))
+    for scale, kappa, want in cases:
+        cx, cy = _radial_map(scale, kappa, (1.5, -0.7))
+        assert bool(ff._one_to_one(cx[None], cy[None])[0]) is want, (scale, kappa)
+
+
+def test_one_to_one_agrees_with_a_dense_exact_trace_of_the_pupils_diameter():
+    # system 2 on the axis, a 1 m focus: in front of it the MLA cuts the caustic of the lens's
+    # spherical aberration (the landing along a pupil diameter turns back inside the rim:
+    # at 380 mm near r = 0.95), far in front and behind focus it does not. Each point's
+    # polynomial map is fitted to its ring of traced rays (as the model's); the truth is 401
+    # rays traced exactly along the diameter, monotone or not
+    from lfcam.measure.kernels import trace_model_rays
+
+    prof, geom = _system2()
+    lens = prof.main_lens
+    packed = ff._packed_lens(lens)
+    half = 0.5 * lens.pupil_diameter_mm
+    ring, pinv, _ = ff._cell_ring()
+    args = (packed.table, packed.coef, float(lens.front_vertex_z_mm), float(lens.rim_z_mm),
+            float(geom.d_in_mm), float(prof.mla.focal_length_mm))
+    u = np.linspace(-1.0, 1.0, 401)
+    seen = []
+    for d in (250.0, 300.0, 380.0, 420.0, 560.0, 2200.0, 3400.0):
+        pts = np.array([[0.0, 0.0, lens.front_vertex_z_mm - d]])
+        maps = ff.compiled_pupil_maps(lens, pts, packed)
+        x = trace_model_rays(pts, maps, np.array([[1.0, 0.0]]), u * half, 0.0 * u, *args)[0]
+        steps = np.diff(x)
+        monotone = bool(np.all(steps > 0) or np.all(steps < 0))
+        xr, yr = trace_model_rays(pts, maps, np.array([[1.0, 0.0]]), ring[:, 0] * half,
+                                  ring[:, 1] * half, *args)[:2]
+        got = bool(ff._one_to_one((pinv @ xr)[None], (pinv @ yr)[None])[0])
+        assert got is monotone, d
+        seen.append(got)
+    assert seen == [True, True, False, False, False, True, True]  # (both kinds are tested)
