@@ -678,13 +678,11 @@ class LensletModel:
         args = (reach, lat.origin, lat.basis, lat.inverse)
         la, lb, rect = self.cell_shape
         no_skip = (np.zeros((m, 5), dtype=np.int64), np.zeros(1, dtype=np.bool_))
-        if n > 2 and not np.array_equal(cut, boxes):
+        cut_off = n > 2 and not np.array_equal(cut, boxes)  # (the area test read from the map)
+        if cut_off:
             if not _one_to_one(cx, cy).all():
                 return None
-            area = np.full(m, math.pi)
             boxes = cut
-        else:
-            area = None
         whole = None
         skip = no_skip
         if self.whole:
@@ -702,13 +700,13 @@ class LensletModel:
         # cell's share, weighted and placed on its node: (tx, ty))
         u, v, w, srows, du, tx, ty = cell_samples(cx, cy, boxes, *args, n, *skip,
                                                   CELL_SHARE * pitch / n, rect, la, lb)
-        if area is None:
+        if not cut_off:
             area = np.bincount(srows, w, minlength=m).astype(np.float64)  # (no samples: int)
             if whole is not None:
                 area += np.bincount(whole[0], whole[5].sum(axis=1), minlength=m)
                 area += np.bincount(whole[8], whole[13].sum(axis=1), minlength=m)
-        if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
-            return None
+            if np.any(np.abs(area / math.pi - 1.0) > CELL_AREA_TOLERANCE):
+                return None
         return u, v, w, srows, du, maps, trace_args, whole, (tx, ty)
 
     def invertible(self, points: np.ndarray) -> bool:
@@ -942,13 +940,13 @@ def _one_to_one(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     into less than the cells resolve, and fails too. (M,)."""
     du, dv, rim = _fold_grid()
     det = (cx @ du.T) * (cy @ dv.T) - (cx @ dv.T) * (cy @ du.T)
-    same = np.all(det * det[:, :1] > 0.0, axis=1)
+    ok = np.all(det * det[:, :1] > 0.0, axis=1)  # (the first point: the disc's centre)
     size = np.abs(det)
-    same &= size.min(axis=1) >= FOLD_MIN_DET_RATIO * size.max(axis=1)
+    ok &= size.min(axis=1) >= FOLD_MIN_DET_RATIO * size.max(axis=1)
     z = (cx @ rim.T - cx[:, :1]) + 1j * (cy @ rim.T - cy[:, :1])  # the rim about the centre
     turn = np.angle(np.roll(z, -1, axis=1) / z)  # each step's turn, the loop closed
     winds = np.all(turn > 0.0, axis=1) | np.all(turn < 0.0, axis=1)
-    return same & winds
+    return ok & winds
 
 
 def _cell_shape(lattice: LocalLattice) -> tuple[float, float, bool]:
@@ -1668,10 +1666,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sub-grid :data:`LINE_CELLS_SETTLE`. Its answer comes from the ray models, their
     Gauss–Newton steps started from the cells' fit, then the settled test and the polish.
 
-    Yields twice: the fine fit with the polishing model's misfit at it (``polished=False``,
-    no σ: a caller reads only its misfits), then the final fit. A caller that learns from the
-    first that the region is no point (a line fits it far better) stops there and saves the
-    polish and the σ profile.
+    Yields twice (three times with ``early``, below): the fine fit with the polishing model's
+    misfit at it (``polished=False``, no σ: a caller reads only its misfits), then the final
+    fit. A caller that learns from the first that the region is no point (a line fits it far
+    better) stops there and saves the polish and the σ profile.
 
     ``gates``: when given, ``polish_above`` and ``bound_above`` are ``gates(m)``, with ``m``
     the fine and polishing models' disagreement at the fine fit (``‖r_fine − r_polish‖``, the
