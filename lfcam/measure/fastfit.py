@@ -98,6 +98,12 @@ LINE_TURNS = True  # each point of a line model turns its pupil sample (LensletM
 LINE_POINTS = 12  # points of the line model, at least (and the count the ray budgets are for)
 LINE_POINTS_MAX = 48  # ... at most
 LINE_SPACING_PITCH = 0.5  # their spacing on the MLA, at most (lenslet pitches)
+LINE_SCAN_POINTS = 12  # points of the distance scan's line model, at most (and of its turned
+#                        starts), each with the coarse stage's rays a point: the scan only picks
+#                        the start nodes, 23 % apart (24 until stop 47: of 231 grid lines 17
+#                        moved, by 0.001-0.04 % on system 2 and 0.08-0.11 % (⅓σ) on two of
+#                        system 1's; −3 to −10 % CPU a region; docs/distance.md, "Fewer points
+#                        in the distance scan (stop 47)")
 LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
 LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
 LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer,
@@ -2014,7 +2020,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             for h in halves:
                 for hh in (h, h + extra):
                     cands.append(np.r_[q[0], centre - hh * u, centre + hh * u])
-        costs = [_sq(r) for r in many_of(scan_model, n_coarse)(cands)]
+        costs = [_sq(r) for r in many_of(scan_model, n_scan)(cands)]
         return [cands[i] for i in np.argsort(costs)[:LINE_TURNED_STARTS]]
 
     d0 = float(frame.z_front - point.source_mm[2])
@@ -2050,7 +2056,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # line's 48 points with half the rays each cost twice the 12 points' rays)
     n_coarse = min(n_pts, LINE_COARSE_POINTS)
     share_c = max(LINE_POINTS / n_coarse, LINE_MIN_SHARE)
-    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c, n_coarse)
+    n_scan = min(n_coarse, LINE_SCAN_POINTS)  # (its rays a point as the coarse stage's)
+    scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c, n_scan)
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
 
@@ -2064,7 +2071,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
     scan = [segment(float(d), g=float(g)) for d, g in zip(
         distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
-    costs = [_sq(r) for r in many_of(scan_model, n_coarse)(scan)]
+    costs = [_sq(r) for r in many_of(scan_model, n_scan)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     # the scan's best node is a start of its own unless it lies in the point's basin (stopping
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
