@@ -104,7 +104,7 @@ LINE_SCAN_POINTS = 12  # points of the distance scan's line model, at most (and 
 #                        moved, by 0.001-0.04 % on system 2 and 0.08-0.11 % (⅓σ) on two of
 #                        system 1's; −3 to −10 % CPU a region; docs/distance.md, "Fewer points
 #                        in the distance scan (stop 47)")
-LINE_COARSE_POINTS = 24  # points of the scan's and the coarse stage's line model, at most
+LINE_COARSE_POINTS = 24  # points of the coarse stage's line model, at most
 LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
 LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer,
 LINE_TURNED_STARTS = 2  # ... the best this many of them by the scan model (1: a line 2 pitches
@@ -2052,8 +2052,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                             phase=phase, turn_every=count if LINE_TURNS else 0,
                             cells=cells if on_cells else 0)
 
-    # the scan and the coarse stage find the basin: at most LINE_COARSE_POINTS points (a long
-    # line's 48 points with half the rays each cost twice the 12 points' rays)
+    # the coarse stage finds the basin: at most LINE_COARSE_POINTS points (a long line's 48
+    # points with half the rays each cost twice the 12 points' rays); the scan, which picks
+    # its start, at most LINE_SCAN_POINTS
     n_coarse = min(n_pts, LINE_COARSE_POINTS)
     share_c = max(LINE_POINTS / n_coarse, LINE_MIN_SHARE)
     n_scan = min(n_coarse, LINE_SCAN_POINTS)  # (its rays a point as the coarse stage's)
