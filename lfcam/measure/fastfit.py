@@ -880,14 +880,21 @@ def compiled_pupil_maps(lens, points_mm: np.ndarray, packed: _PackedLens | None 
     return out
 
 
-def _map_basis(u: np.ndarray, v: np.ndarray, degree: int | None = None) -> np.ndarray:
-    """Terms of :func:`lfcam.measure.kernels._map2` at pupil points (u, v): (n, terms);
-    ``degree`` (default :data:`lfcam.measure.kernels.MAP_DEGREE`): the same order of terms
-    for a polynomial of another degree."""
+def _map_powers(degree: int | None = None) -> list[tuple[int, int]]:
+    """The powers ``(i, j)`` of the terms ``u^i v^j`` of :func:`lfcam.measure.kernels._map2`'s
+    polynomials, in its order (``k = i + j`` = 0 … degree, then ``i`` = 0 … k); ``degree``
+    (default :data:`lfcam.measure.kernels.MAP_DEGREE`): another degree's."""
     from lfcam.measure.kernels import MAP_DEGREE
 
     d = MAP_DEGREE if degree is None else degree
-    return np.column_stack([u ** i * v ** (k - i) for k in range(d + 1) for i in range(k + 1)])
+    return [(i, k - i) for k in range(d + 1) for i in range(k + 1)]
+
+
+def _map_basis(u: np.ndarray, v: np.ndarray, degree: int | None = None) -> np.ndarray:
+    """Terms of :func:`lfcam.measure.kernels._map2` at pupil points (u, v): (n, terms);
+    ``degree``: the same order of terms for a polynomial of another degree
+    (:func:`_map_powers`)."""
+    return np.column_stack([u ** i * v ** j for i, j in _map_powers(degree)])
 
 
 _CELL_RING: list = []
@@ -922,12 +929,10 @@ def _fold_grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pupil points (rings :data:`FOLD_RADII`, :data:`FOLD_ANGLES` points each), and the terms
     at the rim's points."""
     if not _FOLD_GRID:
-        from lfcam.measure.kernels import MAP_DEGREE
-
         a = 2.0 * np.pi * np.arange(FOLD_ANGLES) / FOLD_ANGLES
         r = np.repeat(np.asarray(FOLD_RADII), FOLD_ANGLES)
         u, v = r * np.tile(np.cos(a), len(FOLD_RADII)), r * np.tile(np.sin(a), len(FOLD_RADII))
-        pows = [(i, k - i) for k in range(MAP_DEGREE + 1) for i in range(k + 1)]  # u^i v^j
+        pows = _map_powers()
         du = np.column_stack([i * u ** max(i - 1, 0) * v ** j for i, j in pows])
         dv = np.column_stack([j * u ** i * v ** max(j - 1, 0) for i, j in pows])
         _FOLD_GRID.append((du, dv, _map_basis(np.cos(a), np.sin(a))))
