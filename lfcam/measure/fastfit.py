@@ -2315,21 +2315,26 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def beats(point_misfit: float) -> float:  # the misfit a line must stay under to win
         return line_beats(point_misfit, nm, LINE_GAIN)
 
-    def line_for(point: LensletFit) -> LensletFit:  # the line fit that could replace a point
-        return fit_lenslet_line(profile, geom, image, region, point,
-                                useful_below=min(beats(point.misfit), limit), mom=mom,
-                                accept=accept)
+    tried: list[LensletFit] = []
+
+    def line_for(point: LensletFit) -> LensletFit:
+        # the line fit that could replace a point, tried once a region: a later call (after
+        # the point's fine stage, or its polish) returns the first try
+        if not tried:
+            tried.append(fit_lenslet_line(profile, geom, image, region, point,
+                                          useful_below=min(beats(point.misfit), limit),
+                                          mom=mom, accept=accept))
+        return tried[0]
 
     stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates,
                               early=LINE_AT_COARSE)
     fit = next(stages)  # the fine fit, before its polish and σ profile (or the coarse one)
-    line = None
     if fit.coarse:
         # On the cells the point's coarse stage is read first. A line's blur leaves a point's
         # misfit where it is through the fine steps, so a line that wins there by more than
         # any polish could take back needs no fine point fit (docs/distance.md, "A line tried
-        # at the point's coarse stage (stop 47)"). One that does not is kept for the tests
-        # below, which compare its misfit with the fine fit's.
+        # at the point's coarse stage (stop 47)"). One that does not is kept (line_for) for
+        # the tests below, which compare its misfit with the fine fit's.
         if fit.ok and fit.polish_floor > trigger_of(fit.model_misfit):
             line = line_for(fit)
             if line.ok and line.misfit < beats(fit.polish_floor):
@@ -2343,8 +2348,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # finds its start; system 2's lines at 380 mm, 60-80 % of the field, whose point fit
         # ran out there: docs/distance.md, "Large point blurs on the cells (stop 44)")
         stages.close()
-        if line is None:
-            line = line_for(dataclasses.replace(fit, ok=True))
+        line = line_for(dataclasses.replace(fit, ok=True))
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
         return Measurement.failed(fit.reason, geom.d_in_mm)
@@ -2352,8 +2356,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (fit.polish_floor), the point's polish and σ profile are not needed
-        if line is None:
-            line = line_for(fit)
+        line = line_for(fit)
         if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
             return _line_answer(profile, geom, line, limit, nm)
@@ -2371,8 +2374,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
     if region.kind == "line" or fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
-        if line is None:
-            line = line_for(fit)
+        line = line_for(fit)
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
