@@ -394,8 +394,9 @@ def test_polish_ends_when_its_step_is_nothing():
     # fastfit._levenberg_marquardt with secant (Broyden) updates, as the point polish runs it,
     # on a linear residual that is flat below 1e-7 in q (as a model's own ray sample is at its
     # minimum): once at the minimum the next undamped step is ~1e-9. Without ``settle_log`` the
-    # fit tries it five times (each no better) and then takes the Jacobian again by
-    # differences; with it, it ends there, at the same point
+    # fit tries it (its damped repeats, the same step within 1 %, are not:
+    # LM_RETRY_MIN_CHANGE) and then takes the Jacobian again by differences; with it, it ends
+    # there, at the same point
     from lfcam.measure.fastfit import _levenberg_marquardt
 
     rng = np.random.default_rng(3)
@@ -424,4 +425,24 @@ def test_polish_ends_when_its_step_is_nothing():
     for q, _ in runs.values():
         np.testing.assert_allclose(q, best, atol=1e-6)
     assert runs[1e-6][1] <= 3  # the start and the steps that reached the minimum (measured 3)
-    assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 16)
+    assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 12; 16 with every repeat tried)
+
+
+def test_a_damped_repeat_of_a_failed_step_is_not_tried():
+    # Levenberg–Marquardt on r(q) = q − 1 from q = 0 (analytic Jacobian 1), with the cost
+    # raised on 0.985 ≤ q ≤ 1.015 (a model's ray noise at its minimum). The undamped step
+    # (λ = 1e-4: q = 1/(1 + λ)) lands there and fails; λ = 1e-3 and 1e-2 move it by 0.09 and
+    # 0.98 %, land there too and are not tried; λ = 0.1 (q = 1/1.1) lowers the cost and is taken
+    import lfcam.measure.fastfit as ff
+
+    tried: list[float] = []
+
+    def fun(q):
+        tried.append(float(q[0]))
+        return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
+
+    q, r, f, _ = ff._levenberg_marquardt(fun, np.zeros(1), np.ones(1), 1, r0=np.array([-1.0]),
+                                         jac_of=lambda q, r: np.ones((1, 1)))
+    np.testing.assert_allclose(tried, [1.0 / (1.0 + 1e-4), 1.0 / 1.1], rtol=1e-12)
+    np.testing.assert_allclose(q, [1.0 / 1.1], rtol=1e-12)
+    assert f == pytest.approx((1.0 / 1.1 - 1.0) ** 2, rel=1e-12)
