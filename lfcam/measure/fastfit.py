@@ -104,6 +104,10 @@ LINE_SCAN_POINTS = 12  # points of the distance scan's line model, at most (and 
 #                        moved, by 0.001-0.04 % on system 2 and 0.08-0.11 % (⅓σ) on two of
 #                        system 1's; −3 to −10 % CPU a region; docs/distance.md, "Fewer points
 #                        in the distance scan (stop 47)")
+LINE_SCAN_POINTS_SMALL = 6  # ... and on a blur lighting fewer than LINE_SCAN_SMALL_LIT lenslets
+LINE_SCAN_SMALL_LIT = 100  # (the line tries of point blurs: 5 ms less each, the same answers;
+#                            on large blurs 6 points' fewer rays misled the scan: docs/distance.md,
+#                            "A smaller scan for small blurs (stop 48)")
 LINE_COARSE_POINTS = 24  # points of the coarse stage's line model, at most
 LINE_START_ANGLES = 6  # a line's start: its axis turned in steps of 180° / this ...
 LINE_START_EXTRA_PITCH = 2.0  # ... each at its measured length and this many pitches longer,
@@ -2075,7 +2079,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # its start, at most LINE_SCAN_POINTS
     n_coarse = min(n_pts, LINE_COARSE_POINTS)
     share_c = max(LINE_POINTS / n_coarse, LINE_MIN_SHARE)
-    n_scan = min(n_coarse, LINE_SCAN_POINTS)  # (its rays a point as the coarse stage's)
+    # (its rays a point as the coarse stage's; on a small blur half as many points)
+    n_scan = min(n_coarse, LINE_SCAN_POINTS if n_lit >= LINE_SCAN_SMALL_LIT
+                 else LINE_SCAN_POINTS_SMALL)
     scan_model = model(max(COARSE_RAYS // LINE_COARSE_SHARE, 200), share_c, n_scan)
     steps = np.r_[COARSE_STEPS[0], np.full(4, COARSE_STEPS[1])]
 
