@@ -105,7 +105,7 @@ LINE_SCAN_POINTS = 12  # points of the distance scan's line model, at most (and 
 #                        system 1's; −3 to −10 % CPU a region; docs/distance.md, "Fewer points
 #                        in the distance scan (stop 47)")
 LINE_SCAN_POINTS_SMALL = 6  # ... and on a blur lighting fewer than LINE_SCAN_SMALL_LIT lenslets
-LINE_SCAN_SMALL_LIT = 100  # (the line tries of point blurs: 5 ms less each, the same answers;
+LINE_SCAN_SMALL_LIT = 100  # (the line tries of point blurs: ~4 ms less each, the same answers;
 #                            on large blurs 6 points' fewer rays misled the scan: docs/distance.md,
 #                            "A smaller scan for small blurs (stop 48)")
 LINE_COARSE_POINTS = 24  # points of the coarse stage's line model, at most
@@ -1157,6 +1157,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     caller's own rule, instead of differences. ``settle_log``: after the first iteration, the
     fit ends when an iteration's undamped step would move the log distance ``q[0]`` by less
     than this (its damped trials move it less still).
+
+    A damped trial whose step lies within :data:`LM_RETRY_MIN_CHANGE` of the last failed
+    one's (in units of ``steps``) is not evaluated: λ is raised again and the trial counted.
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
@@ -1192,7 +1195,6 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 continue
             r2 = fun(q + dq)
             f2 = _sq(r2)
-            failed = dq / steps
             if f2 < f:
                 if broyden:  # the secant of the accepted step
                     jac = jac + np.outer((r2 - r) - jac @ dq, dq) / float(dq @ dq)
@@ -1201,6 +1203,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 lam = max(lam / 10, 1e-8)
                 improved = True
                 break
+            failed = dq / steps
             lam *= 10
         if settled:  # (a secant Jacobian is not taken again by differences to confirm it)
             break
