@@ -281,8 +281,15 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 
 
 def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
-    """``error_vs_distance.png`` (the seed's Fig. 8 layout) and ``pareto.png``."""
-    import matplotlib
+    """``error_vs_distance.png`` (the seed's Fig. 8 layout) and ``pareto.png``. Needs
+    matplotlib, which lfcam itself does not (``pip install matplotlib``); without it the
+    tables are written and the run ends with a one-line message (or pass ``--no-figures``)."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise SystemExit("tradeoff.py: the figures need matplotlib (pip install matplotlib); "
+                         "--no-figures skips them (a measuring run writes its tables first)"
+                         ) from None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
