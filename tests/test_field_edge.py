@@ -73,6 +73,34 @@ def test_off_axis_point_at_80_percent_is_a_point(focus, distance):
     assert abs(best.distance_mm / distance - 1.0) < 0.01
 
 
+@pytest.mark.parametrize(("focus", "distance"), [(math.inf, 3500.0), (1000.0, 700.0)])
+def test_line_shaped_point_region_tries_no_line(focus, distance, monkeypatch):
+    """The finder calls these 80 % points' regions `line` (coma and vignetting), but their
+    point fits leave under the line trigger: no line is tried (on the focus grids every such
+    try lost, 20-60 ms each; docs/distance.md, "Line-shaped point regions (stop 49)"), and
+    the answer is the point's. Before stop 49 the region's shape alone sent it to a line."""
+    import lfcam.distance as distance_mod
+    from lfcam.measure import fastfit
+
+    shapes, tries = [], []
+    measure = distance_mod.measure_lenslet
+    monkeypatch.setattr(distance_mod, "measure_lenslet", lambda p, g, i, region, *a, **k: (
+        shapes.append(region.kind) or measure(p, g, i, region, *a, **k)))
+    line_fit = fastfit.fit_lenslet_line
+    monkeypatch.setattr(fastfit, "fit_lenslet_line",
+                        lambda *a, **k: tries.append(1) or line_fit(*a, **k))
+    az = math.radians(30.0)
+    at = 0.8 * HALF_FIELD_MM * np.array([math.cos(az), math.sin(az)])
+    cam, prof = _camera(focus, at)
+    run = _measure(cam, prof, [{"type": "point", "distance_mm": distance,
+                                "position_mm": _source_at(prof, distance, at)}])
+    best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
+    assert "line" in shapes  # the case this test is for
+    assert best.kind == "spot" and best.status == "ok"
+    assert abs(best.distance_mm / distance - 1.0) < 0.003  # (−0.05 and −0.02 %)
+    assert not tries
+
+
 def test_line_behind_focus_is_a_line():
     """A line 3 mm long on the MLA, 2200 mm behind a 1 m focus, at the field centre."""
     cam, prof = _camera(1000.0, np.zeros(2), size=384)

@@ -205,8 +205,8 @@ LINE_CELLS_SETTLE_STEPS = 3  # ... at most this many (the refit of the rays is f
 # (photon noise of the data: 0.002-0.005 measured from two renders of the same scene; up to
 # 0.08 for a far source that gets 2-4 % of the light of the scene's brightest), a line
 # fitted as a point 0.15-0.69, a line fitted as a line 0.001-0.04.
-LINE_TRIGGER = 0.0015  # a point misfit over this and over twice its noise misfit (or an
-#                        elongated region): also fit a line (lfcam.measure.verify.line_trigger;
+LINE_TRIGGER = 0.0015  # a point misfit over this and over its noise and model triggers
+#                        (below): also fit a line (lfcam.measure.verify.line_trigger;
 #                        noise-free seed captures: points leave 0.0001-0.0039, 10 mm lines as
 #                        points 0.0018-0.29)
 LINE_MODEL_FACTOR = 2.0  # ... and over this × the point models' own disagreement at the fit
@@ -2392,9 +2392,12 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         fit = next(stages)
     if not fit.ok:
         return Measurement.failed(fit.reason, geom.d_in_mm)
-    # the region's elongation only makes the line fit worth trying: F/2 coma and vignetting
-    # stretch off-axis points too (elongation up to 2.3 at 80 % of system 1's half-field)
-    if region.kind == "line" or fit.misfit > trigger:
+    # a line is tried on the misfit alone, whatever the region's shape: F/2 coma and
+    # vignetting stretch off-axis points into regions the finder calls `line` (elongation up
+    # to 2.3 at 80 % of system 1's half-field) whose point fits leave 0.17-0.73 × the
+    # trigger, and every line of the focus grids leaves 1.2 × it or more as a point
+    # (docs/distance.md, "Line-shaped point regions (stop 49)")
+    if fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         line = line_for(fit)
         if line.ok and line.misfit < beats(fit.misfit):
