@@ -889,7 +889,7 @@ def test_rim_cut_keeps_each_cells_area_inside_the_rims_circle(kappa):
             inv = np.linalg.inv(jac)
             got = _rim_cut(cx, cy, node[0], node[1], u, v, inv[0, 0], inv[0, 1], inv[1, 0],
                            inv[1, 1], rule.polygon, len(rule.polygon), np.empty((9, 2)), ox, oy,
-                           0)
+                           0, cell_area)
             worst = max(worst, abs(got - exact) / cell_area)
             cut += 1
     assert cut > 60  # (a ring of 14 pitches crosses ~90 cells)

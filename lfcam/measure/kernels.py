@@ -278,7 +278,7 @@ def warm_up() -> None:
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
-                    np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0, np.empty(0))
+                    np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, np.empty(0))
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
@@ -298,7 +298,7 @@ def warm_up() -> None:
                  np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25), np.zeros((4, 2)))
     deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
                   np.zeros((1, 4)), np.zeros(1, dtype=np.int64), np.zeros(2), eye, 1.0, 0.0, 0.0,
-                  0, 0, np.zeros((1, 1), dtype=np.int64), np.zeros((1, 2)), 1.0,
+                  0, 0, np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0,
                   np.zeros((0, 3, 2)), 1)
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
                   np.ones(4), 1, np.zeros((4, 2)))
@@ -360,7 +360,7 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
     for k in range(n_lenslets):
         if present[k]:
             ids[present[k] - 1] = k
-    compact = np.full((h, w), -1, dtype=np.int64)
+    compact = np.full((h, w), -1, dtype=np.int32)
     out = np.zeros((count, 4))
     s0 = 0.0
     s1 = 0.0
@@ -1446,7 +1446,7 @@ def cell_centres(cx, cy, boxes, reach, origin, basis, inverse, margin, corners, 
                     continue
                 # cut by the rim: its part inside, and that part's moment rule
                 area_in = _rim_cut(c_x, c_y, gxs[k], gys[k], u, v, ia, ib, ic, ie, polygon,
-                                   polygon.shape[0], cut, rgx, rgy, 4 * nr)
+                                   polygon.shape[0], cut, rgx, rgy, 4 * nr, cell_area)
                 if area_in <= 0.0:
                     skip[at_skip] = True
                     continue
@@ -1620,12 +1620,14 @@ def _cos_sin(x):
 
 
 @njit(cache=True, nogil=True)
-def _rim_cut(c_x, c_y, gx0, gy0, u, v, ia, ib, ic, ie, poly, nv, cut, ox, oy, at):
+def _rim_cut(c_x, c_y, gx0, gy0, u, v, ia, ib, ic, ie, poly, nv, cut, ox, oy, at,
+             cell_area):
     """The part of the cell ``poly[:nv]`` (corners about its node ``(gx0, gy0)``, MLA mm, in
     counter-clockwise order) inside the pupil's rim: its area (MLA mm²), and the 4-point
     rule of its second moments at ``ox, oy[at : at + 4]`` (offsets from the node:
     :func:`_moment_rule`). ``(u, v)``: the node's pupil point, ``[[ia, ib], [ic, ie]]`` the
-    inverse of the map's Jacobian there.
+    inverse of the map's Jacobian there. A cell the first pass finds uncut (wholly inside)
+    gets ``cell_area`` (its area) and no rule: the caller integrates it whole.
 
     The rim's image is taken as a line across the cell: first the rim seen through the
     node's linear map, which finds the chord the rim cuts; then the tangent to the rim's
@@ -1642,6 +1644,8 @@ def _rim_cut(c_x, c_y, gx0, gy0, u, v, ia, ib, ic, ie, poly, nv, cut, ox, oy, at
     norm = math.hypot(wx, wy)
     m, ex0, ey0, ex1, ey1 = _clip(poly, nv, wx / norm, wy / norm, (1.0 - rr) / norm, cut)
     if not math.isfinite(ex1):
+        if m == nv:  # not cut: the whole cell, whose rule the caller takes (not this one)
+            return cell_area
         return _moment_rule(cut, m, ox, oy, at) if m >= 3 else 0.0
     tax = ia * -ny + ic * nx
     tay = ib * -ny + ie * nx
