@@ -2395,8 +2395,9 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # a line is tried on the misfit alone, whatever the region's shape: F/2 coma and
     # vignetting stretch off-axis points into regions the finder calls `line` (elongation up
     # to 2.3 at 80 % of system 1's half-field) whose point fits leave 0.17-0.73 × the
-    # trigger, and every line of the focus grids leaves 1.2 × it or more as a point
-    # (docs/distance.md, "Line-shaped point regions (stop 49)")
+    # trigger; the 126 rectangular grid lines logged leave 1.2 × it or more as a point, and
+    # all 231 grid lines read the same without the shape rule (docs/distance.md,
+    # "Line-shaped point regions (stop 49)")
     if fit.misfit > trigger:
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         line = line_for(fit)

@@ -341,7 +341,8 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
     """:func:`lfcam.measure.fastfit.data_moments` of a box in one pass: ``labels`` and
     ``image`` are the box's slices (corner ``(x0, y0)``), ``centres_px`` every lenslet's
     micro-image centre. Returns (ids of the lenslets present, in increasing order; the box's
-    labels as compact indices into ``ids``, −1 none; their moments ``(K, 4)``; the noise sums
+    labels as compact indices into ``ids``, −1 none, ``int32``: the deposits read it for
+    every ray; their moments ``(K, 4)``; the noise sums
     of :func:`lfcam.measure.noise.moment_noise_sums`), summed in a row-major pass as
     ``np.bincount`` does."""
     h, w = labels.shape
