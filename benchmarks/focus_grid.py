@@ -68,6 +68,7 @@ import math  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -267,12 +268,24 @@ class Camera:
              "camera": self.cam, "objects": objects}))
         return raw.astype(np.float64), truth, time.perf_counter() - t0
 
+    def measuring_profile(self) -> CameraProfile:
+        """The profile the fits read: the rendered one, with the renders' full well where
+        they have photon noise (the sensor gain a capture of one small blur cannot measure:
+        docs/distance.md, "A sensor gain for captures that cannot measure one (stop 49)"),
+        unless ``--no-sensor-gain``."""
+        if not (NOISE["photon_noise"] and SENSOR_GAIN[0]):
+            return self.used
+        return replace(self.used, sensor=replace(self.used.sensor,
+                                                 full_well_e=float(NOISE["full_well_e"])))
+
     def measure(self, img: np.ndarray):
         """(run results, their regions' lenslet counts and measurement CPU s (dicts by region
         id), the run's wall s, CPU s)."""
         t0, c0 = time.perf_counter(), time.process_time()
-        res = run_distance(img, self.used, None, model="exact", method=METHOD[0],
-                           tolerance_pct=TOLERANCE[0], geometry=self.geom, jobs=1)
+        res = run_distance(img, self.measuring_profile(), None, model="exact",
+                           method=METHOD[0], tolerance_pct=TOLERANCE[0], geometry=self.geom,
+                           jobs=1, white_value=float(self.used.sensor.white_level
+                                                     - self.used.sensor.black_level))
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         regions = find_regions(lenslet_stats(img, self.geom.lmap), self.geom.lmap,
                                self.geom.pitch_px)
@@ -473,6 +486,7 @@ def read_rows(paths) -> list[dict]:
 
 METHOD = ["lightfield"]  # set from --method
 RENDER_CACHE: list = [None]  # set from --render-cache
+SENSOR_GAIN = [True]  # the fits read the renders' full well (--no-sensor-gain: they do not)
 TOLERANCE: list = [None]  # set from --tolerance (--method auto)
 
 
@@ -517,12 +531,17 @@ def main() -> None:
     ap.add_argument("--append", action="store_true", help="append to --csv")
     ap.add_argument("--table", nargs="+", type=Path, metavar="CSV",
                     help="only print the tables of these CSVs")
+    ap.add_argument("--no-sensor-gain", action="store_true",
+                    help="do not give the fits the renders' full well (a capture of one small "
+                         "blur then counts no photon noise, as before stop 49)")
     ap.add_argument("--noise-free", action="store_true",
                     help="no photon or read noise in the captures (--renderer sim)")
     ap.add_argument("--fastfit", default="", metavar="NAME=VALUE,...",
                     help="experiments: override constants of lfcam.measure.fastfit (e.g. "
                          "LINE_FINE_PER_LENSLET=120, LINE_TURNS=0); printed in the log")
     args = ap.parse_args()
+    if args.no_sensor_gain:
+        SENSOR_GAIN[0] = False
     if args.noise_free:
         NOISE.update({"photon_noise": False, "read_noise_e": 0.0})
     for item in filter(None, args.fastfit.split(",")):

@@ -313,6 +313,11 @@ class Sensor:
         Raw value of no light and of saturation.
     axis_px : tuple of float or None
         (x_px, y_px) where the optical axis meets the sensor; ``None`` = sensor centre.
+    full_well_e : float or None
+        Photo-electrons at the white level (optional: a datasheet figure or one
+        photon-transfer measurement). The noise model's photon gain where a capture cannot
+        measure its own (one small sharp blur: docs/profiles.md, docs/distance.md "A sensor
+        gain for captures that cannot measure one (stop 49)").
     """
 
     pixel_pitch_mm: float
@@ -323,6 +328,7 @@ class Sensor:
     black_level: int = 0
     white_level: int = 65535
     axis_px: tuple[float, float] | None = None
+    full_well_e: float | None = None
 
     @property
     def axis_xy_px(self) -> tuple[float, float]:
@@ -634,7 +640,7 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
         "sensor",
         {
             "pixel_pitch_mm", "width_px", "height_px", "bit_depth", "bayer",
-            "black_level", "white_level", "axis_px",
+            "black_level", "white_level", "axis_px", "full_well_e",
         },
     )
     bit_depth = _integer("sensor.bit_depth", st.get("bit_depth", 16), 1, 32)
@@ -658,6 +664,8 @@ def profile_from_dict(data: dict, source: str = "") -> CameraProfile:
         black_level=black,
         white_level=white,
         axis_px=None if axis is None else _pair("sensor.axis_px", axis),
+        full_well_e=(None if st.get("full_well_e") is None
+                     else _check_positive("sensor.full_well_e", st["full_well_e"])),
     )
     profile = CameraProfile(name=name, main_lens=lens, mla=mla, sensor=sensor, source=source)
     if distance is not None and focus is not None:

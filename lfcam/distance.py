@@ -188,6 +188,17 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
     return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
 
 
+def sensor_gain(profile: CameraProfile, white_value: float | None) -> float:
+    """Image units per photo-electron from the profile's full well, for an image whose
+    white level reads ``white_value``; 0 when either is unknown. A demosaicked grey image
+    averages its noise over neighbours, so this bounds its gain from above, as the measured
+    gain does (:func:`lfcam.measure.noise.photon_gain`)."""
+    full_well = profile.sensor.full_well_e
+    if full_well is None or white_value is None or not white_value > 0:
+        return 0.0
+    return float(white_value) / float(full_well)
+
+
 def run_distance(
     image: np.ndarray,
     profile: CameraProfile,
@@ -199,6 +210,7 @@ def run_distance(
     progress: Progress | None = None,
     geometry: Geometry | None = None,
     jobs: int | None = 1,
+    white_value: float | None = None,
 ) -> DistanceRun:
     """Detect regions in a linear grey image and estimate a distance for each.
 
@@ -225,6 +237,12 @@ def run_distance(
     jobs : int or None
         Worker processes for the regions (``None``: all cores; 1: serial, in this process).
         The results do not depend on it.
+    white_value : float, optional
+        The image's value at the sensor's white level (1 for :meth:`lfcam.io.Capture.grey`;
+        ``white_level − black_level`` for raw counts). With the profile's
+        ``sensor.full_well_e`` it gives the photon gain the noise model takes where the
+        capture cannot measure one (:func:`lfcam.measure.noise.capture_noise`); without
+        either, such a capture's noise model counts no photon noise.
 
     Returns
     -------
@@ -270,7 +288,8 @@ def run_distance(
         regions = find_regions(stats, geom.lmap, geom.pitch_px)
         noise = noise_sigma(img)
         # the capture's noise model, which the fits' gates read: once, from these statistics
-        noise_model = (capture_noise(img, geom.lmap, geom.pitch_px, stats)
+        noise_model = (capture_noise(img, geom.lmap, geom.pitch_px, stats,
+                                     sensor_gain=sensor_gain(profile, white_value))
                        if method != "diameter" and regions else None)
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)

@@ -159,7 +159,7 @@ def process_capture(job: Job) -> dict:
                          image.shape)
         run = run_distance(image, profile, _CALIBRATIONS[job.calibration_sha256],
                            model=s.model, method=s.method, tolerance_pct=s.tolerance_pct,
-                           fast=s.fast, geometry=geom)
+                           fast=s.fast, geometry=geom, white_value=1.0)
         outdir = Path(job.outdir)
         (outdir / DONE_FILE).unlink(missing_ok=True)
         write_outputs(outdir, run, f"{job.rel}  model {s.model}, method {s.method}"

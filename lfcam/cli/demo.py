@@ -115,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
     def progress(stage: str, done: int, total: int) -> None:
         print(f"      {stage} {done}/{total}", file=sys.stderr, flush=True)
 
-    result = run_distance(image, prof, calibration, model="exact", progress=progress)
+    result = run_distance(image, prof, calibration, model="exact", progress=progress,
+                          white_value=1.0)
     write_outputs(out, result, "lfcam demo scene  model exact, method lightfield")
     _say(f"4/4 wrote {out}/regions.csv, distance.tiff, distance.png "
          f"({time.perf_counter() - t0:.0f} s)\n")

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
                                  else default_method(profile, calibration))
         result = run_distance(image, profile, calibration, model=args.model,
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
-                              progress=bar, jobs=args.jobs)
+                              progress=bar, jobs=args.jobs, white_value=1.0)
         bar("writing", 0, 1)
         t1 = time.perf_counter()
         write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "

@@ -229,7 +229,7 @@ _CACHE = ObjectCache(1)
 
 def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float,
                   stats: LensletStats | None = None,
-                  known: NoiseModel | None = None) -> NoiseModel:
+                  known: NoiseModel | None = None, sensor_gain: float = 0.0) -> NoiseModel:
     """The noise model of one capture (read σ and photon gain), computed once per image.
 
     Parameters
@@ -243,6 +243,12 @@ def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float,
     known : NoiseModel, optional
         The model already computed for this capture (by the parent of a region worker): it
         is remembered for ``image`` and returned.
+    sensor_gain : float
+        Image units per photo-electron from the camera profile (its ``sensor.full_well_e``),
+        or 0: the gain where the capture cannot measure its own (:func:`photon_gain` 0: too
+        few interior lenslets, one small sharp blur). The measured gain is an upper bound and
+        is kept where there is one. As the model is computed once per image, only the first
+        call's counts (:func:`lfcam.distance.run_distance` makes it).
 
     Returns
     -------
@@ -252,7 +258,8 @@ def capture_noise(image: np.ndarray, lmap: LensletMap, pitch_px: float,
         if known is not None:
             return known
         st = lenslet_stats(image, lmap) if stats is None else stats
-        return NoiseModel(dark_sigma(image), photon_gain(st, lmap, pitch_px),
+        gain = photon_gain(st, lmap, pitch_px)
+        return NoiseModel(dark_sigma(image), gain if gain > 0 else max(sensor_gain, 0.0),
                           clips_at_zero(image))
 
     # per image, then per lenslet map (one capture measured on two geometries: two models)
