@@ -82,7 +82,7 @@ def test_small_blur_noise_is_counted_with_the_profiles_full_well(monkeypatch):
     # the noise misfit of the region's moments, against noise drawn again (Poisson electrons
     # and Gaussian read noise) around the noise-free render: with the sensor's gain it is the
     # noise's; without, the read noise alone, a fraction of it
-    clean, _ = _scene(noise=False)
+    clean, clean_prof = _scene(noise=False)
     region = max(find_regions(stats, geom.lmap, geom.pitch_px), key=lambda r: len(r.lenslets))
     box = _region_box(geom, region, img.shape)
     ref = data_moments(geom, clean, box)
@@ -107,13 +107,16 @@ def test_small_blur_noise_is_counted_with_the_profiles_full_well(monkeypatch):
     line_fit = fastfit.fit_lenslet_line
     monkeypatch.setattr(fastfit, "fit_lenslet_line",
                         lambda *a, **k: tries.append(1) or line_fit(*a, **k))
-    full = replace(prof, sensor=replace(prof.sensor, full_well_e=FULL_WELL_E))
-    run = run_distance(img.copy(), full, None, model="exact", method="lenslet", geometry=geom,
+    # (the simulator's profile states its sensor's full well when it draws photon noise)
+    assert prof.sensor.full_well_e == FULL_WELL_E
+    assert clean_prof.sensor.full_well_e is None
+    run = run_distance(img.copy(), prof, None, model="exact", method="lenslet", geometry=geom,
                        white_value=WHITE)
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
     assert best.kind == "spot" and best.status == "ok"
     assert abs(best.distance_mm / 300.0 - 1.0) < 0.003
     assert not tries
-    run_distance(img.copy(), prof, None, model="exact", method="lenslet", geometry=geom,
+    unknown = replace(prof, sensor=replace(prof.sensor, full_well_e=None))
+    run_distance(img.copy(), unknown, None, model="exact", method="lenslet", geometry=geom,
                  white_value=WHITE)
     assert tries

@@ -113,8 +113,12 @@ def _sensor_profile(profile: CameraProfile, scene: Scene) -> CameraProfile:
     black = e.black_level if e.black_level is not None else min(s.black_level, top)
     if white <= black:
         raise SceneError(f"sensor white level {white} must exceed black level {black}")
+    # with photon noise the written profile states the simulated sensor's full well (the
+    # gain the distance fits take where a capture cannot measure its own: docs/profiles.md)
     return replace(profile, sensor=replace(s, bit_depth=bit_depth, white_level=white,
-                                           black_level=black, bayer=e.bayer or s.bayer))
+                                           black_level=black, bayer=e.bayer or s.bayer,
+                                           full_well_e=(float(e.full_well_e) if e.photon_noise
+                                                        else s.full_well_e)))
 
 
 def _rim_truth(profile: CameraProfile, renderer: Renderer, distance_mm: float, x_mm: float,
