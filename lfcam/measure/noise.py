@@ -18,7 +18,10 @@ pedestal removed) has variance ``σ_r² + g·I``:
   noise, ``Var ≈ (1 + 1/n)·g·E`` for a sum ``E``. The median over the interior lenslets of the
   whole capture gives ``g`` without any source model, so a wrong model cannot raise its own
   noise allowance. Read noise and other per-lenslet scatter are counted in ``g``: an upper
-  bound (measured 3.4× the true gain on the 12-source scene of docs/distance.md).
+  bound (measured 3.4× the true gain on the 12-source scene of docs/distance.md). A capture
+  with too few interior lenslets (one small sharp blur) cannot measure ``g``; the camera
+  profile's full well gives it then, where the caller passes it (:func:`capture_noise`'s
+  ``sensor_gain``), else no photon noise is counted.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ class NoiseModel:
     """Pixel noise of one capture: variance ``read_sigma² + gain·I`` (image units)."""
 
     read_sigma: float
-    gain: float  # image units per photo-electron (0 when not measurable)
+    gain: float  # image units per photo-electron (0: neither measured nor given)
     clipped: bool = False  # the noise is cut at zero (:func:`clips_at_zero`)
 
     @property
