@@ -238,11 +238,11 @@ def run_distance(
         Worker processes for the regions (``None``: all cores; 1: serial, in this process).
         The results do not depend on it.
     white_value : float, optional
-        The image's value at the sensor's white level (1 for :meth:`lfcam.io.Capture.grey`;
-        ``white_level − black_level`` for raw counts). With the profile's
-        ``sensor.full_well_e`` it gives the photon gain the noise model takes where the
-        capture cannot measure one (:func:`lfcam.measure.noise.capture_noise`); without
-        either, such a capture's noise model counts no photon noise.
+        The image's value at the sensor's white level (``lfcam.io.grey.GREY_WHITE`` = 1 for
+        :meth:`lfcam.io.Capture.grey`; ``white_level − black_level`` for raw counts). With
+        the profile's ``sensor.full_well_e`` it gives the photon gain the noise model takes
+        where the capture cannot measure one (:func:`lfcam.measure.noise.capture_noise`);
+        without either, such a capture's noise model counts no photon noise.
 
     Returns
     -------

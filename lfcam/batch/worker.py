@@ -25,6 +25,7 @@ from lfcam.calibrate.model import calibration_from_bytes
 from lfcam.distance import run_distance, write_outputs
 from lfcam.errors import BatchError
 from lfcam.io import load_capture
+from lfcam.io.grey import GREY_WHITE
 from lfcam.io.profiles import profile_for_capture
 from lfcam.measure import prepare_geometry
 
@@ -159,7 +160,7 @@ def process_capture(job: Job) -> dict:
                          image.shape)
         run = run_distance(image, profile, _CALIBRATIONS[job.calibration_sha256],
                            model=s.model, method=s.method, tolerance_pct=s.tolerance_pct,
-                           fast=s.fast, geometry=geom, white_value=1.0)
+                           fast=s.fast, geometry=geom, white_value=GREY_WHITE)
         outdir = Path(job.outdir)
         (outdir / DONE_FILE).unlink(missing_ok=True)
         write_outputs(outdir, run, f"{job.rel}  model {s.model}, method {s.method}"

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from lfcam.atomic import check_output_dir
     from lfcam.calibrate import load_calibration
     from lfcam.distance import run_distance, write_outputs
-    from lfcam.io.grey import to_grey
+    from lfcam.io.grey import GREY_WHITE, to_grey
     from lfcam.models import line as line_model
     from lfcam.models import offaxis
     from lfcam.sim.capture import simulate, write_capture
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"      {stage} {done}/{total}", file=sys.stderr, flush=True)
 
     result = run_distance(image, prof, calibration, model="exact", progress=progress,
-                          white_value=1.0)
+                          white_value=GREY_WHITE)
     write_outputs(out, result, "lfcam demo scene  model exact, method lightfield")
     _say(f"4/4 wrote {out}/regions.csv, distance.tiff, distance.png "
          f"({time.perf_counter() - t0:.0f} s)\n")

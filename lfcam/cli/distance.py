@@ -20,6 +20,7 @@ from lfcam.cli.common import (
     profile_file,
     verify_mode,
 )
+from lfcam.io.grey import GREY_WHITE
 from lfcam.io.profiles import profile_for_capture
 from lfcam.measure import METHODS
 from lfcam.models import DISTANCE_MODELS
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
                                  else default_method(profile, calibration))
         result = run_distance(image, profile, calibration, model=args.model,
                               method=method, tolerance_pct=args.tolerance, fast=args.fast,
-                              progress=bar, jobs=args.jobs, white_value=1.0)
+                              progress=bar, jobs=args.jobs, white_value=GREY_WHITE)
         bar("writing", 0, 1)
         t1 = time.perf_counter()
         write_outputs(out, result, f"{capture_path.name}  model {args.model}, method "

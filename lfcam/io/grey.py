@@ -10,6 +10,8 @@ import numpy as np
 from lfcam.camera import BAYER_PATTERNS
 from lfcam.errors import InputFileError
 
+GREY_WHITE = 1.0  # the value of the sensor's white level in to_grey's images (black: 0)
+
 # OpenCV names a Bayer pattern after the second row's 2nd/3rd pixels; these map our
 # pattern (colours of pixels (0,0), (0,1), (1,0), (1,1)) to the code giving BGR output.
 _CV_BAYER = {
@@ -61,5 +63,5 @@ def to_grey(raw: np.ndarray, bayer: str = "none", black_level: float = 0.0,
     if raw.dtype.kind not in "ui" and not np.all(np.isfinite(grey)):  # integers always are
         raise InputFileError("raw image contains NaN or infinite values")
     grey -= np.float32(black_level)
-    grey *= np.float32(1.0 / span)
+    grey *= np.float32(GREY_WHITE / span)
     return grey
