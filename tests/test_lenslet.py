@@ -450,6 +450,38 @@ def test_polish_ends_when_its_step_is_nothing():
     assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 12; 16 with every repeat tried)
 
 
+def test_lm_ends_on_an_iteration_that_gains_little():
+    # fastfit._levenberg_marquardt's ``ftol`` (the point's coarse stage on the cells:
+    # COARSE_CELLS_FTOL). r(q) = (10 (q − 1)³, 5): the 5 is a floor no parameter removes (a
+    # line's blur fitted as a point), and Gauss–Newton on the cube leaves 2/3 of the error at
+    # each step, so the cost 100 e⁶ + 25 falls 125 → 33.8 → 25.77 → 25.068 → 25.0059: by 73,
+    # 24, 2.7 and 0.25 %. With ftol = 2 % the fit ends after the fourth step (taken); without
+    # it, it runs all ten iterations
+    import lfcam.measure.fastfit as ff
+
+    def run(ftol):
+        calls: list[float] = []
+
+        def fun(q):
+            calls.append(float(q[0]))
+            return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
+
+        q, r, f, _ = ff._levenberg_marquardt(
+            fun, np.zeros(1), np.ones(1), 10, 1e-15, r0=np.array([-10.0, 5.0]),
+            jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]), ftol=ftol)
+        return q, f, calls
+
+    q, f, calls = run(ff.COARSE_CELLS_FTOL)
+    assert ff.COARSE_CELLS_FTOL == 0.02  # (the sequence above is for 2 %)
+    assert len(calls) == 4
+    # each step's damping (λ = 1e-4, 1e-5, …) leaves a little more than 1/3 of the error
+    assert q[0] == pytest.approx(1.0 - (2.0 / 3.0) ** 4, abs=1e-4)
+    assert f == pytest.approx(25.0 + 100.0 * (2.0 / 3.0) ** 24, rel=1e-4)
+    q0, f0, calls0 = run(0.0)
+    assert len(calls0) == 10
+    assert f0 < f and abs(q0[0] - 1.0) < abs(q[0] - 1.0)
+
+
 def test_a_damped_repeat_of_a_failed_step_is_not_tried():
     # Levenberg–Marquardt on r(q) = q − 1 from q = 0 (analytic Jacobian 1), with the cost
     # raised on 0.985 ≤ q ≤ 1.015 (a model's ray noise at its minimum). The undamped step

@@ -72,6 +72,12 @@ START_GOOD = 0.01  # ... once an earlier start's coarse misfit² is under this: 
 #                    regions (seed, point grid, 12-source scenes) 39 such starts were skipped,
 #                    none a winner (docs/distance.md, "Starts that miss the data")
 COARSE_ITERATIONS = 6
+COARSE_CELLS_FTOL = 0.02  # ... on the cells it ends on an iteration that lowers its misfit² by
+#                           less than this share: a line's blur fitted as a point creeps down
+#                           by 0.01-2 % an iteration through all of them (hexagonal grid lines:
+#                           0.19-0.9 against a noise misfit of ~0.02), which only the line fit
+#                           changes (docs/distance.md, "The point's coarse stage on a line's
+#                           blur (stop 50)")
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L: difference steps, at most
 LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on the MLA by at
 #                            most this × the blur's diameter (point_steps)
@@ -1138,7 +1144,8 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0):
+                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
+                         ftol=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1156,7 +1163,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     ``jac_of`` (optional): ``jac_of(q, r)``, the Jacobian at ``q`` (residual ``r``) by the
     caller's own rule, instead of differences. ``settle_log``: after the first iteration, the
     fit ends when an iteration's undamped step would move the log distance ``q[0]`` by less
-    than this (its damped trials move it less still).
+    than this (its damped trials move it less still). ``ftol``: the fit ends after an
+    iteration whose accepted step lowered the cost by less than this share of it.
 
     A damped trial whose step lies within :data:`LM_RETRY_MIN_CHANGE` of the last failed
     one's (in units of ``steps``) is not evaluated: λ is raised again and the trial counted.
@@ -1199,6 +1207,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 if broyden:  # the secant of the accepted step
                     jac = jac + np.outer((r2 - r) - jac @ dq, dq) / float(dq @ dq)
                     fresh = False
+                settled = f - f2 < ftol * f
                 q, r, f = q + dq, r2, f2
                 lam = max(lam / 10, 1e-8)
                 improved = True
@@ -1763,7 +1772,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     fine = LensletModel(profile, geom, mom, n_rays,
                         cells=0 if not on_cells else coarse.fine_cells())
     q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
-                                        COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2])
+                                        COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2],
+                                        ftol=COARSE_CELLS_FTOL if on_cells else 0.0)
     fun = fun_of(fine)
     q_c = q
     r = fun(q_c)
