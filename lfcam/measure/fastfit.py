@@ -131,7 +131,14 @@ LINE_CELLS_RACE_ITERATIONS = 1  # ... on the cells, where the coarse stage's own
 LINE_RACE_HOPELESS = 100.0  # the starts race from the best placed; one whose misfit² where
 #                             it starts is over this × the best race's end is not raced (a
 #                             380 mm line in front of a 1 m focus: 3 of its 4 starts, 0.16-0.21
-#                             against 0.0007; 0.22 -> 0.18 s, the same answer)
+#                             against 0.0007; 0.22 -> 0.18 s, the same answer) ...
+LINE_RACE_START_RATIO = 10.0  # ... nor one whose misfit² where it starts is over this × the
+#                               best start's: over the 64 ray-sampled races of the 231 grid
+#                               lines with two starts or more, the winner started within 2.9 ×
+#                               the best start's misfit², and 35 turned axes (system 1's lines
+#                               far off axis behind focus, system 2's at 720 mm) 10-100 × it:
+#                               the same answers (docs/distance.md, "Starts that cannot win
+#                               the race (stop 50)")
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
@@ -2167,12 +2174,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     race_iterations = (LINE_CELLS_RACE_ITERATIONS if coarse.cells
                        else LINE_RACE_ITERATIONS if len(starts) > 1 else COARSE_ITERATIONS)
     # the starts race from the best placed: one whose misfit² where it starts is over
-    # LINE_RACE_HOPELESS × the best race's end does not run (a far start, or an axis turned
-    # the wrong way)
+    # LINE_RACE_START_RATIO × the best start's, or LINE_RACE_HOPELESS × the best race's end,
+    # does not run (a far start, or an axis turned the wrong way)
     r_starts = [race_c(start) for start in starts]  # (the race's first evaluations)
+    f_starts = [_sq(r0) for r0 in r_starts]
     heats = []
-    for k in np.argsort([_sq(r0) for r0 in r_starts], kind="stable"):
-        if heats and _sq(r_starts[k]) > LINE_RACE_HOPELESS * min(h[2] for h in heats):
+    for k in np.argsort(f_starts, kind="stable"):
+        if heats and (f_starts[k] > LINE_RACE_START_RATIO * min(f_starts)
+                      or f_starts[k] > LINE_RACE_HOPELESS * min(h[2] for h in heats)):
             continue
         heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
                                           r0=r_starts[k], jac_of=race_j))
