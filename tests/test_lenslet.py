@@ -474,7 +474,7 @@ def test_lm_ends_on_an_iteration_that_gains_little():
     q, f, calls = run(ff.COARSE_CELLS_FTOL)
     assert ff.COARSE_CELLS_FTOL == 0.02  # (the sequence above is for 2 %)
     assert len(calls) == 4
-    # each step's damping (λ = 1e-4, 1e-5, …) leaves a little more than 1/3 of the error
+    # (each step's damping, λ = 1e-4, 1e-5, …, leaves a little more than 2/3 of the error)
     assert q[0] == pytest.approx(1.0 - (2.0 / 3.0) ** 4, abs=1e-4)
     assert f == pytest.approx(25.0 + 100.0 * (2.0 / 3.0) ** 24, rel=1e-4)
     q0, f0, calls0 = run(0.0)

@@ -74,10 +74,11 @@ START_GOOD = 0.01  # ... once an earlier start's coarse misfit² is under this: 
 COARSE_ITERATIONS = 6
 COARSE_CELLS_FTOL = 0.02  # ... on the cells it ends on an iteration that lowers its misfit² by
 #                           less than this share: a line's blur fitted as a point creeps down
-#                           by 0.01-2 % an iteration through all of them (hexagonal grid lines:
-#                           0.19-0.9 against a noise misfit of ~0.02), which only the line fit
-#                           changes (docs/distance.md, "The point's coarse stage on a line's
-#                           blur (stop 50)")
+#                           through all of them, by a median 0.3 % an iteration after the first
+#                           (at most 5.5 %; hexagonal grid lines at 0.19-0.95 against noise
+#                           misfits of 0.001-0.13), which only the line fit changes
+#                           (docs/distance.md, "The point's coarse stage on a line's blur
+#                           (stop 50)")
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L: difference steps, at most
 LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on the MLA by at
 #                            most this × the blur's diameter (point_steps)
