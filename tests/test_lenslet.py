@@ -482,6 +482,35 @@ def test_lm_ends_on_an_iteration_that_gains_little():
     assert f0 < f and abs(q0[0] - 1.0) < abs(q[0] - 1.0)
 
 
+def test_gauss_newton_tries_no_step_under_its_least():
+    # fastfit._gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
+    # r(q) = q − 1 (Jacobian 1), its cost raised by 4 on |q − 1| ≤ 0.015 (a model's ray noise
+    # at its minimum). From q = 0: the step 1 fails, its half (q = 0.5) is taken; the next
+    # step 0.5 fails, its half 0.25 is under min_trial = 0.3 and is not tried: 3 evaluations,
+    # the fit at 0.5. Without it the halvings go on (0.75, 0.875 …): 4 iterations, 8 evaluations
+    import lfcam.measure.fastfit as ff
+
+    def run(min_trial):
+        tried: list[float] = []
+
+        def fun(q):
+            tried.append(float(q[0]))
+            return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
+
+        q, r, f = ff._gauss_newton_fixed(fun, np.zeros(1), np.array([-1.0]), np.ones((1, 1)),
+                                         4, min_trial=min_trial)
+        return q, tried
+
+    q, tried = run(0.3)
+    np.testing.assert_allclose(tried, [1.0, 0.5, 1.0], rtol=1e-8)
+    assert q[0] == pytest.approx(0.5, rel=1e-8)
+    q0, tried0 = run(0.0)
+    np.testing.assert_allclose(tried0, [1.0, 0.5, 1.0, 0.75, 1.0, 0.875, 1.0, 0.9375],
+                               rtol=1e-8)
+    assert q0[0] == pytest.approx(0.9375, rel=1e-8)
+    assert ff.FINE_MIN_TRIAL_LOG == pytest.approx(ff.SIGMA_FLOOR_REL / 3.0)
+
+
 def test_a_damped_repeat_of_a_failed_step_is_not_tried():
     # Levenberg–Marquardt on r(q) = q − 1 from q = 0 (analytic Jacobian 1), with the cost
     # raised on 0.985 ≤ q ≤ 1.015 (a model's ray noise at its minimum). The undamped step

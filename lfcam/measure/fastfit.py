@@ -84,6 +84,12 @@ LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on
 #                            most this × the blur's diameter (point_steps)
 SUMMARY_ITERATIONS = 4
 FINE_ITERATIONS = 4
+FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
+#                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
+#                            ray noise decides those (system 2's 1 200-1 450-lenslet blurs at
+#                            300 mm halved failed steps to 0.6-0.7e-4, twice a fit); the 108
+#                            points' rays traced -7.8 % (docs/distance.md, "Steps under the σ
+#                            floor (stop 50)")
 FINE_LM_ITERATIONS = 6  # Levenberg–Marquardt iterations of the polish (its own Jacobian), at
 #                         most: a sharp minimum ends in 1-3 (POLISH_SETTLE_LOG); along a flat
 #                         valley 3 stopped mid-way (a 12-source scene's 3500 mm blur: +2.9 or
@@ -1485,11 +1491,12 @@ def _jackknife_variance(jac: np.ndarray, r: np.ndarray, inv: np.ndarray) -> np.n
     return (k - 1) / k * (d.T @ d)
 
 
-def _gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0):
+def _gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0, min_trial=0.0):
     """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step.
     ``skip_below``: a step whose log distance is under this is not taken (nor evaluated): at
     the minimum the misfit no longer falls by a step that small, and such a step was
-    evaluated and halved twice: three evaluations for nothing."""
+    evaluated and halved twice: three evaluations for nothing. ``min_trial``: no step, nor a
+    halving of one that failed, is evaluated under this log distance: the fit ends there."""
     f = _sq(r)
     jtj = _gram(jac)
     try:
@@ -1500,13 +1507,17 @@ def _gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0):
         dq = -(solve @ _jt(jac, r))
         if abs(dq[0]) < skip_below:
             break
+        lower = False
         for _ in range(3):
+            if abs(dq[0]) < min_trial:
+                break  # (a step this short is the model's own ray noise to judge)
             r2 = fun(q + dq)
             f2 = _sq(r2)
             if f2 < f:
+                lower = True
                 break
             dq = 0.5 * dq
-        else:
+        if not lower:
             break
         q, r, f = q + dq, r2, f2
         if abs(dq[0]) < 2e-5:
@@ -1610,7 +1621,8 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
         return False, jac_q
     if not math.sqrt(max(var, 0.0)) < SETTLED_SIGMA:
         return False, jac_q
-    q_b, _, _ = _gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS)
+    q_b, _, _ = _gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS,
+                                    min_trial=FINE_MIN_TRIAL_LOG)
     return bool(abs(q_b[0] - q[0]) < SETTLED_LOG), jac_q
 
 
@@ -1826,7 +1838,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     if early and on_cells:
         yield first_look(q_c, r, jac, True)[0]
-    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS)
+    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS,
+                                  min_trial=FINE_MIN_TRIAL_LOG)
     r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
     look, r_p = first_look(q, r, None, False)
     yield look
@@ -1841,7 +1854,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         counted += [fine, polish]
         fun, fun_p = fun_of(fine), fun_of(polish)
         q_c = q
-        q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS)
+        q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS,
+                                      min_trial=FINE_MIN_TRIAL_LOG)
         r_fine = r
         r_p = fun_p(q)
         if gates is not None:  # (the polish's gate as the ray models' disagreement sets it)
