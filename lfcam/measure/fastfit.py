@@ -2193,9 +2193,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # does not run (a far start, or an axis turned the wrong way)
     r_starts = [race_c(start) for start in starts]  # (the race's first evaluations)
     f_starts = [_sq(r0) for r0 in r_starts]
+    best_start = min(f_starts)
     heats = []
     for k in np.argsort(f_starts, kind="stable"):
-        if heats and (f_starts[k] > LINE_RACE_START_RATIO * min(f_starts)
+        if heats and (f_starts[k] > LINE_RACE_START_RATIO * best_start
                       or f_starts[k] > LINE_RACE_HOPELESS * min(h[2] for h in heats)):
             continue
         heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
