@@ -511,6 +511,69 @@ def test_gauss_newton_tries_no_step_under_its_least():
     assert ff.FINE_MIN_TRIAL_LOG == pytest.approx(ff.SIGMA_FLOOR_REL / 3.0)
 
 
+def test_lm_tries_no_step_under_its_least():
+    # fastfit._levenberg_marquardt's ``min_trial`` (the point's polish: POLISH_MIN_TRIAL_LOG).
+    # r(q) = q − 1 (Jacobian 1) from q = 0, the cost raised on |q − 1| ≤ 0.015 (a model's ray
+    # noise at its minimum). The first iteration tries the undamped step (λ = 1e-4, q =
+    # 1/1.0001: raised, fails) and λ = 0.1 (q = 1/1.1, taken; λ = 1e-3, 1e-2 are repeats not
+    # tried). The second's step, 0.0909/1.01 = 0.09, is under min_trial = 0.5: not tried, the fit
+    # ends at 1/1.1. Without it the second iteration tries 0.9991 and 0.99174 (both raised) and
+    # takes λ = 1: q = 1/1.1 + 0.0909/2
+    import lfcam.measure.fastfit as ff
+
+    def run(min_trial):
+        tried: list[float] = []
+
+        def fun(q):
+            tried.append(float(q[0]))
+            return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
+
+        q, r, f, _ = ff._levenberg_marquardt(fun, np.zeros(1), np.ones(1), 2,
+                                             r0=np.array([-1.0]),
+                                             jac_of=lambda q, r: np.ones((1, 1)),
+                                             min_trial=min_trial)
+        return q, tried
+
+    q, tried = run(0.5)
+    np.testing.assert_allclose(tried, [1.0 / (1.0 + 1e-4), 1.0 / 1.1], rtol=1e-12)
+    np.testing.assert_allclose(q, [1.0 / 1.1], rtol=1e-12)
+    q0, tried0 = run(0.0)
+    left = 1.0 - 1.0 / 1.1
+    np.testing.assert_allclose(tried0, [1.0 / (1.0 + 1e-4), 1.0 / 1.1, 1.0 / 1.1 + left / 1.01,
+                                        1.0 / 1.1 + left / 1.1, 1.0 / 1.1 + left / 2.0],
+                               rtol=1e-12)
+    np.testing.assert_allclose(q0, [1.0 / 1.1 + left / 2.0], rtol=1e-12)
+    assert ff.POLISH_MIN_TRIAL_LOG == ff.FINE_MIN_TRIAL_LOG
+
+
+def test_lm_heat_gives_up_above_its_limit():
+    # fastfit._levenberg_marquardt's ``stop_above`` (a line race's heats: LINE_RACE_GIVE_UP).
+    # r(q) = (10 (q − 1)³, 5) from q = 0: the cost falls 125 → 33.8 → 25.77 (Gauss–Newton on the
+    # cube leaves a little over 2/3 of the error a step). Over a limit of 30 after its first
+    # iteration the fit ends there (one evaluation); under a limit of 40 it runs all three
+    import lfcam.measure.fastfit as ff
+
+    def run(limit):
+        calls: list[float] = []
+
+        def fun(q):
+            calls.append(float(q[0]))
+            return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
+
+        q, r, f, _ = ff._levenberg_marquardt(
+            fun, np.zeros(1), np.ones(1), 3, 1e-15, r0=np.array([-10.0, 5.0]),
+            jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]),
+            stop_above=limit)
+        return f, calls
+
+    f, calls = run(30.0)
+    assert len(calls) == 1
+    assert f == pytest.approx(25.0 + 100.0 * (2.0 / 3.0) ** 6, rel=1e-3)
+    f, calls = run(40.0)
+    assert len(calls) == 3
+    assert f == pytest.approx(25.0 + 100.0 * (2.0 / 3.0) ** 18, rel=1e-3)
+
+
 def test_a_damped_repeat_of_a_failed_step_is_not_tried():
     # Levenberg–Marquardt on r(q) = q − 1 from q = 0 (analytic Jacobian 1), with the cost
     # raised on 0.985 ≤ q ≤ 1.015 (a model's ray noise at its minimum). The undamped step

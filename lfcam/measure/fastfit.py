@@ -100,6 +100,7 @@ POLISH_RAYS = 80000  # rays of the polishing model
 POLISH_SETTLE_LOG = 2e-5  # the polish ends when its next undamped step moves the log distance
 #                           by less than this (0.002 %; docs/distance.md, "A polish that
 #                           stops when its step is nothing")
+POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRIAL_LOG)
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
 # move it by less than half of it
@@ -146,20 +147,30 @@ LINE_RACE_START_RATIO = 10.0  # ... nor one whose misfit² where it starts is ov
 #                               far off axis behind focus, system 2's at 720 mm) 10-100 × it:
 #                               the same answers (docs/distance.md, "Starts that cannot win
 #                               the race (stop 50)")
+LINE_RACE_GIVE_UP = 15.0  # ... and a heat whose misfit² after an iteration is over this ×
+#                           the best earlier heat's end runs no more (ray-sampled races of the
+#                           231 grid lines: winners at most 9.1 ×; docs/distance.md, "Heats
+#                           that cannot win (stop 51)")
 LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this share a point
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
-LINE_FINE_PER_LENSLET = 15  # ... and fine model (with every point's pupil sample turned,
-#                               LINE_TURNS; 10 with one shared sample: lines far behind focus
-#                               and off axis stalled 1-2 % off on the ripple of the model's own
-#                               ray sample; docs/distance.md, "Lines off axis" and "A line's
-#                               points, each with its own turn of the pupil sample")
-LINE_MAX_RAYS = 18000  # rays a point of the line, at most (fine model)
-LINE_GN_PER_LENSLET = 5  # ... the fine Gauss–Newton steps' model: per lit lenslet
-LINE_GN_MAX_RAYS = 6000  # ... and at most
-LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 12 points' turned
-#                                                        samples: half the point polish's rays)
+LINE_COARSE_MAX_RAYS = 1000  # ... and at most (4 500 until stop 51: on the 380 mm lines in front
+#                              of a 1 m focus, 330-630 lit lenslets, and the races on the rays
+#                              of the lines on the cells behind it, the same answers within
+#                              0.012 %; docs/distance.md, "A line's rays, whatever its blur
+#                              (stop 51)")
+LINE_FINE_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... fine model, whatever the blur's size
+#                                                    (the 12 points' turned samples: half the
+#                                                    point polish's rays), its Gauss–Newton
+#                                                    steps too. Until stop 51, 15 a lit lenslet
+#                                                    from this up to 18 000, and those steps
+#                                                    5 a lit lenslet up to 6 000: only the
+#                                                    large ray-sampled blurs (the 380 mm lines)
+#                                                    reached over it, 0.01-0.02 % from their
+#                                                    answers now at 15-30 % more CPU
+#                                                    (docs/distance.md, "A line's rays,
+#                                                    whatever its blur (stop 51)")
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
@@ -204,6 +215,11 @@ LINE_REFIT_STEPS = 3  # ... by the refit model's Jacobian, taken once, and at mo
 #                       Jacobian at each, until stop 40: 25-30 % of the line's CPU more, the
 #                       answers within 0.12 %: docs/distance.md, "Cheaper stages (stop 40)")
 LINE_REFIT_STEP_LOG = 1e-4  # ... ending on a step under this (log distance)
+LINE_REFIT_MIN_TRIAL_LOG = LINE_SIGMA_FLOOR_REL / 3  # ... and trying no step (nor halving of a
+#                       failed one) under this: on system 1's lines far off axis behind focus
+#                       the refit's steps after its first were 1-5e-4, at misfit changes of
+#                       0.01-0.4 % either way (its model's ray noise), 12 ms an evaluation
+#                       (docs/distance.md, "The refit's steps under the line σ floor (stop 51)")
 LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line has this share
 #                                of the points (LINE_POINTS at least): the settled test's
 #                                model keeps them all, and the answer goes to its minimum (the
@@ -1159,7 +1175,7 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
-                         ftol=0.0):
+                         ftol=0.0, min_trial=0.0, stop_above=math.inf):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1182,6 +1198,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
 
     A damped trial whose step lies within :data:`LM_RETRY_MIN_CHANGE` of the last failed
     one's (in units of ``steps``) is not evaluated: λ is raised again and the trial counted.
+    ``min_trial``: no trial whose step moves the log distance by less than this is evaluated;
+    the fit ends there (a step this short is the model's own ray noise to judge).
+    ``stop_above``: the fit ends after an iteration that leaves the cost over this.
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
@@ -1210,6 +1229,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
                 settled = True
                 break
+            if abs(dq[0]) < min_trial:
+                settled = True
+                break
             if failed is not None and (np.linalg.norm(dq / steps - failed)
                                        < LM_RETRY_MIN_CHANGE * np.linalg.norm(failed)):
                 # the damping barely changed the step that failed: it would fail again
@@ -1228,8 +1250,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 break
             failed = dq / steps
             lam *= 10
-        if settled:  # (a secant Jacobian is not taken again by differences to confirm it)
-            break
+        if settled or f > stop_above:  # (a secant Jacobian is not taken again by
+            break  #                           differences to confirm it)
         if not improved and not fresh:
             jac = None  # the updated Jacobian found no descent: take it by differences
             continue
@@ -1871,7 +1893,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(polish), r0=r_p,
                                                  jac0=jac_q, broyden=True,
-                                                 settle_log=POLISH_SETTLE_LOG)
+                                                 settle_log=POLISH_SETTLE_LOG,
+                                                 min_trial=POLISH_MIN_TRIAL_LOG)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -2157,7 +2180,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                            np.concatenate([_line_points(frame, st + [dl, 0, 0, 0, 0], 3)
                                            for st in starts for dl in LINE_CELLS_PROBE_LOG]))
     coarse_rays = np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
-                          LINE_MAX_RAYS // 4)
+                          LINE_COARSE_MAX_RAYS)
     n_fine = n_pts
     if on_cells:
         # the fine stage on half the points, the coarse stage (and the race) on a third: the
@@ -2165,14 +2188,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
         n_coarse = max(LINE_CELLS_COARSE_POINTS, math.ceil(LINE_CELLS_COARSE_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
-    fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
-    fine = model(fine_rays, count=n_fine,
-                 cells=coarse.fine_cells())
-    # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
-    # fine one itself where both budgets meet at the floor (small blurs)
-    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
-    # (on the cells: the fine model itself, whose evaluations cost less than its Jacobian)
-    gn_model = fine if gn_rays == fine_rays or fine.cells else model(gn_rays)
+    fine = model(LINE_FINE_RAYS, count=n_fine, cells=coarse.fine_cells())
     fun_c, jac_c = line_model(coarse, frame, n_coarse, steps)
     # the starts race: LINE_RACE_ITERATIONS coarse iterations each, then the leader alone runs
     # the rest (docs/distance.md, "A line's Jacobian from its points")
@@ -2199,8 +2215,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if heats and (f_starts[k] > LINE_RACE_START_RATIO * best_start
                       or f_starts[k] > LINE_RACE_HOPELESS * min(h[2] for h in heats)):
             continue
-        heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
-                                          r0=r_starts[k], jac_of=race_j))
+        heats.append(_levenberg_marquardt(
+            race_c, starts[k], steps, race_iterations, 1e-3, r0=r_starts[k], jac_of=race_j,
+            stop_above=LINE_RACE_GIVE_UP * min(h[2] for h in heats) if heats else math.inf))
     q, r, f, jac = min(heats, key=lambda heat: heat[2])
     if coarse.cells:
         # Gauss–Newton on the coarse cells, its Jacobian refreshed only where the steps are
@@ -2232,7 +2249,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
-                + fine.evaluations + (gn_model.evaluations if gn_model is not fine else 0)
+                + fine.evaluations
                 + sum(m.evaluations for m in settling))
 
     def stopped(stage_misfit: float) -> LensletFit:
@@ -2243,21 +2260,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
     fun, jac_f = line_model(fine, frame, n_fine, steps)
-    fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
-    r = fun_gn(q)
+    r = fun(q)
     if fine.cells:
         # the fine model's own Jacobian (on the cells the fine model makes the steps too) for
         # its steps, the settled test and σ: n = 2's is not fit for them on a hexagonal
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    q, r, f = _gauss_newton_fixed(fun_gn, q, r, jac, FINE_ITERATIONS,
+    q, r, f = _gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
                                   skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
-    if gn_model is not fine:
-        r = fun(q)
-        f = _sq(r)
     if not fine.cells:
         q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                                  r0=r, jac_of=jac_f,
@@ -2310,7 +2323,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             r = fun_r(q)
             jac = jac_r(q, r)
             q, r, f = _gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
-                                          skip_below=LINE_REFIT_STEP_LOG)
+                                          skip_below=LINE_REFIT_STEP_LOG,
+                                          min_trial=LINE_REFIT_MIN_TRIAL_LOG)
             sigma_log = None
     pts = _line_points(frame, q, 2)
     z = pts[0, 2]
