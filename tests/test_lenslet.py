@@ -512,37 +512,41 @@ def test_gauss_newton_tries_no_step_under_its_least():
 
 
 def test_lm_tries_no_step_under_its_least():
-    # fastfit._levenberg_marquardt's ``min_trial`` (the point's polish: POLISH_MIN_TRIAL_LOG).
-    # r(q) = q − 1 (Jacobian 1) from q = 0, the cost raised on |q − 1| ≤ 0.015 (a model's ray
-    # noise at its minimum). The first iteration tries the undamped step (λ = 1e-4, q =
-    # 1/1.0001: raised, fails) and λ = 0.1 (q = 1/1.1, taken; λ = 1e-3, 1e-2 are repeats not
-    # tried). The second's step, 0.0909/1.01 = 0.09, is under min_trial = 0.5: not tried, the fit
-    # ends at 1/1.1. Without it the second iteration tries 0.9991 and 0.99174 (both raised) and
-    # takes λ = 1: q = 1/1.1 + 0.0909/2
+    # fastfit._levenberg_marquardt's ``min_trial`` and ``trial_gain`` (the point's polish:
+    # POLISH_MIN_TRIAL_LOG, SETTLED_GAIN). r(q) = (q − 1, 5) (Jacobian (1, 0)) from q = 0, the
+    # first entry raised by 2 on |q − 1| ≤ 0.015 (a model's ray noise at its minimum; the 5 a
+    # floor no parameter removes, as the data's noise). The first iteration tries the undamped
+    # step (λ = 1e-4, q = 1/1.0001: raised, fails) and λ = 0.1 (q = 1/1.1, taken; λ = 1e-3,
+    # 1e-2 are repeats not tried). The second's step, 0.0909/1.01 = 0.09, is under min_trial =
+    # 0.5 and would lower the cost (25.008) by 0.008, under 5 % of it: not tried, the fit ends
+    # at 1/1.1. Without either rule the second iteration tries 0.9991 and 0.99174 (both
+    # raised) and takes λ = 1: q = 1/1.1 + 0.0909/2
     import lfcam.measure.fastfit as ff
 
-    def run(min_trial):
+    def run(min_trial, trial_gain):
         tried: list[float] = []
 
         def fun(q):
             tried.append(float(q[0]))
-            return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
+            return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0), 5.0])
 
         q, r, f, _ = ff._levenberg_marquardt(fun, np.zeros(1), np.ones(1), 2,
-                                             r0=np.array([-1.0]),
-                                             jac_of=lambda q, r: np.ones((1, 1)),
-                                             min_trial=min_trial)
+                                             r0=np.array([-1.0, 5.0]),
+                                             jac_of=lambda q, r: np.array([[1.0], [0.0]]),
+                                             min_trial=min_trial, trial_gain=trial_gain)
         return q, tried
 
-    q, tried = run(0.5)
-    np.testing.assert_allclose(tried, [1.0 / (1.0 + 1e-4), 1.0 / 1.1], rtol=1e-12)
+    first = [1.0 / (1.0 + 1e-4), 1.0 / 1.1]
+    q, tried = run(0.5, ff.SETTLED_GAIN)
+    np.testing.assert_allclose(tried, first, rtol=1e-12)
     np.testing.assert_allclose(q, [1.0 / 1.1], rtol=1e-12)
-    q0, tried0 = run(0.0)
     left = 1.0 - 1.0 / 1.1
-    np.testing.assert_allclose(tried0, [1.0 / (1.0 + 1e-4), 1.0 / 1.1, 1.0 / 1.1 + left / 1.01,
-                                        1.0 / 1.1 + left / 1.1, 1.0 / 1.1 + left / 2.0],
-                               rtol=1e-12)
-    np.testing.assert_allclose(q0, [1.0 / 1.1 + left / 2.0], rtol=1e-12)
+    every = first + [1.0 / 1.1 + left / 1.01, 1.0 / 1.1 + left / 1.1, 1.0 / 1.1 + left / 2.0]
+    for rules in ((0.0, 0.0), (0.5, 0.0), (0.0, ff.SETTLED_GAIN)):  # a short step that gains
+        #                                                             little: both, or it is tried
+        q0, tried0 = run(*rules)
+        np.testing.assert_allclose(tried0, every, rtol=1e-12)
+        np.testing.assert_allclose(q0, [1.0 / 1.1 + left / 2.0], rtol=1e-12)
     assert ff.POLISH_MIN_TRIAL_LOG == ff.FINE_MIN_TRIAL_LOG
 
 

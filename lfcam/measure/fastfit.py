@@ -100,7 +100,12 @@ POLISH_RAYS = 80000  # rays of the polishing model
 POLISH_SETTLE_LOG = 2e-5  # the polish ends when its next undamped step moves the log distance
 #                           by less than this (0.002 %; docs/distance.md, "A polish that
 #                           stops when its step is nothing")
-POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRIAL_LOG)
+POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRIAL_LOG) that
+#                              would lower its misfit² by less than SETTLED_GAIN (a settled
+#                              test's step), where it is for the settled test: near a gate every
+#                              step that lowers the misfit counts (scene (b): one of its sources
+#                              poor-fit otherwise; docs/distance.md, "The polish's steps under
+#                              the σ floor (stop 51)")
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
 # move it by less than half of it
@@ -155,22 +160,18 @@ LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this shar
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
-LINE_COARSE_MAX_RAYS = 1000  # ... and at most (4 500 until stop 51: on the 380 mm lines in front
-#                              of a 1 m focus, 330-630 lit lenslets, and the races on the rays
-#                              of the lines on the cells behind it, the same answers within
-#                              0.012 %; docs/distance.md, "A line's rays, whatever its blur
-#                              (stop 51)")
-LINE_FINE_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... fine model, whatever the blur's size
-#                                                    (the 12 points' turned samples: half the
-#                                                    point polish's rays), its Gauss–Newton
-#                                                    steps too. Until stop 51, 15 a lit lenslet
-#                                                    from this up to 18 000, and those steps
-#                                                    5 a lit lenslet up to 6 000: only the
-#                                                    large ray-sampled blurs (the 380 mm lines)
-#                                                    reached over it, 0.01-0.02 % from their
-#                                                    answers now at 15-30 % more CPU
-#                                                    (docs/distance.md, "A line's rays,
-#                                                    whatever its blur (stop 51)")
+LINE_FINE_PER_LENSLET = 15  # ... and fine model (with every point's pupil sample turned,
+#                               LINE_TURNS; 10 with one shared sample: lines far behind focus
+#                               and off axis stalled 1-2 % off on the ripple of the model's own
+#                               ray sample; docs/distance.md, "Lines off axis" and "A line's
+#                               points, each with its own turn of the pupil sample"; the floor
+#                               LINE_FINE_MIN_RAYS on every blur put scene (b)'s lines 0.1-0.25 %
+#                               long: docs/distance.md, "Tried at stop 51, not kept")
+LINE_MAX_RAYS = 18000  # rays a point of the line, at most (fine model)
+LINE_GN_PER_LENSLET = 5  # ... the fine Gauss–Newton steps' model: per lit lenslet
+LINE_GN_MAX_RAYS = 6000  # ... and at most
+LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 12 points' turned
+#                                                        samples: half the point polish's rays)
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
@@ -1175,7 +1176,7 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
-                         ftol=0.0, min_trial=0.0, stop_above=math.inf):
+                         ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1198,8 +1199,10 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
 
     A damped trial whose step lies within :data:`LM_RETRY_MIN_CHANGE` of the last failed
     one's (in units of ``steps``) is not evaluated: λ is raised again and the trial counted.
-    ``min_trial``: no trial whose step moves the log distance by less than this is evaluated;
-    the fit ends there (a step this short is the model's own ray noise to judge).
+    ``min_trial``, ``trial_gain``: no trial is evaluated whose step moves the log distance by
+    less than ``min_trial`` (each other parameter by less than as large a share of its
+    difference step) and would lower the cost by less than ``trial_gain`` of it by the linear
+    model; the fit ends there (such a step is the model's own ray noise to judge).
     ``stop_above``: the fit ends after an iteration that leaves the cost over this.
     """
     q = np.asarray(q0, dtype=np.float64)
@@ -1229,7 +1232,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
                 settled = True
                 break
-            if abs(dq[0]) < min_trial:
+            if (float(np.max(np.abs(dq / steps))) * steps[0] < min_trial
+                    and f - _sq(r + jac @ dq) < trial_gain * f):
                 settled = True
                 break
             if failed is not None and (np.linalg.norm(dq / steps - failed)
@@ -1883,7 +1887,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if gates is not None:  # (the polish's gate as the ray models' disagreement sets it)
             polish_above, bound_above = gates(math.sqrt(_sq(r - r_p)))
     # a misfit near a gate is polished whatever the settled test says: do not run it then
-    settled, jac_q = (False, None) if not math.sqrt(_sq(r_p)) <= polish_above else (
+    near_gate = not math.sqrt(_sq(r_p)) <= polish_above
+    settled, jac_q = (False, None) if near_gate else (
         _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
     polished = not settled
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its
@@ -1894,7 +1899,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                  1e-3, many_of(polish), r0=r_p,
                                                  jac0=jac_q, broyden=True,
                                                  settle_log=POLISH_SETTLE_LOG,
-                                                 min_trial=POLISH_MIN_TRIAL_LOG)
+                                                 min_trial=0.0 if near_gate
+                                                 else POLISH_MIN_TRIAL_LOG,
+                                                 trial_gain=SETTLED_GAIN)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -2180,7 +2187,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                            np.concatenate([_line_points(frame, st + [dl, 0, 0, 0, 0], 3)
                                            for st in starts for dl in LINE_CELLS_PROBE_LOG]))
     coarse_rays = np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
-                          LINE_COARSE_MAX_RAYS)
+                          LINE_MAX_RAYS // 4)
     n_fine = n_pts
     if on_cells:
         # the fine stage on half the points, the coarse stage (and the race) on a third: the
@@ -2188,7 +2195,14 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
         n_coarse = max(LINE_CELLS_COARSE_POINTS, math.ceil(LINE_CELLS_COARSE_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
-    fine = model(LINE_FINE_RAYS, count=n_fine, cells=coarse.fine_cells())
+    fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
+    fine = model(fine_rays, count=n_fine,
+                 cells=coarse.fine_cells())
+    # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
+    # fine one itself where both budgets meet at the floor (small blurs)
+    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
+    # (on the cells: the fine model itself, whose evaluations cost less than its Jacobian)
+    gn_model = fine if gn_rays == fine_rays or fine.cells else model(gn_rays)
     fun_c, jac_c = line_model(coarse, frame, n_coarse, steps)
     # the starts race: LINE_RACE_ITERATIONS coarse iterations each, then the leader alone runs
     # the rest (docs/distance.md, "A line's Jacobian from its points")
@@ -2249,7 +2263,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
-                + fine.evaluations
+                + fine.evaluations + (gn_model.evaluations if gn_model is not fine else 0)
                 + sum(m.evaluations for m in settling))
 
     def stopped(stage_misfit: float) -> LensletFit:
@@ -2260,17 +2274,21 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
     fun, jac_f = line_model(fine, frame, n_fine, steps)
-    r = fun(q)
+    fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
+    r = fun_gn(q)
     if fine.cells:
         # the fine model's own Jacobian (on the cells the fine model makes the steps too) for
         # its steps, the settled test and σ: n = 2's is not fit for them on a hexagonal
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    q, r, f = _gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
+    q, r, f = _gauss_newton_fixed(fun_gn, q, r, jac, FINE_ITERATIONS,
                                   skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
+    if gn_model is not fine:
+        r = fun(q)
+        f = _sq(r)
     if not fine.cells:
         q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                                  r0=r, jac_of=jac_f,
