@@ -18,7 +18,7 @@ from lfcam.camera import load_profile
 from lfcam.io import load_capture
 from lfcam.measure import find_regions, lenslet_stats, prepare_geometry
 from lfcam.measure import regions as regions_module
-from lfcam.measure.fastfit import _Frame, fit_lenslet_point
+from lfcam.measure.fastfit import _Frame, fit_lenslet_point, point_fit_stages
 from lfcam.measure.regions import _disc_means, lattice_coordinates
 from lfcam.robust import mad_sigma
 
@@ -507,3 +507,36 @@ def test_keep_large_buffers_sets_glibc_thresholds_once(monkeypatch):
     monkeypatch.setenv("LFCAM_MALLOC", "default")
     K.keep_large_buffers()
     assert calls == []
+
+
+def test_a_point_is_polished_only_where_the_tolerance_needs_it():
+    # point_fit_stages' ``accept`` (lfcam distance --tolerance): a fit the settled test would
+    # polish is answered by the fine fit where the caller accepts it with the linear step still
+    # to go to the polishing model's minimum in its σ. The seed's 900 mm point of system 1 is
+    # polished by the settled test
+    img, prof, geom, region, truth = _capture("point_system1_900mm_dh5", "system1")
+    z_front = _Frame(prof).z_front
+    stages = list(point_fit_stages(prof, geom, img, region))
+    fine, polished = stages[0], stages[-1]
+    assert polished.polished
+    seen: list[tuple[float, float]] = []
+
+    def yes(d_mm, sigma_mm):
+        seen.append((d_mm, sigma_mm))
+        return True
+
+    kept = list(point_fit_stages(prof, geom, img, region, accept=yes))[-1]
+    assert not kept.polished and len(seen) == 1
+    # the fine fit's own answer, asked about once, with a σ over the floor
+    np.testing.assert_array_equal(kept.source_mm, fine.source_mm)
+    d_kept = z_front - kept.source_mm[2]
+    assert seen[0][0] == pytest.approx(d_kept, rel=1e-12)
+    assert seen[0][1] > 3e-4 * d_kept
+    # its σ covers the polish's move, and the truth
+    d_pol = z_front - polished.source_mm[2]
+    assert abs(d_kept - d_pol) < kept.sigma_distance_mm
+    assert abs(d_kept - truth["distance_mm"]) < 3.0 * kept.sigma_distance_mm
+    # an answer the caller refuses is polished as without a tolerance
+    refused = list(point_fit_stages(prof, geom, img, region, accept=lambda d, s: False))[-1]
+    assert refused.polished
+    np.testing.assert_array_equal(refused.source_mm, polished.source_mm)

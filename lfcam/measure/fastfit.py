@@ -106,6 +106,8 @@ POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRI
 #                              step that lowers the misfit counts (scene (b): one of its sources
 #                              poor-fit otherwise; docs/distance.md, "The polish's steps under
 #                              the σ floor (stop 51)")
+POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
+#                             answer does not meet it (point_fit_stages' ``accept``)
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
 # move it by less than half of it
@@ -1733,7 +1735,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      mom: _Moments | None = None,
                      bound_above: float = math.inf,
                      gates: Callable[[float], tuple[float, float]] | None = None,
-                     early: bool = False) -> Iterator[LensletFit]:
+                     early: bool = False,
+                     accept: Callable[[float, float], bool] | None = None
+                     ) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -1768,6 +1772,13 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     steps would take). On a line's blur the fine steps do not move a point's misfit (0.96-1.04
     × the coarse stage's on the focus grid's lines), and a caller that finds a line there
     saves them (docs/distance.md, "A line tried at the point's coarse stage (stop 47)").
+
+    ``accept`` (optional): ``accept(distance_mm, sigma_mm)``, whether an answer that certain
+    is enough for the caller. A fit the settled test would polish (not one near a gate) is
+    answered without the polish where the fine fit, with its σ, the linear step still to go to
+    the polishing model's minimum and :data:`SIGMA_FLOOR_REL` added in quadrature, is
+    accepted; that σ is the one it reports (docs/distance.md, "A polish only where the
+    tolerance needs it (stop 51)").
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1891,6 +1902,19 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     settled, jac_q = (False, None) if near_gate else (
         _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
     polished = not settled
+    to_go = 0.0  # the linear step still to go to the polishing model's minimum (log distance),
+    #              kept in σ where the caller accepts the fine fit with it
+    if polished and accept is not None and jac_q is not None and POLISH_BY_TOLERANCE:
+        linear = _linear_step(jac_q, r_p)
+        if linear is not None:
+            s_log, to_go = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
+            d_fine = math.exp(_log_distance(q))
+            if (math.isfinite(s_log) and math.isfinite(to_go)
+                    and accept(d_fine, d_fine * math.sqrt(s_log ** 2 + to_go ** 2
+                                                          + SIGMA_FLOOR_REL ** 2))):
+                polished = False
+        if polished:
+            to_go = 0.0
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its
         #               own noise)
         jac, r, f = jac_q, r_p, _sq(r_p)
@@ -1907,7 +1931,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(_log_distance(q))
-    sigma_d = dist * _log_distance_sigma(jac, r)
+    sigma_d = dist * math.hypot(_log_distance_sigma(jac, r), to_go)
     ridge = False
     if n_lit <= PROFILE_LENSLETS and math.isfinite(sigma_d) and not _at_far_bound(q):
         s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist,
@@ -2373,9 +2397,10 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     region : Region
     noise : float
     accept : callable, optional
-        ``accept(distance_mm, sigma_mm)``: whether a line answer that certain is enough for
-        the caller (:func:`fit_lenslet_line`); without it every line is refitted where its
-        settled test asks.
+        ``accept(distance_mm, sigma_mm)``: whether an answer that certain is enough for the
+        caller: a line's before its refit (:func:`fit_lenslet_line`), a point's before its
+        polish (:func:`point_fit_stages`); without it every line is refitted and every point
+        polished where their settled tests ask.
 
     Returns
     -------
@@ -2416,7 +2441,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return tried[0]
 
     stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates,
-                              early=LINE_AT_COARSE)
+                              early=LINE_AT_COARSE, accept=accept)
     fit = next(stages)  # the fine fit, before its polish and σ profile (or the coarse one)
     if fit.coarse:
         # On the cells the point's coarse stage is read first. A line's blur leaves a point's
