@@ -450,6 +450,23 @@ def test_polish_ends_when_its_step_is_nothing():
     assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 12; 16 with every repeat tried)
 
 
+def _cube_with_floor_lm(max_iter, **rules):
+    """fastfit._levenberg_marquardt on r(q) = (10 (q − 1)³, 5) from q = 0 (analytic Jacobian):
+    (q, cost, the q of every evaluation)."""
+    import lfcam.measure.fastfit as ff
+
+    calls: list[float] = []
+
+    def fun(q):
+        calls.append(float(q[0]))
+        return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
+
+    q, r, f, _ = ff._levenberg_marquardt(
+        fun, np.zeros(1), np.ones(1), max_iter, 1e-15, r0=np.array([-10.0, 5.0]),
+        jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]), **rules)
+    return q, f, calls
+
+
 def test_lm_ends_on_an_iteration_that_gains_little():
     # fastfit._levenberg_marquardt's ``ftol`` (the point's coarse stage on the cells:
     # COARSE_CELLS_FTOL). r(q) = (10 (q − 1)³, 5): the 5 is a floor no parameter removes (a
@@ -460,16 +477,7 @@ def test_lm_ends_on_an_iteration_that_gains_little():
     import lfcam.measure.fastfit as ff
 
     def run(ftol):
-        calls: list[float] = []
-
-        def fun(q):
-            calls.append(float(q[0]))
-            return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
-
-        q, r, f, _ = ff._levenberg_marquardt(
-            fun, np.zeros(1), np.ones(1), 10, 1e-15, r0=np.array([-10.0, 5.0]),
-            jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]), ftol=ftol)
-        return q, f, calls
+        return _cube_with_floor_lm(10, ftol=ftol)
 
     q, f, calls = run(ff.COARSE_CELLS_FTOL)
     assert ff.COARSE_CELLS_FTOL == 0.02  # (the sequence above is for 2 %)
@@ -555,19 +563,8 @@ def test_lm_heat_gives_up_above_its_limit():
     # r(q) = (10 (q − 1)³, 5) from q = 0: the cost falls 125 → 33.8 → 25.77 (Gauss–Newton on the
     # cube leaves a little over 2/3 of the error a step). Over a limit of 30 after its first
     # iteration the fit ends there (one evaluation); under a limit of 40 it runs all three
-    import lfcam.measure.fastfit as ff
-
     def run(limit):
-        calls: list[float] = []
-
-        def fun(q):
-            calls.append(float(q[0]))
-            return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
-
-        q, r, f, _ = ff._levenberg_marquardt(
-            fun, np.zeros(1), np.ones(1), 3, 1e-15, r0=np.array([-10.0, 5.0]),
-            jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]),
-            stop_above=limit)
+        _, f, calls = _cube_with_floor_lm(3, stop_above=limit)
         return f, calls
 
     f, calls = run(30.0)
