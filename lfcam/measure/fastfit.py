@@ -107,7 +107,9 @@ POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRI
 #                              poor-fit otherwise; docs/distance.md, "The polish's steps under
 #                              the σ floor (stop 51)")
 POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
-#                             answer does not meet it (point_fit_stages' ``accept``)
+#                             answer does not meet it (point_fit_stages' ``accept``; the 108
+#                             points at 1 %: 26.6 -> 23.0 ms a region, docs/distance.md, "A
+#                             polish only where the tolerance needs it (stop 51)")
 SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the distance to
 # within this (log distance, 0.05 %, ~ the polish's own sampling noise) and a further step would
 # move it by less than half of it
