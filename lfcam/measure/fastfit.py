@@ -100,7 +100,7 @@ POLISH_RAYS = 80000  # rays of the polishing model
 POLISH_SETTLE_LOG = 2e-5  # the polish ends when its next undamped step moves the log distance
 #                           by less than this (0.002 %; docs/distance.md, "A polish that
 #                           stops when its step is nothing")
-POLISH_MIN_TRIAL_LOG = 1e-4  # ... and tries no step under this (as FINE_MIN_TRIAL_LOG) that
+POLISH_MIN_TRIAL_LOG = FINE_MIN_TRIAL_LOG  # ... and tries no step under this that
 #                              would lower its misfit² by less than SETTLED_GAIN (a settled
 #                              test's step), where it is for the settled test: near a gate every
 #                              step that lowers the misfit counts (scene (b): one of its sources
@@ -219,7 +219,8 @@ LINE_REFIT_STEPS = 3  # ... by the refit model's Jacobian, taken once, and at mo
 #                       Gauss–Newton steps with it (2 Levenberg–Marquardt iterations, a fresh
 #                       Jacobian at each, until stop 40: 25-30 % of the line's CPU more, the
 #                       answers within 0.12 %: docs/distance.md, "Cheaper stages (stop 40)")
-LINE_REFIT_STEP_LOG = 1e-4  # ... ending on a step under this (log distance)
+LINE_REFIT_STEP_LOG = 1e-4  # ... ending on a step under this (log distance; on the rays the
+#                             larger LINE_REFIT_MIN_TRIAL_LOG below rules)
 LINE_REFIT_MIN_TRIAL_LOG = LINE_SIGMA_FLOOR_REL / 3  # ... and trying no step (nor halving of a
 #                       failed one) under this: on system 1's lines far off axis behind focus
 #                       the refit's steps after its first were 1-5e-4, at misfit changes of
@@ -1568,6 +1569,15 @@ def _linear_step(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | N
     return step, float(g @ step)
 
 
+def _accepted(accept: Callable[[float, float], bool], q: np.ndarray, sigma_log: float,
+              shift_log: float, floor_rel: float) -> bool:
+    """Whether ``accept(distance_mm, sigma_mm)`` takes the fit at ``q`` with its σ: the
+    statistical ``sigma_log``, a shift the fit was spared (``shift_log``: a line's refit, a
+    point's polish) and the floor ``floor_rel``, in quadrature (log distance)."""
+    d = math.exp(_log_distance(q))
+    return bool(accept(d, d * math.sqrt(sigma_log ** 2 + shift_log ** 2 + floor_rel ** 2)))
+
+
 def lit_lenslets(mom: _Moments) -> int:
     """The lenslets a region's blur lights: those with over 5 % of the brightest one's energy
     (what the ray budgets and :func:`point_steps` scale with)."""
@@ -1909,14 +1919,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if polished and accept is not None and jac_q is not None and POLISH_BY_TOLERANCE:
         linear = _linear_step(jac_q, r_p)
         if linear is not None:
-            s_log, to_go = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
-            d_fine = math.exp(_log_distance(q))
-            if (math.isfinite(s_log) and math.isfinite(to_go)
-                    and accept(d_fine, d_fine * math.sqrt(s_log ** 2 + to_go ** 2
-                                                          + SIGMA_FLOOR_REL ** 2))):
-                polished = False
-        if polished:
-            to_go = 0.0
+            s_log, step_log = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
+            if (math.isfinite(s_log) and math.isfinite(step_log)
+                    and _accepted(accept, q, s_log, step_log, SIGMA_FLOOR_REL)):
+                polished, to_go = False, step_log
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its
         #               own noise)
         jac, r, f = jac_q, r_p, _sq(r_p)
@@ -2252,12 +2258,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     best_start = min(f_starts)
     heats = []
     for k in np.argsort(f_starts, kind="stable"):
+        best_end = min((h[2] for h in heats), default=math.inf)  # the earlier heats' best
         if heats and (f_starts[k] > LINE_RACE_START_RATIO * best_start
-                      or f_starts[k] > LINE_RACE_HOPELESS * min(h[2] for h in heats)):
+                      or f_starts[k] > LINE_RACE_HOPELESS * best_end):
             continue
-        heats.append(_levenberg_marquardt(
-            race_c, starts[k], steps, race_iterations, 1e-3, r0=r_starts[k], jac_of=race_j,
-            stop_above=LINE_RACE_GIVE_UP * min(h[2] for h in heats) if heats else math.inf))
+        heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
+                                          r0=r_starts[k], jac_of=race_j,
+                                          stop_above=LINE_RACE_GIVE_UP * best_end))
     q, r, f, jac = min(heats, key=lambda heat: heat[2])
     if coarse.cells:
         # Gauss–Newton on the coarse cells, its Jacobian refreshed only where the steps are
@@ -2355,9 +2362,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             # the refit is for the sample's share of the error: not needed where the caller
             # accepts the answer with that share in its σ
             sigma_log = _log_distance_sigma(jac, r)
-            d_fine = math.exp(_log_distance(q))
-            if accept(d_fine, d_fine * math.sqrt(sigma_log ** 2 + moved ** 2
-                                                 + LINE_SIGMA_FLOOR_REL ** 2)):
+            if _accepted(accept, q, sigma_log, moved, LINE_SIGMA_FLOOR_REL):
                 refit, sampling_log = False, moved
         if refit:
             refined = model(min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS), 1.0,
@@ -2366,8 +2371,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             fun_r, jac_r = line_model(refined, frame, n_pts, steps)
             r = fun_r(q)
             jac = jac_r(q, r)
+            # (LINE_REFIT_MIN_TRIAL_LOG ≥ LINE_REFIT_STEP_LOG: no step under the latter either)
             q, r, f = _gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
-                                          skip_below=LINE_REFIT_STEP_LOG,
                                           min_trial=LINE_REFIT_MIN_TRIAL_LOG)
             sigma_log = None
     pts = _line_points(frame, q, 2)
