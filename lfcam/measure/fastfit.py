@@ -1095,7 +1095,11 @@ def cell_rule(lattice: LocalLattice) -> CellRule | None:
     # are the hexagon's too, but not their third: exact to degree 2), and the hexagon's
     # light spread as one parallelogram of its second moments, the image of a square of side
     # √(5/6) pitches on the regular lattice (a mean x² of 5/72, the hexagon's)
-    three = points[::2]
+    # (a contiguous copy, not a strided view: the kernels' warm-up loads them for contiguous
+    # arrays, and a view was a signature of its own that a fresh install compiled inside the
+    # first hexagonal region, 5.5 s: docs/distance.md, "A kernel signature the warm-up missed
+    # (stop 52)")
+    three = np.ascontiguousarray(points[::2])
     square = math.sqrt(5.0 / 6.0) * a
     coarse = CellRule(False, corners[:3], three, np.full(3, 1.0 / 3.0),
                       three @ np.linalg.inv(three.T @ three) @ square, np.zeros((0, 3, 2)),
