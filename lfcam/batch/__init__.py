@@ -305,6 +305,13 @@ def _run_local(jobs: list[Job], cal_bytes: bytes, workers: int, on_result) -> No
                 proc.terminate()
         for proc in procs:
             proc.join(timeout=5)
+        # The pool's manager thread closes its wake-up pipe as it ends: let it end here. At
+        # exit, Python 3.11's concurrent.futures wakes every manager still alive, and a wake-up
+        # racing that close printed "Exception ignored … Bad file descriptor" and a traceback
+        # after the one-line message (seen once in CI, under load)
+        manager = getattr(pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(timeout=5)
         raise
     pool.shutdown(wait=True)
 
