@@ -451,8 +451,7 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, piec
     out = deposit_cells(np.zeros((len(centres_px), 4)), zero, np.zeros(1), np.zeros(1),
                         np.array([spot_centre[0]]), np.array([spot_centre[1]]), np.ones(1),
                         np.array([e], dtype=float), zero, np.zeros(2), eye10, 1.0, 0.0, 0.0,
-                        0, 0, labels, np.zeros(labels.shape, dtype=np.float32), centres_px,
-                        10.0, pieces,
+                        0, 0, labels, centres_px, 10.0, pieces,
                         CELL_SPLIT if pieces.shape[0] else 1)
     t = (np.arange(dense) + 0.5) / dense - 0.5
     a, b = (g.ravel() for g in np.meshgrid(t, t))
@@ -1080,64 +1079,3 @@ def test_one_to_one_agrees_with_a_dense_exact_trace_of_the_pupils_diameter():
         assert got is monotone, d
         seen.append(got)
     assert seen == [True, True, False, False, False, True, True]  # (both kinds are tested)
-
-
-def test_clearance_is_the_largest_square_of_one_label():
-    # _Moments.clearance against its definition, by brute force on a label map with touching
-    # hexagonal-like cells, gaps (−1) and the box's edge: the largest half-width h such that
-    # the (2h + 1)² square about a pixel lies in the box and holds only its label (≥ 0);
-    # 0 on dark pixels. deposit_cells reads a span's labels only where the span is not in it.
-    rng = np.random.default_rng(5)
-    h, w = 40, 52
-    seeds = rng.uniform([0, 0], [h, w], size=(14, 2))
-    yy, xx = np.mgrid[0:h, 0:w]
-    d = (yy[..., None] - seeds[:, 0]) ** 2 + (xx[..., None] - seeds[:, 1]) ** 2
-    labels = np.argmin(d, axis=2).astype(np.int32)
-    labels[np.sort(d, axis=2)[..., 0] > 40.0] = -1  # gaps far from every seed
-    mom = ff._Moments((0, 0, w, h), labels, np.arange(14), np.zeros((14, 2)),
-                      np.zeros((14, 4)), 1.0)
-    got = mom.clearance()
-    want = np.zeros((h, w))
-    for r in range(h):
-        for c in range(w):
-            k = labels[r, c]
-            size = 0
-            while k >= 0:
-                n = size + 1
-                if r - n < 0 or c - n < 0 or r + n >= h or c + n >= w:
-                    break
-                if np.any(labels[r - n:r + n + 1, c - n:c + n + 1] != k):
-                    break
-                size = n
-            want[r, c] = size
-    assert np.array_equal(got, want)
-    assert got.max() >= 3  # (the test holds squares, not only borders)
-
-
-def test_deposit_cells_with_the_clearance_adds_what_reading_every_label_adds(monkeypatch):
-    # the large hexagonal blur's whole cells (3400 mm behind a 1 m focus, ~580 lenslets, n = 4
-    # with its rim): deposit_cells with the box's clearance and with none (every span's labels
-    # read) give the same moments, bit for bit
-    from lfcam.measure import kernels
-
-    prof, geom, mom, pts, _ = _hexagonal_blur(monkeypatch)
-    monkeypatch.setattr(ff, "CELLS_WHOLE", True)
-    model = ff.LensletModel(prof, geom, mom, 1000, cells=4)
-    assert model.whole
-    calls = []
-    deposit = kernels.deposit_cells
-
-    def spy(*args):
-        calls.append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
-        return deposit(*args)
-
-    monkeypatch.setattr(kernels, "deposit_cells", spy)
-    model.simulate(pts)
-    assert calls
-    for args in calls:
-        with_clear = deposit(*((args[0].copy(),) + args[1:]))
-        none = list(args)
-        none[0] = args[0].copy()
-        none[17] = np.zeros_like(args[17])
-        assert np.array_equal(with_clear, deposit(*none))
-        assert np.any(args[17] > 0)

@@ -39,7 +39,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
@@ -337,22 +336,6 @@ class _Moments:
     data: np.ndarray  # (K, 4)
     norm: float
     noise_sums: tuple[float, float] = (math.nan, math.nan)  # noise.moment_noise_sums
-    _clear: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
-
-    def clearance(self) -> np.ndarray:
-        """Each box pixel's chessboard distance (float32) to the nearest pixel that borders
-        another label (an 8-neighbour with another label, or the box's edge) or is dark:
-        every pixel within that distance of it (a square) is its lenslet's
-        (:func:`lfcam.measure.kernels.deposit_cells`' test that a whole cell's light lands in
-        one micro-image). Computed once a region."""
-        if self._clear is None:
-            lab = self.labels.astype(np.float32)  # (compact indices: exact)
-            square = np.ones((3, 3), np.uint8)
-            hi = cv2.dilate(lab, square, borderType=cv2.BORDER_CONSTANT, borderValue=-2.0)
-            lo = cv2.erode(lab, square, borderType=cv2.BORDER_CONSTANT, borderValue=-2.0)
-            inner = ((hi == lo) & (self.labels >= 0)).astype(np.uint8)
-            self._clear = cv2.distanceTransform(inner, cv2.DIST_C, 3)
-        return self._clear
 
 
 def _moments_of(centres_px, pitch_px, x_px, y_px, w, k, group=None, groups=1):
@@ -871,8 +854,8 @@ class LensletModel:
                           np.zeros(m, dtype=np.int64) if group is None
                           else np.asarray(group, dtype=np.int64),
                           lat.origin, lat.basis, float(p.sensor.pixel_pitch_mm), float(ax),
-                          float(ay), int(x0), int(y0), self.mom.labels, self.mom.clearance(),
-                          self.mom.centres_px, float(self.geom.pitch_px), pieces, split)
+                          float(ay), int(x0), int(y0), self.mom.labels, self.mom.centres_px,
+                          float(self.geom.pitch_px), pieces, split)
         return out
 
     def residual(self, sources: np.ndarray) -> np.ndarray:

@@ -405,8 +405,8 @@ def warm_up() -> None:
                  np.zeros((2, 2)), np.zeros((4, 2)), np.full(4, 0.25), np.zeros((4, 2)))
     deposit_cells(np.zeros((1, 4)), np.zeros(1, dtype=np.int64), one, one, one, one, one,
                   np.zeros((1, 4)), np.zeros(1, dtype=np.int64), np.zeros(2), eye, 1.0, 0.0, 0.0,
-                  0, 0, np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1), dtype=np.float32),
-                  np.zeros((1, 2)), 1.0, np.zeros((0, 3, 2)), 1)
+                  0, 0, np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0,
+                  np.zeros((0, 3, 2)), 1)
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
                   np.ones(4), 1, np.zeros((4, 2)))
 
@@ -1956,7 +1956,7 @@ def cell_landings(ray, wt, sx, sy, w4, n_cells, side_coef):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax, ay, x0, y0,
-                  labels, clear, centres_px, pitch_px, pieces, split):
+                  labels, centres_px, pitch_px, pieces, split):
     """Add whole cells' light (:func:`cell_centres`) to the moments ``out`` (groups·K, 4), as
     :func:`deposit_moments` would in the limit of infinitely many samples a cell: cell ``c``
     of point ``rows[c]`` (group ``group[rows[c]]``), lattice node ``(ci, cj)``, weight
@@ -1972,14 +1972,7 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
     rim cell's piece across a label's border: 66.6 % in its own micro-image whole, 70.5 %
     cut 4 × 4, 70.7 % by a dense sample; docs/distance.md, "Whole hexagonal cells (stop
     45)"; 3 × 3 since stop 47); a rectangular cell's image is nearly upright (cut, 27
-    regions' answers moved by at most 5e-6 of their distance, at 20 % more CPU here).
-
-    ``clear``: each box pixel's chessboard distance to the nearest pixel that borders another
-    label, a dark pixel or the box's edge (``fastfit._Moments.clearance``): a span of pixels
-    inside the square of that half-width about its middle pixel is one lenslet's without
-    reading its labels (the same answer as reading them; that loop was ~60 % of this
-    kernel's time on a hexagonal line behind focus: docs/distance.md, "Whole cells in one
-    micro-image at a glance (stop 52)")."""
+    regions' answers moved by at most 5e-6 of their distance, at 20 % more CPU here)."""
     n_k = centres_px.shape[0]
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
@@ -2023,17 +2016,11 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
             one = (c_lo >= 0) & (c_hi < wd) & (r_lo >= 0) & (r_hi < h)
             k = -1
             if one:
-                rm = (r_lo + r_hi) >> 1
-                cm = (c_lo + c_hi) >> 1
-                if clear[rm, cm] >= max(max(rm - r_lo, r_hi - rm), max(cm - c_lo, c_hi - cm)):
-                    k = labels[rm, cm]  # (every pixel of the span's)
-                    one = k >= 0
-                else:
-                    k = labels[r_lo, c_lo]
-                    one = k >= 0
-                    for row in range(r_lo, r_hi + 1):
-                        for col in range(c_lo, c_hi + 1):
-                            one &= labels[row, col] == k
+                k = labels[r_lo, c_lo]
+                one = k >= 0
+                for row in range(r_lo, r_hi + 1):
+                    for col in range(c_lo, c_hi + 1):
+                        one &= labels[row, col] == k
             if one:
                 mx, mxx = _share_moments(wxs, c_lo, c_hi, x0, centres_px[k, 0], inv_pitch)
                 my, myy = _share_moments(wys, r_lo, r_hi, y0, centres_px[k, 1], inv_pitch)
