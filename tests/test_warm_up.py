@@ -60,6 +60,7 @@ SCRIPT = textwrap.dedent("""
 
 def test_models_call_no_kernel_signature_the_warm_up_does_not_load():
     out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
-                         check=True, timeout=900)
+                         timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
     added = json.loads(out.stdout.strip().splitlines()[-1])
     assert added == {}
