@@ -324,6 +324,16 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
                         out[n, 3] += w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
                                           + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
                         continue
+                    if ((kk < 0) & (labels[ir, inx] < 0) & (labels[iny, ic] < 0)
+                            & (labels[iny, inx] < 0)):
+                        continue  # every pixel dark: nothing to add
+                elif ((max(ic, inx) < 0) | (min(ic, inx) >= wd) | (max(ir, iny) < 0)
+                        | (min(ir, iny) >= h)):
+                    continue  # every pixel outside the box: nothing to add
+                # (a landing on dark pixels or outside the box, 28 % of a line's distance
+                # scan's and 11 % of a 380 mm line's: the early exits above, 80 -> 29 and
+                # 40 -> 28 ns a ray: docs/distance.md, "Landings with nothing to add (stop
+                # 52)")
                 _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir,
                        w * (1 - ex) * (1 - ey))
                 if ex > 0:
