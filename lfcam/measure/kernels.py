@@ -181,31 +181,27 @@ DEPOSIT_BLOCK = 256  # rays a block of deposit_moments' passes (its scratch stay
 def _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps):
     """The first ``k`` rays of a block (``ray`` rows: x, y, …, spacing: deposit_moments):
     ``cell`` rows ``i, j`` (the nearest node), ``di, dj`` (to the second nearest) and the
-    ray's share in the second, ``clip(0.5 − gap/spacing, 0, 0.5)``. One loop a lattice, no
-    branch on the ray: it runs in SIMD lanes."""
+    ray's share in the second, ``clip(0.5 − gap/spacing, 0, 0.5)``. No branch on the ray: it
+    runs in SIMD lanes."""
     o0, o1 = origin[0], origin[1]
     i00, i01, i10, i11 = inverse[0, 0], inverse[0, 1], inverse[1, 0], inverse[1, 1]
-    if rect:
-        for b in range(k):
+    b00, b01, b10, b11 = basis[0, 0], basis[0, 1], basis[1, 0], basis[1, 1]
+    len_10, len_01, len_11, len_1m1 = seps[2, 1], seps[1, 2], seps[2, 2], seps[2, 0]
+    for b in range(k):
+        # (the lattice's test is the same for every ray: the compiler takes it out of the
+        # loop, which runs in SIMD lanes either way)
+        if rect:
             i, j, i2, j2, gap = _nearest_two_rect(ray[0, b] - o0, ray[1, b] - o1, i00, i01,
                                                   i10, i11, la, lb)
-            cell[0, b] = i
-            cell[1, b] = j
-            cell[2, b] = i2 - i
-            cell[3, b] = j2 - j
-            cell[4, b] = min(max(0.5 - gap / ray[5, b], 0.0), 0.5)
-    else:
-        b00, b01, b10, b11 = basis[0, 0], basis[0, 1], basis[1, 0], basis[1, 1]
-        len_10, len_01, len_11, len_1m1 = seps[2, 1], seps[1, 2], seps[2, 2], seps[2, 0]
-        for b in range(k):
+        else:
             i, j, i2, j2, gap = _nearest_two_hex(ray[0, b] - o0, ray[1, b] - o1, i00, i01,
                                                  i10, i11, b00, b01, b10, b11, len_10, len_01,
                                                  len_11, len_1m1)
-            cell[0, b] = i
-            cell[1, b] = j
-            cell[2, b] = i2 - i
-            cell[3, b] = j2 - j
-            cell[4, b] = min(max(0.5 - gap / ray[5, b], 0.0), 0.5)
+        cell[0, b] = i
+        cell[1, b] = j
+        cell[2, b] = i2 - i
+        cell[3, b] = j2 - j
+        cell[4, b] = min(max(0.5 - gap / ray[5, b], 0.0), 0.5)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
