@@ -4,9 +4,11 @@ Run: ``python benchmarks/sample_bias.py [--system system1] [--distance 3400] [--
 
 Renders one line (``benchmarks/focus_grid.py``'s camera and placement: a 1 m focus, the line
 centred at ``--field`` of the half-field), fits it with ``--method lenslet`` and keeps the
-answer ``q`` and the fit's last line model. Then, at that ``q``, for ray-sampled line models
-of 1, 4 and 8 × the fine model's rays a point, each with ``--turns`` turns of its pupil
-sample, and with the MLA-plane sharing box at its width and at half of it, prints:
+answer ``q`` (where its last line stage ended) and the fit's last line model. Then, at that
+``q``, for ray-sampled line models of 1, 4 and 8 × the fine model's rays a point, each with
+``--turns`` turns of its pupil sample, with a ray's share across a cell border by one box of
+the ray spacing (``box``, until stop 53) and by the two boxes' combination (``two``,
+:func:`lfcam.measure.sampling.ray_share`), prints:
 
 * the shift of each sample's minimum against a reference of 32 × the fine rays, by one
   Gauss–Newton step on the reference's Jacobian (``ref-J mean``, ``std`` over the turns): the
@@ -15,7 +17,8 @@ sample, and with the MLA-plane sharing box at its width and at half of it, print
 * the minima the samples reach by Levenberg–Marquardt with their own Jacobians (``own
   minima``, the fine model only).
 
-docs/distance.md, "The refit's rays and the fine sample's bias (stop 53)".
+docs/distance.md, "The refit's rays and the fine sample's bias (stop 53)", "Ray shares
+without the box's variance (stop 53)".
 """
 
 from __future__ import annotations
@@ -75,27 +78,48 @@ def main() -> None:
         ends.append(out[0])
         return out
 
+    levenberg = ff._levenberg_marquardt
+
+    def keep_lm_end(*a, **k):
+        out = levenberg(*a, **k)
+        if len(out[0]) == 5:  # (a line's)
+            ends.append(out[0])
+        return out
+
+    turned = []  # the settled test's turned sample (phase 1): the fine model's rays a point
+    init = ff.LensletModel.__init__
+
+    def keep_turned(self, *a, **k):
+        init(self, *a, **k)
+        if k.get("phase") == 1.0:
+            turned.append(self.rx.size)
+
     ff.line_model, ff._gauss_newton_fixed = keep_model, keep_end
+    ff._levenberg_marquardt = keep_lm_end
+    ff.LensletModel.__init__ = keep_turned
     try:
         got = ff.measure_lenslet(prof, geom, img, region, distance.noise_sigma(img))
     finally:
         ff.line_model, ff._gauss_newton_fixed = line_model, gauss_newton
+        ff._levenberg_marquardt = levenberg
+        ff.LensletModel.__init__ = init
     ray_models = [m for m in made if not m[0].cells]
     if got.kind != "line" or not ray_models:
         raise SystemExit(f"not a ray-sampled line fit ({got.kind})")
+    if any(m[0].cells and not m[0].folded for m in made):
+        raise SystemExit("the line was fitted on the lenslet cells: its rays only raced")
     last, frame, count, steps = ray_models[-1]
     q = ends[-1]
-    sizes = sorted({m[0].rx.size for m in ray_models})
-    # the fine model's rays a point: the largest, or the second largest where the largest
-    # is the refit's (LINE_REFINE × the fine model's)
-    n_fine = sizes[-2] if len(sizes) > 1 and sizes[-1] >= 4 * sizes[-2] else sizes[-1]
+    if not turned:
+        raise SystemExit("the line's fit ended before its settled test")
+    n_fine = turned[-1]
     print(f"# {args.system} line at {args.distance:g} mm, {100 * args.field:g} % of the "
           f"half-field: {got.kind}, {100 * (got.distance_mm / args.distance - 1):+.3f} %; fine "
           f"model {n_fine} rays a point, {count} points")
 
-    def sample(n_rays: int, phase: float, box: float = 1.0):
+    def sample(n_rays: int, phase: float, richardson: bool = True):
+        ff.RAY_SHARE_RICHARDSON = richardson
         model = ff.LensletModel(prof, geom, last.mom, n_rays, phase=phase, turn_every=count)
-        model.spacing *= box
         fun, jac = line_model(model, frame, count, steps)
         pts = ff._line_points(frame, q, count)
         m = model.simulate_groups(pts, np.zeros(count, dtype=np.int64), 1, 1)[0]
@@ -109,24 +133,25 @@ def main() -> None:
         return float(np.linalg.lstsq(j_ref, -(model.residual_of(m) - ref_model.residual_of(
             ref_m)), rcond=None)[0][0])
 
-    print(f"{'rays a point':>13} {'box':>5} {'ref-J mean':>11} {'std':>9} {'m0 part':>9} "
+    print(f"{'rays a point':>13} {'share':>6} {'ref-J mean':>11} {'std':>9} {'m0 part':>9} "
           f"{'own minima':>11} {'std':>9}")
     for mult in (1, 4, 8):
-        for box in (1.0, 0.5):
+        for richardson in (False, True):
             shifts, moments, own = [], [], []
             for k in range(args.turns):
-                model, fun, jac, m = sample(mult * n_fine, 0.37 * k + 0.01, box)
+                model, fun, jac, m = sample(mult * n_fine, 0.37 * k + 0.01, richardson)
                 shifts.append(shift(model, m))
                 moments.append(m)
                 if mult == 1:
-                    qq = ff._levenberg_marquardt(fun, q, steps, 8, 1e-4, jac_of=jac)[0]
+                    qq = levenberg(fun, q, steps, 8, 1e-4, jac_of=jac)[0]
                     own.append(float(qq[0] - q[0]))
             d0 = np.zeros_like(ref_m)
             d0[:, 0] = np.mean(moments, axis=0)[:, 0] - ref_m[:, 0]
             m0_part = shift(ref_model, ref_m + d0)
             own_s = (f"{np.mean(own):+11.2e} {np.std(own):9.2e}" if own
                      else f"{'':>11} {'':>9}")
-            print(f"{mult * n_fine:13d} {box:5.2f} {np.mean(shifts):+11.2e} "
+            print(f"{mult * n_fine:13d} {'two' if richardson else 'box':>6} "
+                  f"{np.mean(shifts):+11.2e} "
                   f"{np.std(shifts):9.2e} {m0_part:+9.2e} {own_s}")
 
 

@@ -461,7 +461,7 @@ def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, piec
     ref = deposit_moments(np.zeros(n), np.zeros(n), sx, sy, np.full(n, 1.0 / n),
                           np.zeros(n, dtype=np.int64), np.ones(1), zero, 1, np.zeros(2), eye10,
                           inv, True, 10.0, 10.0, 1.0, 0.0, 0.0, 0, 0, s_px, labels, centres_px,
-                          10.0, np.empty(0))
+                          10.0, np.empty(0), False)
     return out, ref
 
 

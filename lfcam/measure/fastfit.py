@@ -53,7 +53,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import capture_noise, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
-from lfcam.measure.sampling import pixel_boxes, vogel_disc
+from lfcam.measure.sampling import pixel_boxes, ray_share, vogel_disc
 from lfcam.measure.verify import line_beats, line_trigger, poor_fit_limit
 from lfcam.optics.trace import trace_sources_fast
 from lfcam.status import RegionStatus
@@ -179,8 +179,10 @@ LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 1
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
-LINE_REFINE = 8.0  # ... it is refitted with this × the fine model's rays a point (4× the
-#                      fine model's of before its budget was halved) ...
+LINE_REFINE = 4.0  # ... it is refitted with this × the fine model's rays a point (8× until
+#                      stop 53: with the shares of RAY_SHARE_RICHARDSON 4× left the refit
+#                      lines' noise-free answers as close (docs/distance.md, "Ray shares
+#                      without the box's variance (stop 53)") ...
 LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line's settled test",
 #                               "A line's points, each with its own turn of the pupil sample")
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
@@ -311,6 +313,11 @@ CELLS_RIM = True  # on a hexagonal lattice the cells the pupil's rim cuts too, e
 #                   docs/distance.md, "Rim cells cut by the rim's line (stop 46)"); not on
 #                   a rectangular one, whose rim cells n = 3 samples cheaply and closer
 CELL_SHARE = 0.9  # a cell sample's share across a cell border: over this × its sub-cell's width
+RAY_SHARE_RICHARDSON = True  # a ray sample's share across a cell border by two boxes whose
+#                              combination has no second moment (sampling.ray_share); one box
+#                              widened each footprint by its variance, which put the fine line
+#                              model's distance −0.38 % off far behind focus (docs/distance.md,
+#                              "Ray shares without the box's variance (stop 53)")
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 _LATTICES = ObjectCache(8)
 _RULES = ObjectCache(8)
@@ -567,8 +574,8 @@ class LensletModel:
         gaps = spacing[rows_ok]
         tag = group[rows_ok] if group is not None else np.zeros(rows_ok.size, dtype=np.int64)
         c1x, c1y, c2x, c2y, gap = _two_cells(self.lattice, x, y)
-        share = np.clip(0.5 - gap / gaps, 0.0, 0.5)
-        split = share > 0
+        share = ray_share(gap, gaps, RAY_SHARE_RICHARDSON)
+        split = share != 0
         cx = np.concatenate([c1x, c2x[split]])
         cy = np.concatenate([c1y, c2y[split]])
         wt = np.concatenate([wt * (1.0 - share), (wt * share)[split]])
@@ -606,14 +613,16 @@ class LensletModel:
             return out
         spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
         return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
-                             self.s_px)
+                             self.s_px, RAY_SHARE_RICHARDSON)
 
     def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m,
-                 s_px: float | np.ndarray) -> np.ndarray:
+                 s_px: float | np.ndarray, richardson: bool = False) -> np.ndarray:
         """Moments of traced rays (:func:`lfcam.measure.kernels.deposit_moments`): ray ``r``
         from point ``rows[r]`` of ``m``, whose rays are ``spacing[rows[r]]`` apart on the MLA,
         spread as ``s_px`` boxes on the sensor (an array: ray ``r`` as an ``s_px[r]`` box);
-        ``group`` per point (None: one group)."""
+        ``group`` per point (None: one group); ``richardson``: shared across cell borders by
+        :func:`~lfcam.measure.sampling.ray_share`'s combination of two boxes (the ray
+        samples), else by one box (the samples on the cells)."""
         from lfcam.measure.kernels import deposit_moments  # numba
 
         p = self.profile
@@ -632,7 +641,7 @@ class LensletModel:
             lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
             float(ax), float(ay), int(x0), int(y0), 1.0 if each else float(s_px),
             self.mom.labels, self.mom.centres_px, float(self.geom.pitch_px),
-            s_px if each else _ONE_BOX)
+            s_px if each else _ONE_BOX, bool(richardson))
 
     def _cell_samples(self, points: np.ndarray):
         """Each point's pupil samples on the cells (``cells`` > 0), or ``None`` where a point's

@@ -18,8 +18,10 @@ Loops that numpy can only express as chains of frame- or ray-sized temporaries:
   the main lens to the MLA plane; each ray then
 
   1. is shared between the lattice cell it hits and the neighbour across the nearest cell
-     border, linearly over the ray's own spacing at the MLA (``share = clip(0.5 −
-     gap/spacing, 0, 0.5)``),
+     border: linearly over the ray's own spacing at the MLA (``share = clip(0.5 −
+     gap/spacing, 0, 0.5)``, a box), or, for the ray-sampled models, by the two boxes'
+     combination whose second moment is zero (``richardson``:
+     :func:`lfcam.measure.sampling.ray_share`),
   2. lands on the sensor at each cell's centre plus ``f_x`` times its slope,
   3. is spread as a box ``s`` px wide over the pixels it straddles (bilinear shares), and
   4. adds its weight and weighted offsets to the four moments of the lenslet whose
@@ -48,6 +50,8 @@ import os
 
 import numpy as np
 from numba import njit
+
+from lfcam.measure.sampling import RICHARDSON_ONE, RICHARDSON_TWO
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -175,14 +179,15 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
 
 
 DEPOSIT_BLOCK = 256  # rays a block of deposit_moments' passes (its scratch stays in cache)
+# (a ray's share across a cell border: lfcam.measure.sampling.ray_share, RICHARDSON_*)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps):
+def _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson):
     """The first ``k`` rays of a block (``ray`` rows: x, y, …, spacing: deposit_moments):
     ``cell`` rows ``i, j`` (the nearest node), ``di, dj`` (to the second nearest) and the
-    ray's share in the second, ``clip(0.5 − gap/spacing, 0, 0.5)``. No branch on the ray: it
-    runs in SIMD lanes."""
+    ray's share in the second: ``clip(0.5 − gap/spacing, 0, 0.5)``, or with ``richardson``
+    :func:`lfcam.measure.sampling.ray_share`'s. No branch on the ray: it runs in SIMD lanes."""
     o0, o1 = origin[0], origin[1]
     i00, i01, i10, i11 = inverse[0, 0], inverse[0, 1], inverse[1, 0], inverse[1, 1]
     b00, b01, b10, b11 = basis[0, 0], basis[0, 1], basis[1, 0], basis[1, 1]
@@ -201,7 +206,9 @@ def _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps):
         cell[1, b] = j
         cell[2, b] = i2 - i
         cell[3, b] = j2 - j
-        cell[4, b] = min(max(0.5 - gap / ray[5, b], 0.0), 0.5)
+        one = min(max(0.5 - gap / ray[5, b], 0.0), 0.5)
+        two = min(max(0.5 - 0.5 * gap / ray[5, b], 0.0), 0.5)
+        cell[4, b] = RICHARDSON_ONE * one - RICHARDSON_TWO * two if richardson else one
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -245,7 +252,7 @@ def _block_landings(ray, cell, land, k, c, origin, basis, inv_pp, ax, ay, x0, y0
 @njit(cache=True, nogil=True, error_model="numpy")
 def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basis, inverse,
                     rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px, pitch_px,
-                    s_ray):
+                    s_ray, richardson):
     """Moments ``(groups·K, 4)`` of rays hitting the MLA at ``(x, y)`` mm with sensor offsets
     ``(sx, sy)`` mm (``f_x`` × slope) and weights ``wt``, ray ``r`` from source point
     ``rows[r]``, whose rays are ``spacing[rows[r]]`` apart on the MLA and go to group
@@ -282,13 +289,13 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             ray[4, b] = wt[r]
             ray[5, b] = spacing[rows[r]]
             ray[6, b] = s_ray[r] if each else s_px
-        _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps)
+        _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson)
         for c in range(2):
             _block_landings(ray, cell, land[c], k, c, origin, basis, inv_pp, ax, ay,
                             float(x0), float(y0))
         for b in range(k):
             base = group[rows[lo + b]] * n_k
-            # the ray's share in its cell, then (share > 0) in the neighbour's
+            # the ray's share in its cell, then (share ≠ 0) in the neighbour's
             for c in range(2):
                 w = land[c, 6, b]
                 if c == 1 and cell[4, b] == 0.0:
@@ -391,7 +398,7 @@ def warm_up() -> None:
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
-                    np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, np.empty(0))
+                    np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, np.empty(0), True)
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
