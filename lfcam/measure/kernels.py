@@ -261,7 +261,9 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
     ``(x0, y0)`` the box's corner, ``(ax, ay)`` the sensor axis (px), ``pp`` the pixel pitch
     (mm). Each ray is spread as an ``s_px`` box, or, where ``s_ray`` is not empty, ray ``r``
     as an ``s_ray[r]`` box (samples on the cells, each its own pupil area's: docs/distance.md,
-    "The whole cells reach the rim; each sample its own box (stop 44)").
+    "The whole cells reach the rim; each sample its own box (stop 44)"). ``richardson``: each
+    ray shared across its cell's border by :func:`lfcam.measure.sampling.ray_share`'s two
+    boxes (the ray samples) instead of one (the samples on the cells).
 
     Two passes a block of :data:`DEPOSIT_BLOCK` rays (docs/distance.md, "The deposit's
     arithmetic in SIMD lanes (stop 52)"): the first, with no branch on the ray, finds each
