@@ -42,7 +42,7 @@ Run::
     python benchmarks/focus_grid.py --table docs/results/focus_grid.csv   # table only
     python benchmarks/focus_grid.py --lines --systems system2 --size 1024 --foci 1000 \
         --distances 1500,2200,2900,3400 --method lenslet --truth-centres --noise-free \
-        --rays 16000000 --fastfit LINE_FINE_PER_LENSLET=120   # the line fit's own bias
+        --rays 16000000 --fastfit LINE_FINE_RAYS=26664   # the line fit's own bias (8 × its rays)
 
 ``--fastfit NAME=VALUE,...`` sets numeric constants of ``lfcam.measure.fastfit`` for the run
 (those read when a fit runs, not default arguments): experiments on the fit's budgets.
@@ -538,7 +538,7 @@ def main() -> None:
                     help="no photon or read noise in the captures (--renderer sim)")
     ap.add_argument("--fastfit", default="", metavar="NAME=VALUE,...",
                     help="experiments: override constants of lfcam.measure.fastfit (e.g. "
-                         "LINE_FINE_PER_LENSLET=120, LINE_TURNS=0); printed in the log")
+                         "LINE_FINE_RAYS=26664, LINE_TURNS=0); printed in the log")
     args = ap.parse_args()
     if args.no_sensor_gain:
         SENSOR_GAIN[0] = False

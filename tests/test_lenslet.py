@@ -597,3 +597,20 @@ def test_a_damped_repeat_of_a_failed_step_is_not_tried():
     np.testing.assert_allclose(tried, [1.0 / (1.0 + 1e-4), 1.0 / 1.1], rtol=1e-12)
     np.testing.assert_allclose(q, [1.0 / 1.1], rtol=1e-12)
     assert f == pytest.approx((1.0 / 1.1 - 1.0) ** 2, rel=1e-12)
+
+
+def test_vogel_disc_is_ordered_along_alternating_bands():
+    # the sample's order: bands of the disc in y, each run along x, the direction
+    # alternating (successive rays land side by side); the same points as the spiral's
+    n = 4447
+    u, v = vogel_disc(n)
+    i = np.arange(n)
+    r, t = np.sqrt((i + 0.5) / n), i * (math.pi * (3.0 - math.sqrt(5.0)))
+    spiral = np.column_stack([r * np.cos(t), r * np.sin(t)])
+    assert np.array_equal(np.sort(np.column_stack([u, v]), axis=0), np.sort(spiral, axis=0))
+    bands = round(math.sqrt(n) / 2.0)
+    band = np.minimum(((v + 1.0) * 0.5 * bands).astype(int), bands - 1)
+    assert np.all(np.diff(band) >= 0)
+    for k in np.unique(band):
+        x = u[band == k]
+        assert np.all(np.diff(x) > 0) if k % 2 == 0 else np.all(np.diff(x) < 0)

@@ -164,18 +164,18 @@ LINE_MIN_SHARE = 0.5  # more points share the 12 points' rays, down to this shar
 LINE_MIN_RAYS = 64  # rays a point, at least
 LINE_COARSE_SHARE = 12  # the line's distance scan traces COARSE_RAYS / this per point
 LINE_COARSE_PER_LENSLET = 3  # rays a point of the line, per lit lenslet: coarse model ...
-LINE_FINE_PER_LENSLET = 15  # ... and fine model (with every point's pupil sample turned,
-#                               LINE_TURNS; 10 with one shared sample: lines far behind focus
-#                               and off axis stalled 1-2 % off on the ripple of the model's own
-#                               ray sample; docs/distance.md, "Lines off axis" and "A line's
-#                               points, each with its own turn of the pupil sample"; the floor
-#                               LINE_FINE_MIN_RAYS on every blur put scene (b)'s lines 0.1-0.25 %
-#                               long: docs/distance.md, "Tried at stop 51, not kept")
-LINE_MAX_RAYS = 18000  # rays a point of the line, at most (fine model)
-LINE_GN_PER_LENSLET = 5  # ... the fine Gauss–Newton steps' model: per lit lenslet
-LINE_GN_MAX_RAYS = 6000  # ... and at most
-LINE_FINE_MIN_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and at least (the 12 points' turned
-#                                                        samples: half the point polish's rays)
+LINE_COARSE_MAX_RAYS = 4500  # ... at most
+LINE_FINE_RAYS = POLISH_RAYS // (2 * LINE_POINTS)  # ... and fine model, the 12 points' rays a
+#                   point on every blur (half the point polish's rays; every point's pupil sample
+#                   turned, LINE_TURNS: with one shared sample lines far behind focus and off
+#                   axis stalled 1-2 % off on the ripple of the model's own ray sample;
+#                   docs/distance.md, "Lines off axis" and "A line's points, each with its own
+#                   turn of the pupil sample"). Until stop 54 it grew with the blur (15 rays a
+#                   lit lenslet, up to 18 000, and its Gauss–Newton steps on 5 a lit lenslet):
+#                   at stop 51 the floor put scene (b)'s large line blurs 0.1-0.25 % long; with
+#                   the code of stop 54 they stay within 0.104 % (σ 0.10 %), with one sharing
+#                   box or two (docs/distance.md, "The line's fine sample at its floor (stop
+#                   54)")
 LINE_SETTLED_LOG = 1.5e-3  # a line's fit has settled when a Gauss–Newton step through a
 #                             turned pupil sample moves its log distance by less than this
 #                             (√2 × the line σ floor: the two samples' shifts add); else ...
@@ -2232,7 +2232,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                            np.concatenate([_line_points(frame, st + [dl, 0, 0, 0, 0], 3)
                                            for st in starts for dl in LINE_CELLS_PROBE_LOG]))
     coarse_rays = np.clip(LINE_COARSE_PER_LENSLET * n_lit, COARSE_RAYS // LINE_COARSE_SHARE,
-                          LINE_MAX_RAYS // 4)
+                          LINE_COARSE_MAX_RAYS)
     n_fine = n_pts
     if on_cells:
         # the fine stage on half the points, the coarse stage (and the race) on a third: the
@@ -2240,14 +2240,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
         n_coarse = max(LINE_CELLS_COARSE_POINTS, math.ceil(LINE_CELLS_COARSE_SHARE * n_pts))
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
-    fine_rays = np.clip(LINE_FINE_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_MAX_RAYS)
-    fine = model(fine_rays, count=n_fine,
-                 cells=coarse.fine_cells())
-    # the fine Gauss–Newton steps and the gate after them: the model of the old budget, the
-    # fine one itself where both budgets meet at the floor (small blurs)
-    gn_rays = np.clip(LINE_GN_PER_LENSLET * n_lit, LINE_FINE_MIN_RAYS, LINE_GN_MAX_RAYS)
-    # (on the cells: the fine model itself, whose evaluations cost less than its Jacobian)
-    gn_model = fine if gn_rays == fine_rays or fine.cells else model(gn_rays)
+    # (its Gauss–Newton steps and the gate after them on the fine model too)
+    fine = model(LINE_FINE_RAYS, count=n_fine, cells=coarse.fine_cells())
     fun_c, jac_c = line_model(coarse, frame, n_coarse, steps)
     # the starts race: LINE_RACE_ITERATIONS coarse iterations each, then the leader alone runs
     # the rest (docs/distance.md, "A line's Jacobian from its points")
@@ -2309,7 +2303,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     def evaluations() -> int:
         return (point.evaluations + scan_model.evaluations + coarse.evaluations
-                + fine.evaluations + (gn_model.evaluations if gn_model is not fine else 0)
+                + fine.evaluations
                 + sum(m.evaluations for m in settling))
 
     def stopped(stage_misfit: float) -> LensletFit:
@@ -2320,21 +2314,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f))
     fun, jac_f = line_model(fine, frame, n_fine, steps)
-    fun_gn = fun if gn_model is fine else line_model(gn_model, frame, n_pts, steps)[0]
-    r = fun_gn(q)
+    r = fun(q)
     if fine.cells:
         # the fine model's own Jacobian (on the cells the fine model makes the steps too) for
         # its steps, the settled test and σ: n = 2's is not fit for them on a hexagonal
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    q, r, f = _gauss_newton_fixed(fun_gn, q, r, jac, FINE_ITERATIONS,
+    q, r, f = _gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
                                   skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
-    if gn_model is not fine:
-        r = fun(q)
-        f = _sq(r)
     if not fine.cells:
         q, r, f, jac_fine = _levenberg_marquardt(fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3,
                                                  r0=r, jac_of=jac_f,

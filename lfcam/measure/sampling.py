@@ -33,7 +33,9 @@ def vogel_disc(n: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     # direction alternating), successive rays land side by side
     bands = max(1, int(round(math.sqrt(n) / 2.0)))
     band = np.minimum(((y + 1.0) * 0.5 * bands).astype(np.int64), bands - 1)
-    order = np.lexsort((np.where(band % 2 == 0, x, -x), band))
+    # (one key, the band and the signed x in (−1, 1) inside it: the order of a lexsort on
+    # the two, in half its time — a sample is drawn for each model of each region)
+    order = np.argsort(4.0 * band + np.where(band % 2 == 0, x, -x), kind="stable")
     x, y = x[order], y[order]
     x.flags.writeable = False
     y.flags.writeable = False
