@@ -540,3 +540,38 @@ def test_a_point_is_polished_only_where_the_tolerance_needs_it():
     refused = list(point_fit_stages(prof, geom, img, region, accept=lambda d, s: False))[-1]
     assert refused.polished
     np.testing.assert_array_equal(refused.source_mm, polished.source_mm)
+
+
+def _summary_reference(m, centres, ids, scale):
+    # the summary's definition written out with numpy (the form it had until stop 54)
+    e = m[:, 0]
+    if not e.max() > 0:
+        return np.full(4, np.nan)
+    lit = e > 0.05 * e.max()
+    c, w = centres[ids[lit]], e[lit]
+    cbar = (c * w[:, None]).sum(0) / w.sum()
+    off = scale * m[lit, 1:3] / w[:, None]
+    obar = (off * w[:, None]).sum(0) / w.sum()
+    dc = c - cbar
+    den = float((w * (dc * dc).sum(1)).sum())
+    b = float((w * ((off - obar) * dc).sum(1)).sum()) / den if den > 0 else 0.0
+    return np.array([b, cbar[0], cbar[1], math.sqrt(den / w.sum())])
+
+
+def test_compiled_moments_summary_is_the_numpy_definition():
+    from lfcam.measure.kernels import moments_summary
+
+    rng = np.random.default_rng(7)
+    centres = rng.uniform(-5.0, 5.0, (400, 2))
+    for k in (3, 40, 300):
+        ids = np.sort(rng.choice(400, k, replace=False)).astype(np.int64)
+        m = rng.normal(0.0, 1.0, (k, 4))
+        m[:, 0] = rng.exponential(1.0, k) * (rng.uniform(size=k) > 0.3)
+        np.testing.assert_allclose(moments_summary(m, centres, ids, 0.03),
+                                   _summary_reference(m, centres, ids, 0.03), rtol=1e-12)
+    # no light, or a NaN moment: all NaN (as the numpy form's max)
+    ids = np.arange(5, dtype=np.int64)
+    assert np.isnan(moments_summary(np.zeros((5, 4)), centres, ids, 1.0)).all()
+    m = np.ones((5, 4))
+    m[2, 0] = np.nan
+    assert np.isnan(moments_summary(m, centres, ids, 1.0)).all()

@@ -1365,24 +1365,14 @@ def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray
 
     ``(b, x̄, ȳ, ρ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
     (≈ f_x/δ for an image point δ before the MLA: its sign tells the side of focus), (x̄, ȳ)
-    the energy centroid of the lit lenslets and ρ their energy-weighted RMS radius about it
-    (mm on the MLA; the blur's size).
+    the energy centroid of the lit lenslets (over 5 % of the brightest one's energy) and ρ
+    their energy-weighted RMS radius about it (mm on the MLA; the blur's size). Compiled
+    (:func:`lfcam.measure.kernels.moments_summary`).
     """
-    e = m[:, 0]
-    if not e.max() > 0:
-        return np.full(4, np.nan)
-    lit = e > 0.05 * e.max()
-    c = geom.lens_centres_mm[mom.ids[lit]]
-    w = e[lit]
-    cbar = (c * w[:, None]).sum(0) / w.sum()
-    off = geom.pitch_px * profile.sensor.pixel_pitch_mm * m[lit, 1:3] / w[:, None]
-    dc = c - cbar
-    obar = (off * w[:, None]).sum(0) / w.sum()
-    r2 = (dc * dc).sum(1)
-    den = float((w * r2).sum())
-    b = float((w * ((off - obar) * dc).sum(1)).sum()) / den if den > 0 else 0.0
-    rho = math.sqrt(den / float(w.sum()))
-    return np.array([b, cbar[0], cbar[1], rho])
+    from lfcam.measure.kernels import moments_summary
+
+    return moments_summary(np.ascontiguousarray(m, dtype=np.float64), geom.lens_centres_mm,
+                           mom.ids, geom.pitch_px * profile.sensor.pixel_pitch_mm)
 
 
 def _starts(profile, geom, mom, frame, model):

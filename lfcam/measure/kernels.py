@@ -424,6 +424,7 @@ def warm_up() -> None:
                   np.zeros((0, 3, 2)), 1)
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
                   np.ones(4), 1, np.zeros((4, 2)))
+    moments_summary(np.ones((1, 4)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64), 1.0)
 
 
 def warm_up_frame() -> None:
@@ -434,6 +435,59 @@ def warm_up_frame() -> None:
                  np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                  np.zeros(1, dtype=np.int64), 1.0, 1)
     lenslet_sums(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), 1)
+
+
+@njit(cache=True, nogil=True)
+def moments_summary(m, centres_mm, ids, scale):
+    """:func:`lfcam.measure.fastfit.summary` of the moments ``m`` (K, 4) of lenslets ``ids``
+    (their centres ``centres_mm[ids]``; ``scale``: MLA mm a moment's offset unit): ``(b, x̄,
+    ȳ, ρ)`` over the lenslets holding over 5 % of the brightest one's energy, in two passes
+    (the numpy form took ~0.1 ms a call, ~4 600 calls on the focus grid's 108 points: 7 % of
+    their CPU). All NaN where no energy is positive or any is NaN (as ``np.max``)."""
+    out = np.full(4, np.nan)
+    k = m.shape[0]
+    e_max = -np.inf
+    for i in range(k):
+        e = m[i, 0]
+        if e != e:
+            return out
+        e_max = max(e_max, e)
+    if not e_max > 0.0:
+        return out
+    lit = 0.05 * e_max
+    sw = 0.0
+    sx = 0.0
+    sy = 0.0
+    sox = 0.0
+    soy = 0.0
+    for i in range(k):
+        w = m[i, 0]
+        if w > lit:
+            j = ids[i]
+            sw += w
+            sx += centres_mm[j, 0] * w
+            sy += centres_mm[j, 1] * w
+            sox += scale * m[i, 1]
+            soy += scale * m[i, 2]
+    cx = sx / sw
+    cy = sy / sw
+    ox = sox / sw
+    oy = soy / sw
+    den = 0.0
+    num = 0.0
+    for i in range(k):
+        w = m[i, 0]
+        if w > lit:
+            j = ids[i]
+            dx = centres_mm[j, 0] - cx
+            dy = centres_mm[j, 1] - cy
+            den += w * (dx * dx + dy * dy)
+            num += w * ((scale * m[i, 1] / w - ox) * dx + (scale * m[i, 2] / w - oy) * dy)
+    out[0] = num / den if den > 0.0 else 0.0
+    out[1] = cx
+    out[2] = cy
+    out[3] = math.sqrt(den / sw)
+    return out
 
 
 @njit(cache=True, nogil=True)
