@@ -39,6 +39,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
+from lfcam.calibrate import kernels
 from lfcam.calibrate.parallel import run_chunks
 from lfcam.errors import CalibrationError
 from lfcam.progress import Progress
@@ -420,25 +421,6 @@ def _coverage_moments(model: DiscModel) -> float:
     return float(0.5 * np.trapezoid(cov * r * r, r) / np.trapezoid(cov, r))
 
 
-def _scatter_groups(base: np.ndarray, cell: int) -> np.ndarray:
-    """Group label per lens such that no two lenses of one group have overlapping patches.
-
-    Lenses are binned into square cells of ``cell`` = patch width pixels; cells of equal
-    parity (x and y) are at least one cell apart, so their patches are disjoint, and lenses
-    sharing a cell get different ranks. Within one group, ``M[idx] += v`` is then exact (no
-    index repeats), and much faster than ``np.add.at`` or a full-image ``np.bincount``.
-    """
-    cx, cy = base[:, 0] // cell, base[:, 1] // cell
-    key = cy * (int(cx.max()) + 2) + cx
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    first = np.r_[True, ks[1:] != ks[:-1]]
-    start = np.maximum.accumulate(np.where(first, np.arange(len(ks)), 0))
-    rank = np.empty(len(ks), np.int64)
-    rank[order] = np.arange(len(ks)) - start
-    return rank * 4 + (cx & 1) + 2 * (cy & 1)
-
-
 def fixed_point_applies(model: DiscModel, pitch_px: float) -> bool:
     """Whether :func:`own_light_fit` is used: the discs touch but do not overlap at half height
     (R ≤ pitch/2), so only edge ramps share pixels.
@@ -527,8 +509,8 @@ def own_light_fit(
       about the disc centres after the first fixed-point step (``refit``; the core pixels
       are kept), when every model is recomputed anyway.
     * **Model image** M is kept on a padded float32 image and updated only on seam pixels, by
-      the change of each lens's model, scattered in groups of lenses with disjoint patches
-      (:func:`_scatter_groups`).
+      the change of each lens's model (compiled passes over the seam pixels:
+      :mod:`lfcam.calibrate.kernels`).
     * **Active set.** From the third step on, only discs that still moved by ≥ ``tol_px``
       (and the cut discs anchored to them) are re-modelled, and only they and their
       neighbours re-attributed.
@@ -600,12 +582,10 @@ def own_light_fit(
     support = model.support_px
     reach = support + SLACK_PX  # from the base pixel, for any allowed drift
     half = int(np.ceil(reach))
-    side = 2 * half + 1
     pad = 2 * half + 2  # a fixed lens's base lies at most support + 1 px off the sensor
     wp = w + 2 * pad
     padded = np.zeros((h + 2 * pad, wp), np.float32)
     padded[pad:pad + h, pad:pad + w] = img
-    patches = np.lib.stride_tricks.sliding_window_view(padded, (side, side))
     off = np.arange(-half, half + 1)
     ox, oy = (a.ravel() for a in np.meshgrid(off, off))
     g = np.hypot(ox, oy)
@@ -624,26 +604,18 @@ def own_light_fit(
     oxc, oyc = ox[cols_c].astype(np.float32), oy[cols_c].astype(np.float32)
     quad = np.stack([np.ones(cols_c.size), oxc, oyc, oxc * oxc, oxc * oyc, oyc * oyc],
                     axis=1).astype(np.float32)
-    lin_s = (oy * wp + ox).astype(np.int64)[seam]
+    lin = (oy * wp + ox).astype(np.int64)  # patch offsets in the padded flat image
+    lin_c, lin_s, lin_o, lin_in = lin[cols_c], lin[seam], lin[outer], lin[inner]
     oxs, oys = ox[seam].astype(np.float32), oy[seam].astype(np.float32)
     oxo, oyo = ox[outer].astype(np.float32), oy[outer].astype(np.float32)
 
-    def moments(mask: np.ndarray) -> np.ndarray:
-        return np.stack([np.ones(mask.sum()), ox[mask], oy[mask]], axis=1).astype(np.float32)
-
-    w_s, w_o = moments(seam), moments(outer)
-    w_in = moments(g >= 0) * inner[:, None]  # over the whole patch, zero off the inner disc
+    # Σ I·(1, x, y) weights over the whole patch, zero off the inner disc
+    w_in = (np.stack([np.ones(g.size), ox, oy], axis=1) * inner[:, None]).astype(np.float32)
     mom_in = w_in.sum(axis=0).astype(np.float64)  # Σ 1, x, y over the inner disc
-    cols_s, cols_o = np.flatnonzero(seam), np.flatnonzero(outer)
 
     base = np.round(c).astype(np.int64)
     bflat = (base[:, 1] + pad) * wp + (base[:, 0] + pad)
-    groups = _scatter_groups(base + pad, side)
     ns = int(seam.sum())
-
-    def idx_s(k: np.ndarray) -> np.ndarray:
-        """Seam pixel indices of the lenses ``k`` in the padded image, (len(k), ns)."""
-        return bflat[k, None] + lin_s
 
 
     # once: brightness planes about the base pixel (fixed lenses: the anchor's, extrapolated),
@@ -658,18 +630,19 @@ def own_light_fit(
                   & (c[fix, 1] <= h - 1)] if polish else fix[:0]
     gathered = np.r_[free, cut_fit]
 
+    flat = padded.ravel()
+    oxi, oyi = ox[inner].astype(np.float64), oy[inner].astype(np.float64)
+
     def gather(sl: slice) -> None:
         k = gathered[sl]
-        pt = patches[base[k, 1] + pad - half, base[k, 0] + pad - half].reshape(len(k), -1)
-        pc = pt[:, cols_c]
-        coef[k] = _core_planes(pc, c[k] - base[k], oxc, oyc, quad, core_px)
-        p_c[k] = pc
-        s_in[k] = pt @ w_in
-        p_s[k] = pt.take(cols_s, axis=1)
-        p_o[k] = pt.take(cols_o, axis=1)
+        kernels.gather_rows(flat, bflat, k, lin_c, p_c)
+        kernels.gather_rows(flat, bflat, k, lin_s, p_s)
+        kernels.gather_rows(flat, bflat, k, lin_o, p_o)
+        s_in[k] = kernels.offset_sums(flat, bflat, k, lin_in, oxi, oyi)
+        coef[k] = _core_planes(p_c[k], c[k] - base[k], oxc, oyc, quad, core_px)
 
     _run_chunks(gather, gathered.size)
-    padded = patches = None  # free the padded copy
+    padded = flat = None  # free the padded copy
     # on-sensor masks of the cut discs that are fitted: seam, outer, and inner moments
     cut_row = np.full(n, -1)
     cut_row[cut_fit] = np.arange(cut_fit.size)
@@ -714,30 +687,16 @@ def own_light_fit(
     scatter_lock = threading.Lock()
 
     def remodel(mov: np.ndarray, frac: np.ndarray) -> None:
-        """Model m_k of the lenses ``mov`` on their seam pixels; scatter the change into M,
-        one group at a time (indices never repeat within a group, so ``+=`` is exact; one
-        thread scatters at a time, the others compute meanwhile)."""
+        """Model m_k of the lenses ``mov`` on their seam pixels; scatter the change into M
+        (one thread scatters at a time, the others compute meanwhile)."""
 
         def one(sl: slice) -> None:
             k = mov[sl]
-            mk = oxs - frac[k, :1]
-            mk *= mk
-            uy = oys - frac[k, 1:]
-            uy *= uy
-            mk += uy
-            np.sqrt(mk, out=mk)
-            np.subtract(sup, mk, out=mk)
-            mk *= inv2w
-            np.clip(mk, 0.0, 1.0, out=mk)
-            mk *= plane[k]
+            delta = np.empty((k.size, ns), np.float32)
+            kernels.seam_models(k, frac, oxs, oys, sup, inv2w, plane, m_cur, delta)
             c_mod[k] = c[k]
-            delta = mk - m_cur[k]
-            m_cur[k] = mk
-            gs = groups[k]
             with scatter_lock:
-                for gk in np.unique(gs):
-                    sel = np.flatnonzero(gs == gk)
-                    total[idx_s(k[sel])] += delta[sel]
+                kernels.scatter_seams(total, bflat, k, lin_s, delta)
 
         _run_chunks(one, mov.size)
 
@@ -749,16 +708,8 @@ def own_light_fit(
 
         def one(sl: slice) -> None:
             k = att[sl]
-            mk = m_cur[k]
-            big = total.take(idx_s(k))
-            np.maximum(big, mk, out=big)
-            np.maximum(big, np.float32(1e-30), out=big)
-            q = p_s[k] * mk
-            q /= big
-            ux = oxo - frac[k, :1]
-            uy = oyo - frac[k, 1:]
-            inside = ux * ux + uy * uy < sup * sup
-            sm = s_in[k] + q @ w_s + (p_o[k] * inside) @ w_o
+            sm = s_in[k] + kernels.own_light_sums(k, frac, sup, m_cur, total, bflat, lin_s,
+                                                  p_s, oxs, oys, p_o, oxo, oyo)
             ok = sm[:, 0] > 0
             cen = base[k] + sm[:, 1:] / np.where(ok, sm[:, 0], 1.0)[:, None]
             own[k] = np.where(ok[:, None], cen, np.nan)
@@ -775,50 +726,14 @@ def own_light_fit(
         """Gauss–Newton step of the disc centres ``act`` on their ring pixels, against the data
         minus the neighbours' model (the disc edges; brightness planes held)."""
         dc = np.zeros((act.size, 2))
+        coef32 = coef.astype(np.float32)
 
         def one(sl: slice) -> None:
             k = act[sl]
-            cf = coef[k].astype(np.float32)
-            sums = np.zeros((k.size, 5), np.float64)  # Σ jx², jy², jx·jy, jx·r, jy·r
             cr = cut_row[k]
             cm = cr >= 0
-            for ox_, oy_, pix, pl, ins in ((oxs, oys, p_s, plane, ins_s),
-                                           (oxo, oyo, p_o, None, ins_o)):
-                ux = ox_ - frac[k, :1]
-                uy = oy_ - frac[k, 1:]
-                d = ux * ux
-                d += uy * uy
-                np.sqrt(d, out=d)
-                t = sup - d
-                t *= inv2w  # coverage before clipping
-                band = (t > 0.0) & (t < 1.0)
-                if pl is None:
-                    b = cf[:, 1:2] * ox_
-                    b += cf[:, 2:] * oy_
-                    b += cf[:, :1]
-                    np.maximum(b, 0.0, out=b)
-                else:
-                    b = pl[k]
-                np.maximum(d, np.float32(1e-6), out=d)
-                gsc = b / d  # |∂m/∂d| on the edge ramp, over d
-                gsc *= inv2w
-                gsc *= band
-                np.clip(t, 0.0, 1.0, out=t)
-                if pl is None:
-                    r = b * t
-                    np.subtract(pix[k], r, out=r)
-                else:
-                    r = pix[k] - total.take(idx_s(k))
-                if cm.any():  # cut discs: only on-sensor pixels
-                    gsc[cm] *= ins[cr[cm]]
-                    t[cm] *= ins[cr[cm]]
-                jx = gsc * ux
-                jx -= cf[:, 1:2] * t
-                jy = gsc * uy
-                jy -= cf[:, 2:] * t
-                sums += np.stack([np.einsum("ij,ij->i", jx, jx), np.einsum("ij,ij->i", jy, jy),
-                                  np.einsum("ij,ij->i", jx, jy), np.einsum("ij,ij->i", jx, r),
-                                  np.einsum("ij,ij->i", jy, r)], axis=1)
+            sums = kernels.edge_sums(k, frac, coef32, sup, inv2w, total, bflat, lin_s, p_s,
+                                     plane, oxs, oys, p_o, oxo, oyo, cut_row, ins_s, ins_o)
             # inner pixels: covered, no neighbour; the plane slides with the disc (as in
             # :func:`fit_discs`), so J = −g there and r = I − plane
             gx, gy = coef[k, 1], coef[k, 2]

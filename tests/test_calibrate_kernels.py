@@ -1,0 +1,154 @@
+"""The own-light fit's compiled seam passes (:mod:`lfcam.calibrate.kernels`) against the numpy
+chains they replaced (written out here as the reference), on random lenses, including
+repeated seam pixels (neighbouring lenses) and cut discs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcam.calibrate import kernels
+
+
+@pytest.fixture(scope="module")
+def lenses():
+    rng = np.random.default_rng(7)
+    h, w, half = 60, 80, 8
+    wp = w
+    off = np.arange(-half, half + 1)
+    ox, oy = (a.ravel() for a in np.meshgrid(off, off))
+    g = np.hypot(ox, oy)
+    seam = (g > 4.0) & (g < 8.0) & (ox > -2)  # any subset of the patch will do
+    outer = (g > 4.0) & (g < 8.0) & ~seam
+    lin = (oy * wp + ox).astype(np.int64)
+    n = 40
+    base = np.column_stack([rng.integers(10, w - 10, n), rng.integers(10, h - 10, n)])
+    base[1] = base[0] + [3, 2]  # overlapping patches: seam pixels repeat across lenses
+    f32 = np.float32
+    d = dict(
+        n=n, ns=int(seam.sum()),
+        bflat=(base[:, 1] * wp + base[:, 0]).astype(np.int64),
+        lin_s=lin[seam], oxs=ox[seam].astype(f32), oys=oy[seam].astype(f32),
+        oxo=ox[outer].astype(f32), oyo=oy[outer].astype(f32),
+        frac=rng.uniform(-0.6, 0.6, (n, 2)).astype(f32),
+        coef=np.column_stack([rng.uniform(50, 100, n), rng.uniform(-3, 3, (n, 2))]).astype(f32),
+        sup=f32(6.3), inv2w=f32(0.5 / 0.8),
+        flat=rng.uniform(0.0, 120.0, h * w).astype(f32),
+    )
+    d["plane"] = np.maximum(d["coef"][:, :1] + d["coef"][:, 1:2] * d["oxs"]
+                            + d["coef"][:, 2:] * d["oys"], 0.0).astype(f32)
+    d["p_s"] = d["flat"][d["bflat"][:, None] + d["lin_s"]]
+    d["p_o"] = d["flat"][d["bflat"][:, None] + lin[outer]]
+    d["lin"] = lin
+    return d
+
+
+def _model(d, k):
+    ux = d["oxs"] - d["frac"][k, :1]
+    uy = d["oys"] - d["frac"][k, 1:]
+    t = np.clip((d["sup"] - np.sqrt(ux * ux + uy * uy)) * d["inv2w"], 0.0, 1.0)
+    return t * d["plane"][k]
+
+
+def test_seam_models_and_scatter_are_the_numpy_definition(lenses):
+    d = lenses
+    n, ns = d["n"], d["ns"]
+    m_cur = np.random.default_rng(1).uniform(0, 50, (n, ns)).astype(np.float32)
+    m_ref = m_cur.copy()
+    total = np.zeros(d["flat"].size, np.float32)
+    ref = np.zeros(d["flat"].size, np.float64)
+    ks = np.arange(3, n, 2)
+    delta = np.empty((ks.size, ns), np.float32)
+    kernels.seam_models(ks, d["frac"], d["oxs"], d["oys"], d["sup"], d["inv2w"], d["plane"],
+                        m_cur, delta)
+    kernels.scatter_seams(total, d["bflat"], ks, d["lin_s"], delta)
+    mk = _model(d, ks)
+    np.testing.assert_allclose(m_cur[ks], mk, rtol=1e-6, atol=1e-5)
+    untouched = np.setdiff1d(np.arange(n), ks)
+    assert np.array_equal(m_cur[untouched], m_ref[untouched])
+    np.testing.assert_allclose(delta, mk - m_ref[ks], rtol=1e-6, atol=1e-4)
+    np.add.at(ref, d["bflat"][ks, None] + d["lin_s"], (mk - m_ref[ks]).astype(np.float64))
+    np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-3)
+    assert np.count_nonzero(total) > ks.size * ns // 2  # the scatter reached the pixels
+
+
+def test_gathers_and_offset_sums_are_the_numpy_definition(lenses):
+    d = lenses
+    ks = np.array([0, 1, 5, 9, 30], np.int64)
+    lin = d["lin"][::3]
+    out = np.full((d["n"], lin.size), -1.0, np.float32)
+    kernels.gather_rows(d["flat"], d["bflat"], ks, lin, out)
+    assert np.array_equal(out[ks], d["flat"][d["bflat"][ks, None] + lin])
+    assert np.all(out[2] == -1.0)
+    ox = np.linspace(-3, 3, lin.size)
+    oy = np.cos(np.arange(lin.size))
+    pix = d["flat"][d["bflat"][ks, None] + lin].astype(np.float64)
+    ref = np.stack([pix.sum(axis=1), pix @ ox, pix @ oy], axis=1)
+    np.testing.assert_allclose(kernels.offset_sums(d["flat"], d["bflat"], ks, lin, ox, oy),
+                               ref, rtol=1e-12)
+
+
+def test_own_light_sums_are_the_numpy_definition(lenses):
+    d = lenses
+    n = d["n"]
+    ks = np.arange(n, dtype=np.int64)
+    m_cur = np.stack([_model(d, np.array([k]))[0] for k in range(n)]).astype(np.float32)
+    m_cur[4] = 0.0  # a lens with no model: its seam share is 0, not NaN
+    total = np.zeros(d["flat"].size, np.float32)
+    np.add.at(total, d["bflat"][:, None] + d["lin_s"], m_cur)
+    got = kernels.own_light_sums(ks, d["frac"], d["sup"], m_cur, total, d["bflat"], d["lin_s"],
+                                 d["p_s"], d["oxs"], d["oys"], d["p_o"], d["oxo"], d["oyo"])
+    big = np.maximum(np.maximum(total[d["bflat"][:, None] + d["lin_s"]], m_cur), 1e-30)
+    q = d["p_s"].astype(np.float64) * m_cur / big
+    ux, uy = d["oxo"] - d["frac"][:, :1], d["oyo"] - d["frac"][:, 1:]
+    po = d["p_o"] * (ux * ux + uy * uy < d["sup"] ** 2)
+    ref = np.stack([q.sum(1) + po.sum(1), q @ d["oxs"] + po @ d["oxo"],
+                    q @ d["oys"] + po @ d["oyo"]], axis=1)
+    scale = np.abs(ref).max(axis=0)  # the shares are float32: ~1e-7 of each sum's scale
+    np.testing.assert_allclose(got / scale, ref / scale, atol=1e-6)
+    shared = q[1] < d["p_s"][1] * (m_cur[1] > 0) - 1e-3  # lens 1 shares seams with lens 0
+    assert shared.any()
+
+
+def test_edge_sums_are_the_numpy_definition(lenses):
+    d = lenses
+    n = d["n"]
+    rng = np.random.default_rng(3)
+    ks = np.arange(n, dtype=np.int64)
+    total = (d["flat"] * 0.7).astype(np.float32)
+    cut_row = np.full(n, -1, np.int64)
+    cut_row[[2, 11]] = [0, 1]
+    ins_s = rng.random((2, d["ns"])) < 0.6
+    ins_o = rng.random((2, d["oxo"].size)) < 0.6
+    got = kernels.edge_sums(ks, d["frac"], d["coef"], d["sup"], d["inv2w"], total, d["bflat"],
+                            d["lin_s"], d["p_s"], d["plane"], d["oxs"], d["oys"], d["p_o"],
+                            d["oxo"], d["oyo"], cut_row, ins_s, ins_o)
+    cf = d["coef"].astype(np.float64)
+    ref = np.zeros((n, 5))
+    for ox_, oy_, seam in ((d["oxs"], d["oys"], True), (d["oxo"], d["oyo"], False)):
+        ux = (ox_ - d["frac"][:, :1]).astype(np.float64)
+        uy = (oy_ - d["frac"][:, 1:]).astype(np.float64)
+        dist = np.sqrt(ux * ux + uy * uy)
+        t = (float(d["sup"]) - dist) * float(d["inv2w"])
+        band = (t > 0) & (t < 1)
+        b = (d["plane"].astype(np.float64) if seam else
+             np.maximum(cf[:, 1:2] * ox_ + cf[:, 2:] * oy_ + cf[:, :1], 0.0))
+        gsc = b / np.maximum(dist, 1e-6) * float(d["inv2w"]) * band
+        t = np.clip(t, 0.0, 1.0)
+        r = (d["p_s"] - total[d["bflat"][:, None] + d["lin_s"]] if seam
+             else d["p_o"] - b * t)
+        on = np.ones_like(t)
+        on[[2, 11]] = ins_s if seam else ins_o
+        gsc, t = gsc * on, t * on
+        jx = gsc * ux - cf[:, 1:2] * t
+        jy = gsc * uy - cf[:, 2:] * t
+        ref += np.stack([(jx * jx).sum(1), (jy * jy).sum(1), (jx * jy).sum(1),
+                         (jx * r).sum(1), (jy * r).sum(1)], axis=1)
+    scale = np.abs(ref).max(axis=0)
+    np.testing.assert_allclose(got / scale, ref / scale, atol=2e-5)
+    # the cut discs' masks matter: without them the sums differ
+    full = kernels.edge_sums(ks, d["frac"], d["coef"], d["sup"], d["inv2w"], total, d["bflat"],
+                             d["lin_s"], d["p_s"], d["plane"], d["oxs"], d["oys"], d["p_o"],
+                             d["oxo"], d["oyo"], np.full(n, -1, np.int64), ins_s, ins_o)
+    assert np.abs(full[2] - got[2]).max() > 1e-2 * scale.max()
+    assert np.array_equal(full[3], got[3])
