@@ -152,3 +152,81 @@ def test_edge_sums_are_the_numpy_definition(lenses):
                              d["oxo"], d["oyo"], np.full(n, -1, np.int64), ins_s, ins_o)
     assert np.abs(full[2] - got[2]).max() > 1e-2 * scale.max()
     assert np.array_equal(full[3], got[3])
+
+
+@pytest.fixture(scope="module")
+def discs():
+    """Overlapping discs on a small sensor, some cut by its border."""
+    from lfcam.calibrate.microimage import DiscModel
+
+    rng = np.random.default_rng(11)
+    h, w = 70, 90
+    gx, gy = np.meshgrid(np.arange(-6.0, w + 6, 11.0), np.arange(-6.0, h + 6, 9.5))
+    c = np.column_stack([gx.ravel(), gy.ravel()]) + rng.uniform(-0.7, 0.7, (gx.size, 2))
+    coef = np.column_stack([rng.uniform(80, 120, len(c)), rng.uniform(-2, 2, (len(c), 2))])
+    image = rng.uniform(0.0, 150.0, (h, w))
+    return dict(h=h, w=w, c=c, coef=coef, image=image, model=DiscModel(6.2, 0.9, 0.0))
+
+
+def test_disc_models_are_the_numpy_definition(discs):
+    from lfcam.calibrate.microimage import _disc_terms, _Patches
+
+    d = discs
+    m = d["model"]
+    half = m.patch_half_px()
+    total = np.zeros(d["h"] * d["w"])
+    kernels.disc_models(d["h"], d["w"], d["c"], d["coef"].astype(np.float32), half,
+                        np.float32(m.support_px), np.float32(0.5 / m.edge_px), total)
+    p = _Patches((d["h"], d["w"]), d["c"], half)
+    _, _, _, cov, _, b = _disc_terms(p, d["c"], d["coef"], m)
+    mk = np.maximum(b, 0.0) * cov
+    ref = np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=total.size)
+    np.testing.assert_allclose(total, ref, rtol=1e-6, atol=1e-6 * ref.max())
+    assert ref.max() > 150.0  # overlapping: seams hold two discs' light
+
+
+def test_disc_step_sums_are_the_numpy_definition(discs):
+    from lfcam.calibrate.microimage import _disc_terms, _Patches
+
+    d = discs
+    m = d["model"]
+    half = m.patch_half_px()
+    flat = d["image"].ravel()
+    total = np.random.default_rng(2).uniform(0.0, 150.0, flat.size)
+    ks = np.arange(len(d["c"]), dtype=np.int64)
+    got = kernels.disc_step_sums(d["h"], d["w"], d["c"], d["coef"].astype(np.float32), half,
+                                 np.float32(m.support_px), np.float32(0.5 / m.edge_px), flat,
+                                 total, ks)
+    p = _Patches((d["h"], d["w"]), d["c"], half)
+    dx, dy, dist, cov, band, b = _disc_terms(p, d["c"], d["coef"], m)
+    n = len(dx)
+    r = np.where(p.inside, flat[p.flat] - total[p.flat], 0.0).astype(np.float64)
+    inv = np.where(band, b / (2.0 * m.edge_px * np.where(dist > 0, dist, 1.0)), 0.0)
+    cf = d["coef"]
+    jx = (-cf[:, 1, None, None] * cov + dx * inv).reshape(n, -1).astype(np.float64)
+    jy = (-cf[:, 2, None, None] * cov + dy * inv).reshape(n, -1).astype(np.float64)
+    rr = r.reshape(n, -1)
+    ref = np.stack([(jx * jx).sum(1), (jy * jy).sum(1), (jx * jy).sum(1), (jx * rr).sum(1),
+                    (jy * rr).sum(1)], axis=1)
+    scale = np.abs(ref).max(axis=0)
+    np.testing.assert_allclose(got / scale, ref / scale, atol=2e-6)
+    assert np.count_nonzero(got[:, 0] > 0) >= len(got) - 2  # (a corner disc is off-sensor)
+
+
+def test_core_plane_sums_are_the_definition(discs):
+    d = discs
+    half, core = 8, 4.3
+    flat = d["image"].ravel()
+    got = kernels.core_plane_sums(d["h"], d["w"], d["c"], half, core, flat)
+    ys, xs = np.mgrid[0:d["h"], 0:d["w"]]
+    for k in range(len(d["c"])):
+        cx, cy = d["c"][k]
+        bx, by = np.rint(cx), np.rint(cy)
+        dx, dy = xs - cx, ys - cy
+        m = ((np.abs(xs - bx) <= half) & (np.abs(ys - by) <= half)
+             & (np.hypot(dx, dy) < core)).ravel()
+        dx, dy, v = dx.ravel()[m], dy.ravel()[m], flat[m]
+        ref = [m.sum(), dx.sum(), dy.sum(), (dx * dx).sum(), (dx * dy).sum(), (dy * dy).sum(),
+               v.sum(), (v * dx).sum(), (v * dy).sum()]
+        np.testing.assert_allclose(got[k], ref, rtol=1e-12, atol=1e-9)
+    assert np.any(got[:, 0] == 0) and np.any(got[:, 0] > 50)  # off-sensor and whole cores

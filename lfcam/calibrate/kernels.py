@@ -10,13 +10,20 @@ fancy-indexed gather and a grouped scatter (``M[idx] += Δ`` is only exact when 
 repeats), memory-bound at 9–13 ms per 8 192 lenses; here each is one pass with no
 temporaries, and the scatter is a plain loop (repeated indices add up).
 
-The arithmetic is that of the numpy chains it replaced, in float32 where they were float32
-(the disc model on the seams), with the per-lens sums accumulated in float64. The callers
-still run the model and the sums on threads over chunks of lenses (these functions release
-the GIL) and scatter one chunk at a time (:func:`scatter_seams` under a lock).
+The Gauss–Newton fit of overlapping discs (:func:`lfcam.calibrate.microimage.fit_discs`)
+has the same two passes a step over whole patches: the model image (:func:`disc_models`)
+and each disc's normal-equation sums against it (:func:`disc_step_sums`), each pixel's
+terms computed where they are used instead of kept as (lenses × patch) arrays.
+
+The arithmetic is that of the numpy chains they replaced, in float32 where they were float32
+(the disc models), with the per-lens sums accumulated in float64. The callers still run the
+sums on threads over chunks of lenses (these functions release the GIL) and scatter one
+chunk at a time (:func:`scatter_seams` under a lock).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -222,6 +229,156 @@ def edge_sums(ks, frac, coef, sup, inv2w, total, bflat, lin_s, p_s, plane, oxs, 
     return out
 
 
+@njit(cache=True, nogil=True)
+def core_plane_sums(h, w, centres, half, core_px, image):
+    """Sums of each micro-image's brightness-plane fit over the on-sensor pixels of its
+    ``(2·half + 1)²`` patch (about its rounded centre) within ``core_px`` of its centre:
+    Σ 1, dx, dy, dx², dx·dy, dy² and Σ I·(1, dx, dy), with ``(dx, dy)`` the pixel's offset
+    from the centre (float64). ``image``: flat (h·w,) float64.
+
+    Returns
+    -------
+    (N, 9) float64
+    """
+    out = np.zeros((centres.shape[0], 9))
+    for k in range(centres.shape[0]):
+        cx = centres[k, 0]
+        cy = centres[k, 1]
+        bx = int(np.rint(cx))
+        by = int(np.rint(cy))
+        for oy in range(-half, half + 1):
+            y = by + oy
+            if y < 0 or y >= h:
+                continue
+            dy = y - cy
+            if not abs(dy) < core_px:
+                continue
+            for ox in range(-half, half + 1):
+                x = bx + ox
+                if x < 0 or x >= w:
+                    continue
+                dx = x - cx
+                if not (abs(dx) < core_px and math.hypot(dx, dy) < core_px):
+                    continue
+                v = image[y * w + x]
+                out[k, 0] += 1.0
+                out[k, 1] += dx
+                out[k, 2] += dy
+                out[k, 3] += dx * dx
+                out[k, 4] += dx * dy
+                out[k, 5] += dy * dy
+                out[k, 6] += v
+                out[k, 7] += v * dx
+                out[k, 8] += v * dy
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _disc_pixel(ox, oy, fx, fy, cf0, cf1, cf2, sup, inv2w):
+    """A disc's terms at a patch pixel ``(ox, oy)`` from its base pixel (float32): offsets
+    from the disc centre, distance, coverage before clipping, brightness plane."""
+    dx = ox - fx
+    dy = oy - fy
+    d = np.sqrt(dx * dx + dy * dy)
+    return dx, dy, d, (sup - d) * inv2w, cf0 + cf1 * dx + cf2 * dy
+
+
+@njit(cache=True, nogil=True)
+def disc_models(h, w, centres, coef, half, sup, inv2w, total):
+    """``total[y·w + x] += max(b, 0)·clip(t, 0, 1)`` over the on-sensor pixels of each disc's
+    ``(2·half + 1)²`` patch about its rounded centre: the model image of
+    :func:`lfcam.calibrate.microimage.model_image` (float32 terms, float64 sums).
+
+    Parameters
+    ----------
+    centres : (N, 2) float64
+    coef : (N, 3) float32
+        Brightness planes (a, gx, gy) about each disc centre.
+    sup, inv2w : float32
+        Support radius R + w and 1 / (2 w).
+    total : (h·w,) float64
+        Added to.
+    """
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for k in range(centres.shape[0]):
+        bx = int(np.rint(centres[k, 0]))
+        by = int(np.rint(centres[k, 1]))
+        fx = np.float32(centres[k, 0] - bx)
+        fy = np.float32(centres[k, 1] - by)
+        for oy in range(-half, half + 1):
+            y = by + oy
+            if y < 0 or y >= h:
+                continue
+            for ox in range(-half, half + 1):
+                x = bx + ox
+                if x < 0 or x >= w:
+                    continue
+                _, _, _, t, b = _disc_pixel(np.float32(ox), np.float32(oy), fx, fy,
+                                            coef[k, 0], coef[k, 1], coef[k, 2], sup, inv2w)
+                total[y * w + x] += max(b, zero) * min(max(t, zero), one)
+
+
+@njit(cache=True, nogil=True)
+def disc_step_sums(h, w, centres, coef, half, sup, inv2w, image, total, ks):
+    """Normal-equation sums of each disc's Gauss–Newton step (:func:`lfcam.calibrate.
+    microimage.fit_discs`) on its patch's on-sensor pixels: Σ jx², jy², jx·jy, jx·r, jy·r
+    with ``r`` the data minus the model image ``total`` (float32) and ``j`` the derivative of
+    the disc's model with respect to its centre (the edge ramp's, plus the brightness plane
+    sliding with the disc). ``image``, ``total``: flat (h·w,) float64. Rows ``ks``.
+
+    Returns
+    -------
+    (len(ks), 5) float64
+    """
+    out = np.zeros((ks.size, 5))
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    two_w = one / inv2w  # 2 w
+    for i in range(ks.size):
+        k = ks[i]
+        bx = int(np.rint(centres[k, 0]))
+        by = int(np.rint(centres[k, 1]))
+        fx = np.float32(centres[k, 0] - bx)
+        fy = np.float32(centres[k, 1] - by)
+        cf1 = coef[k, 1]
+        cf2 = coef[k, 2]
+        axx = 0.0
+        ayy = 0.0
+        axy = 0.0
+        sbx = 0.0
+        sby = 0.0
+        for oy in range(-half, half + 1):
+            y = by + oy
+            if y < 0 or y >= h:
+                continue
+            for ox in range(-half, half + 1):
+                x = bx + ox
+                if x < 0 or x >= w:
+                    continue
+                dx, dy, d, t, b = _disc_pixel(np.float32(ox), np.float32(oy), fx, fy,
+                                              coef[k, 0], cf1, cf2, sup, inv2w)
+                inv = zero
+                if t > zero and t < one:
+                    inv = b / (two_w * (d if d > zero else one))
+                cov = min(max(t, zero), one)
+                jx = np.float64(-cf1 * cov + dx * inv)
+                jy = np.float64(-cf2 * cov + dy * inv)
+                at = y * w + x
+                r = np.float64(np.float32(image[at] - total[at]))
+                axx += jx * jx
+                ayy += jy * jy
+                axy += jx * jy
+                sbx += jx * r
+                sby += jy * r
+        out[i, 0] = axx
+        out[i, 1] = ayy
+        out[i, 2] = axy
+        out[i, 3] = sbx
+        out[i, 4] = sby
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) the kernels for the types the fit uses."""
     f32 = np.float32
@@ -239,3 +396,9 @@ def warm_up() -> None:
     edge_sums(ks, frac, np.zeros((1, 3), f32), f32(1), f32(1), total, lin, lin, one, one, off,
               off, one, off, off, np.full(1, -1, np.int64), np.zeros((0, 1), bool),
               np.zeros((0, 1), bool))
+    cen = np.zeros((1, 2))
+    coef = np.zeros((1, 3), f32)
+    flat = np.zeros(4)
+    disc_models(2, 2, cen, coef, 1, f32(1), f32(1), flat)
+    disc_step_sums(2, 2, cen, coef, 1, f32(1), f32(1), flat, flat, ks)
+    core_plane_sums(2, 2, cen, 1, 1.0, flat)

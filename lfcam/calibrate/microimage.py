@@ -44,7 +44,6 @@ from lfcam.calibrate.parallel import run_chunks
 from lfcam.errors import CalibrationError
 from lfcam.progress import Progress
 
-CACHE_PIXELS = 8_000_000  # patch pixels kept between the two passes of a fit iteration
 CHUNK = 8192  # lenses per vectorised block (memory ≈ CHUNK × patch² × 8 doubles)
 def _noop(stage: str, done: int, total: int) -> None:
     return None
@@ -131,42 +130,27 @@ def core_radius_px(model: DiscModel, pitch_px: float) -> float:
 
 def brightness_planes(image: np.ndarray, centres: np.ndarray, half: int,
                       core_px: float) -> np.ndarray:
-    """Least-squares brightness plane (a, gx, gy) of each micro-image over its core.
+    """Least-squares brightness plane (a, gx, gy) of each micro-image over its core: the
+    on-sensor pixels of its patch within ``core_px`` of its centre (sums:
+    :func:`lfcam.calibrate.kernels.core_plane_sums`; batched 3×3 solves).
 
     ``half`` is the patch half-size, ``core_px`` the core radius (:func:`core_radius_px`).
     """
-    flat_img = image.ravel()
-    out = np.zeros((len(centres), 3))
-    for sl in _chunks(len(centres)):
-        p = _Patches(image.shape, centres[sl], half)
-        n = len(p.x)
-        dx = (p.x - centres[sl, 0, None, None]).reshape(n, -1)
-        dy = (p.y - centres[sl, 1, None, None]).reshape(n, -1)
-        m = ((np.hypot(dx, dy) < core_px) & p.inside.reshape(n, -1)).astype(np.float64)
-        v = np.where(m > 0, flat_img[p.flat.reshape(n, -1)], 0.0)
-        mx, my = m * dx, m * dy
-        ata = np.empty((n, 3, 3))
-        ata[:, 0, 0] = m.sum(1)
-        ata[:, 0, 1] = ata[:, 1, 0] = mx.sum(1)
-        ata[:, 0, 2] = ata[:, 2, 0] = my.sum(1)
-        ata[:, 1, 1] = (mx * dx).sum(1)
-        ata[:, 1, 2] = ata[:, 2, 1] = (mx * dy).sum(1)
-        ata[:, 2, 2] = (my * dy).sum(1)
-        atb = np.stack([v.sum(1), (v * dx).sum(1), (v * dy).sum(1)], axis=1)
-        out[sl] = np.linalg.solve(ata + 1e-9 * np.eye(3), atb[..., None])[..., 0]
-    return out
+    img = np.ascontiguousarray(image, dtype=np.float64)
+    q = kernels.core_plane_sums(img.shape[0], img.shape[1],
+                                np.ascontiguousarray(centres, np.float64), half, core_px,
+                                img.ravel())
+    ata = q[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3) + 1e-9 * np.eye(3)
+    return np.linalg.solve(ata, q[:, 6:, None])[..., 0]
 
 
 def model_image(shape: tuple[int, int], centres: np.ndarray, coef: np.ndarray,
                 model: DiscModel) -> np.ndarray:
-    """Flattened model image M(x) = Σ_k m_k(x)."""
+    """Flattened model image M(x) = Σ_k m_k(x) (:func:`lfcam.calibrate.kernels.disc_models`)."""
     total = np.zeros(shape[0] * shape[1])
-    half = model.patch_half_px()
-    for sl in _chunks(len(centres)):
-        p = _Patches(shape, centres[sl], half)
-        _, _, _, cov, _, b = _disc_terms(p, centres[sl], coef[sl], model)
-        mk = np.maximum(b, 0.0) * cov
-        total += np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=total.size)
+    kernels.disc_models(shape[0], shape[1], np.ascontiguousarray(centres, np.float64),
+                        np.ascontiguousarray(coef, np.float32), model.patch_half_px(),
+                        np.float32(model.support_px), np.float32(0.5 / model.edge_px), total)
     return total
 
 
@@ -311,47 +295,24 @@ def fit_discs(
         return out
 
     coef = planes()
-    cache_ok = len(c) * (2 * half + 1) ** 2 <= CACHE_PIXELS
+    sup, inv2w = np.float32(model.support_px), np.float32(0.5 / model.edge_px)
+    h, w = img.shape
     # at least four chunks, so that a full sensor of ~10 000 lenses keeps the threads busy
     chunk = max(512, min(CHUNK, -(-len(c) // 4)))
     for it in range(iterations):
         if it % 4 == 3:
             coef = planes()
-        total = np.zeros(img.size)
-        lock = threading.Lock()
-
-        def model_part(sl: slice, c: np.ndarray = c, coef: np.ndarray = coef,
-                       total: np.ndarray = total, lock: threading.Lock = lock):
-            p = _Patches(img.shape, c[sl], half)
-            terms = _disc_terms(p, c[sl], coef[sl], model)
-            mk = np.maximum(terms[5], 0.0) * terms[3]
-            part = np.bincount(p.flat[p.inside], weights=mk[p.inside], minlength=img.size)
-            with lock:  # one thread adds to the model image at a time (in order of completion:
-                total += part  # float64, the order changes it by ~1e-16)
-            return (p, terms) if cache_ok else None
-
-        cache = _run_chunks(model_part, len(c), chunk)
+        coef32 = coef.astype(np.float32)
+        total = np.zeros(img.size)  # the model image (one pass, compiled)
+        kernels.disc_models(h, w, c, coef32, half, sup, inv2w, total)
         new_c = c.copy()
 
-        def step_part(sl: slice, c: np.ndarray = c, coef: np.ndarray = coef, cache: list = cache,
+        def step_part(sl: slice, c: np.ndarray = c, coef32: np.ndarray = coef32,
                       total: np.ndarray = total, new_c: np.ndarray = new_c) -> None:
-            hit = cache[sl.start // chunk]
-            if hit is None:
-                p = _Patches(img.shape, c[sl], half)
-                hit = (p, _disc_terms(p, c[sl], coef[sl], model))
-            p, (dx, dy, d, cov, band, b) = hit
-            n = len(dx)
-            r = np.where(p.inside, flat_img[p.flat] - total[p.flat], 0.0).astype(np.float32)
-            inv = np.where(band, b / (2.0 * model.edge_px * np.where(d > 0, d, 1.0)), 0.0)
-            cf = coef[sl].astype(np.float32)
-            jx = (-cf[:, 1, None, None] * cov + dx * inv).reshape(n, -1)
-            jy = (-cf[:, 2, None, None] * cov + dy * inv).reshape(n, -1)
-            rr = r.reshape(n, -1)
-            axx = np.einsum("ij,ij->i", jx, jx, dtype=np.float64) + 1e-12
-            ayy = np.einsum("ij,ij->i", jy, jy, dtype=np.float64) + 1e-12
-            axy = np.einsum("ij,ij->i", jx, jy, dtype=np.float64)
-            bx = np.einsum("ij,ij->i", jx, rr, dtype=np.float64)
-            by = np.einsum("ij,ij->i", jy, rr, dtype=np.float64)
+            sums = kernels.disc_step_sums(h, w, c, coef32, half, sup, inv2w, flat_img, total,
+                                          np.arange(sl.start, sl.stop))
+            axx, ayy, axy, bx, by = sums.T
+            axx, ayy = axx + 1e-12, ayy + 1e-12
             det = axx * ayy - axy * axy
             ok = det > 0
             sx = np.where(ok, (ayy * bx - axy * by) / np.where(ok, det, 1.0), 0.0)
