@@ -113,3 +113,24 @@ def test_threads_give_the_serial_result(monkeypatch):
     matched, err = _match(f3.centres_px, sw.centres_px, 14.29)
     assert matched.sum() >= len(sw.centres_px) - 2
     assert float(np.sqrt(np.mean(err**2))) < 0.023
+
+
+def test_candidates_do_not_depend_on_the_bands(monkeypatch):
+    """The candidate filters in row bands of at most ``BAND_ROWS`` rows (each with a margin of
+    the filters' reach) give the one-band result exactly, on 1 and 3 threads."""
+    import lfcam.calibrate.grid as grid
+
+    sw = make_touching_white(300, 260, 14.29, rotation_rad=np.deg2rad(0.7), noise=True,
+                             read_noise=3.0, vignetting=0.45)
+    img, _ = prepare_white(sw.image)
+    monkeypatch.setenv("LFCAM_THREADS", "1")
+    monkeypatch.setattr(grid, "BAND_ROWS", 10**6)
+    pts1, val1 = grid.find_candidates(img, 14.29)
+    for threads in ("1", "3"):
+        monkeypatch.setenv("LFCAM_THREADS", threads)
+        monkeypatch.setattr(grid, "BAND_ROWS", 37)  # 8 bands, each shorter than two margins
+        pts, val = grid.find_candidates(img, 14.29)
+        order1, order = np.lexsort(pts1.T), np.lexsort(pts.T)
+        assert np.array_equal(pts1[order1], pts[order])
+        assert np.array_equal(val1[order1], val[order])
+    assert len(pts1) >= 371  # one or more for each of its 371 fully visible lenses
