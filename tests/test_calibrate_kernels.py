@@ -230,3 +230,18 @@ def test_core_plane_sums_are_the_definition(discs):
                v.sum(), (v * dx).sum(), (v * dy).sum()]
         np.testing.assert_allclose(got[k], ref, rtol=1e-12, atol=1e-9)
     assert np.any(got[:, 0] == 0) and np.any(got[:, 0] > 50)  # off-sensor and whole cores
+
+
+def test_flat_score_is_the_numpy_chain():
+    rng = np.random.default_rng(5)
+    mean = rng.uniform(0.0, 100.0, (40, 50)).astype(np.float32)
+    sq = (mean * mean + rng.uniform(-50.0, 400.0, mean.shape)).astype(np.float32)  # var < 0 too
+    var = sq - mean * mean
+    np.maximum(var, 0.0, out=var)
+    np.sqrt(var, out=var)
+    var *= 2.0
+    ref = mean - var
+    got = mean.copy()
+    kernels.flat_score(got, sq)
+    assert np.array_equal(got, ref)
+    assert np.any(sq < mean * mean) and np.any(got < mean)
