@@ -59,7 +59,7 @@ def test_seam_models_and_scatter_are_the_numpy_definition(lenses):
     ref = np.zeros(d["flat"].size, np.float64)
     ks = np.arange(3, n, 2)
     delta = np.empty((ks.size, ns), np.float32)
-    kernels.seam_models(ks, d["frac"], d["oxs"], d["oys"], d["sup"], d["inv2w"], d["plane"],
+    kernels.seam_models(ks, d["frac"], d["oxs"], d["oys"], d["sup"], d["inv2w"], d["coef"],
                         m_cur, delta)
     kernels.scatter_seams(total, d["bflat"], ks, d["lin_s"], delta)
     mk = _model(d, ks)
@@ -72,20 +72,26 @@ def test_seam_models_and_scatter_are_the_numpy_definition(lenses):
     assert np.count_nonzero(total) > ks.size * ns // 2  # the scatter reached the pixels
 
 
-def test_gathers_and_offset_sums_are_the_numpy_definition(lenses):
+def test_patch_gathers_and_sums_are_the_definition(lenses):
     d = lenses
-    ks = np.array([0, 1, 5, 9, 30], np.int64)
-    lin = d["lin"][::3]
-    out = np.full((d["n"], lin.size), -1.0, np.float32)
-    kernels.gather_rows(d["flat"], d["bflat"], ks, lin, out)
-    assert np.array_equal(out[ks], d["flat"][d["bflat"][ks, None] + lin])
-    assert np.all(out[2] == -1.0)
-    ox = np.linspace(-3, 3, lin.size)
-    oy = np.cos(np.arange(lin.size))
-    pix = d["flat"][d["bflat"][ks, None] + lin].astype(np.float64)
-    ref = np.stack([pix.sum(axis=1), pix @ ox, pix @ oy], axis=1)
-    np.testing.assert_allclose(kernels.offset_sums(d["flat"], d["bflat"], ks, lin, ox, oy),
-                               ref, rtol=1e-12)
+    h, w = 60, 80
+    image = d["flat"].reshape(h, w)
+    base = np.array([[5, 5], [40, 30], [78, 2], [0, 59], [-3, 70], [30, 20]], np.int64)
+    ks = np.array([0, 1, 2, 3, 4], np.int64)  # (lens 5 not asked for)
+    off = np.arange(-8, 9)
+    ox, oy = (a.ravel().astype(np.int64) for a in np.meshgrid(off, off))
+    out = np.full((len(base), ox.size), -1.0, np.float32)
+    kernels.gather_patch(image, base, ks, ox, oy, out)
+    x, y = base[ks, :1] + ox, base[ks, 1:] + oy
+    on = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    ref = np.where(on, image[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], 0.0)
+    assert np.array_equal(out[ks], ref)
+    assert np.all(out[5] == -1.0)
+    assert (~on).any(axis=1)[[0, 2, 3, 4]].all() and not on[4].any()  # cut, and all off
+    got = kernels.patch_sums(image, base, ks, ox, oy)
+    pix = ref.astype(np.float64)
+    np.testing.assert_allclose(got, np.stack([pix.sum(1), pix @ ox, pix @ oy], axis=1),
+                               rtol=1e-12, atol=1e-9)
 
 
 def test_own_light_sums_are_the_numpy_definition(lenses):
@@ -121,8 +127,8 @@ def test_edge_sums_are_the_numpy_definition(lenses):
     ins_s = rng.random((2, d["ns"])) < 0.6
     ins_o = rng.random((2, d["oxo"].size)) < 0.6
     got = kernels.edge_sums(ks, d["frac"], d["coef"], d["sup"], d["inv2w"], total, d["bflat"],
-                            d["lin_s"], d["p_s"], d["plane"], d["oxs"], d["oys"], d["p_o"],
-                            d["oxo"], d["oyo"], cut_row, ins_s, ins_o)
+                            d["lin_s"], d["p_s"], d["oxs"], d["oys"], d["p_o"], d["oxo"],
+                            d["oyo"], cut_row, ins_s, ins_o)
     cf = d["coef"].astype(np.float64)
     ref = np.zeros((n, 5))
     for ox_, oy_, seam in ((d["oxs"], d["oys"], True), (d["oxo"], d["oyo"], False)):
@@ -148,8 +154,8 @@ def test_edge_sums_are_the_numpy_definition(lenses):
     np.testing.assert_allclose(got / scale, ref / scale, atol=2e-5)
     # the cut discs' masks matter: without them the sums differ
     full = kernels.edge_sums(ks, d["frac"], d["coef"], d["sup"], d["inv2w"], total, d["bflat"],
-                             d["lin_s"], d["p_s"], d["plane"], d["oxs"], d["oys"], d["p_o"],
-                             d["oxo"], d["oyo"], np.full(n, -1, np.int64), ins_s, ins_o)
+                             d["lin_s"], d["p_s"], d["oxs"], d["oys"], d["p_o"], d["oxo"],
+                             d["oyo"], np.full(n, -1, np.int64), ins_s, ins_o)
     assert np.abs(full[2] - got[2]).max() > 1e-2 * scale.max()
     assert np.array_equal(full[3], got[3])
 

@@ -29,13 +29,21 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _seam_plane(coef, k, ox, oy):
+    """Lens ``k``'s brightness plane at offset ``(ox, oy)`` from its base pixel, not below 0
+    (float32, in the order ``a + gx·ox + gy·oy``)."""
+    return max(coef[k, 0] + coef[k, 1] * ox + coef[k, 2] * oy, np.float32(0.0))
+
+
 @njit(cache=True, nogil=True)
-def seam_models(ks, frac, oxs, oys, sup, inv2w, plane, m_cur, delta):
+def seam_models(ks, frac, oxs, oys, sup, inv2w, coef, m_cur, delta):
     """Disc model of the lenses ``ks`` on their seam pixels; store it in ``m_cur`` and its
     change in ``delta``.
 
     The model of lens ``k`` at seam offset ``(ox, oy)`` from its base pixel is its brightness
-    plane times the edge ramp ``clip((sup − |(ox, oy) − frac_k|)·inv2w, 0, 1)``.
+    plane there, ``max(a + gx·ox + gy·oy, 0)``, times the edge ramp ``clip((sup − |(ox, oy) −
+    frac_k|)·inv2w, 0, 1)``.
 
     Parameters
     ----------
@@ -47,8 +55,8 @@ def seam_models(ks, frac, oxs, oys, sup, inv2w, plane, m_cur, delta):
         Seam offsets from the base pixel.
     sup, inv2w : float32
         Support radius (R + w) and 1 / (2 w), pixels.
-    plane : (N, ns) float32
-        Each lens's brightness plane on its seam pixels.
+    coef : (N, 3) float32
+        Each lens's brightness plane (a, gx, gy) about its base pixel.
     m_cur : (N, ns) float32
         Each lens's current model on its seam pixels (updated in place).
     delta : (m, ns) float32
@@ -65,7 +73,7 @@ def seam_models(ks, frac, oxs, oys, sup, inv2w, plane, m_cur, delta):
             uy = oys[j] - fy
             t = (sup - np.sqrt(ux * ux + uy * uy)) * inv2w
             t = min(max(t, zero), one)
-            mk = t * plane[k, j]
+            mk = t * _seam_plane(coef, k, oxs[j], oys[j])
             delta[i, j] = mk - m_cur[k, j]
             m_cur[k, j] = mk
 
@@ -80,31 +88,40 @@ def scatter_seams(total, bflat, ks, lin_s, delta):
 
 
 @njit(cache=True, nogil=True)
-def gather_rows(flat, bflat, ks, lin, out):
-    """``out[k] = flat[bflat[k] + lin]`` for each lens ``k`` in ``ks``: the pixels at the
-    offsets ``lin`` from each lens's base pixel (flat indices in the padded image)."""
+def gather_patch(image, base, ks, ox, oy, out):
+    """``out[k, j] = image[base_y + oy[j], base_x + ox[j]]`` for each lens ``k`` in ``ks``
+    (its base pixel ``base[k]`` (x, y)), 0 off the image: the pixels at the offsets
+    ``ox, oy`` (int) from each lens's base pixel."""
+    h, w = image.shape
     for i in range(ks.size):
         k = ks[i]
-        b = bflat[k]
-        for j in range(lin.size):
-            out[k, j] = flat[b + lin[j]]
+        bx = base[k, 0]
+        by = base[k, 1]
+        for j in range(ox.size):
+            x = bx + ox[j]
+            y = by + oy[j]
+            out[k, j] = image[y, x] if 0 <= x < w and 0 <= y < h else np.float32(0.0)
 
 
 @njit(cache=True, nogil=True)
-def offset_sums(flat, bflat, ks, lin, ox, oy):
-    """Σ I·(1, ox, oy) over the offsets ``lin`` (float64 ``ox``, ``oy``) from each lens's
-    base pixel, for the lenses ``ks``; (m, 3) float64."""
+def patch_sums(image, base, ks, ox, oy):
+    """Σ I·(1, ox, oy) over the on-image pixels at the offsets ``ox, oy`` (int) from each
+    lens's base pixel, for the lenses ``ks``; (m, 3) float64."""
+    h, w = image.shape
     out = np.zeros((ks.size, 3))
     for i in range(ks.size):
-        b = bflat[ks[i]]
+        k = ks[i]
         s0 = 0.0
         s1 = 0.0
         s2 = 0.0
-        for j in range(lin.size):
-            v = flat[b + lin[j]]
-            s0 += v
-            s1 += v * ox[j]
-            s2 += v * oy[j]
+        for j in range(ox.size):
+            x = base[k, 0] + ox[j]
+            y = base[k, 1] + oy[j]
+            if 0 <= x < w and 0 <= y < h:
+                v = np.float64(image[y, x])
+                s0 += v
+                s1 += v * ox[j]
+                s2 += v * oy[j]
         out[i, 0] = s0
         out[i, 1] = s1
         out[i, 2] = s2
@@ -180,8 +197,8 @@ def _edge_pixel(ux, uy, b, pix_r, own_model, cf1, cf2, sup, inv2w, on, acc):
 
 
 @njit(cache=True, nogil=True)
-def edge_sums(ks, frac, coef, sup, inv2w, total, bflat, lin_s, p_s, plane, oxs, oys, p_o,
-              oxo, oyo, cut_row, ins_s, ins_o):
+def edge_sums(ks, frac, coef, sup, inv2w, total, bflat, lin_s, p_s, oxs, oys, p_o, oxo, oyo,
+              cut_row, ins_s, ins_o):
     """Normal-equation sums of the Gauss–Newton step of the disc centres ``ks`` on their
     seam and outer pixels: Σ jx², jy², jx·jy, jx·r, jy·r.
 
@@ -216,7 +233,7 @@ def edge_sums(ks, frac, coef, sup, inv2w, total, bflat, lin_s, p_s, plane, oxs, 
         acc[:] = 0.0
         for j in range(lin_s.size):
             on = one if cr < 0 or ins_s[cr, j] else zero
-            _edge_pixel(oxs[j] - fx, oys[j] - fy, plane[k, j],
+            _edge_pixel(oxs[j] - fx, oys[j] - fy, _seam_plane(coef, k, oxs[j], oys[j]),
                         p_s[k, j] - total[b0 + lin_s[j]], False, cf1, cf2, sup, inv2w, on,
                         acc)
         for j in range(oxo.size):
@@ -402,16 +419,16 @@ def warm_up() -> None:
     off = np.zeros(1, f32)
     lin = np.zeros(1, np.int64)
     total = np.zeros(4, f32)
-    gather_rows(total, lin, ks, lin, one)
-    offset_sums(total, lin, ks, lin, off.astype(np.float64), off.astype(np.float64))
-    seam_models(ks, frac, off, off, f32(1), f32(1), one, one.copy(), one.copy())
+    coef = np.zeros((1, 3), f32)
+    base = np.zeros((1, 2), np.int64)
+    gather_patch(np.zeros((2, 2), f32), base, ks, lin, lin, one)
+    patch_sums(np.zeros((2, 2), f32), base, ks, lin, lin)
+    seam_models(ks, frac, off, off, f32(1), f32(1), coef, one.copy(), one.copy())
     scatter_seams(total, lin, ks, lin, one)
     own_light_sums(ks, frac, f32(1), one, total, lin, lin, one, off, off, one, off, off)
-    edge_sums(ks, frac, np.zeros((1, 3), f32), f32(1), f32(1), total, lin, lin, one, one, off,
-              off, one, off, off, np.full(1, -1, np.int64), np.zeros((0, 1), bool),
-              np.zeros((0, 1), bool))
+    edge_sums(ks, frac, coef, f32(1), f32(1), total, lin, lin, one, off, off, one, off, off,
+              np.full(1, -1, np.int64), np.zeros((0, 1), bool), np.zeros((0, 1), bool))
     cen = np.zeros((1, 2))
-    coef = np.zeros((1, 3), f32)
     flat = np.zeros(4)
     disc_models(2, 2, cen, coef, 1, f32(1), f32(1), flat)
     disc_step_sums(2, 2, cen, coef, 1, f32(1), f32(1), flat, flat, ks)

@@ -544,9 +544,7 @@ def own_light_fit(
     reach = support + SLACK_PX  # from the base pixel, for any allowed drift
     half = int(np.ceil(reach))
     pad = 2 * half + 2  # a fixed lens's base lies at most support + 1 px off the sensor
-    wp = w + 2 * pad
-    padded = np.zeros((h + 2 * pad, wp), np.float32)
-    padded[pad:pad + h, pad:pad + w] = img
+    wp = w + 2 * pad  # the model image's padded width
     off = np.arange(-half, half + 1)
     ox, oy = (a.ravel() for a in np.meshgrid(off, off))
     g = np.hypot(ox, oy)
@@ -565,8 +563,7 @@ def own_light_fit(
     oxc, oyc = ox[cols_c].astype(np.float32), oy[cols_c].astype(np.float32)
     quad = np.stack([np.ones(cols_c.size), oxc, oyc, oxc * oxc, oxc * oyc, oyc * oyc],
                     axis=1).astype(np.float32)
-    lin = (oy * wp + ox).astype(np.int64)  # patch offsets in the padded flat image
-    lin_c, lin_s, lin_o, lin_in = lin[cols_c], lin[seam], lin[outer], lin[inner]
+    lin_s = (oy * wp + ox).astype(np.int64)[seam]  # seam offsets in the padded model image
     oxs, oys = ox[seam].astype(np.float32), oy[seam].astype(np.float32)
     oxo, oyo = ox[outer].astype(np.float32), oy[outer].astype(np.float32)
 
@@ -591,19 +588,17 @@ def own_light_fit(
                   & (c[fix, 1] <= h - 1)] if polish else fix[:0]
     gathered = np.r_[free, cut_fit]
 
-    flat = padded.ravel()
-    oxi, oyi = ox[inner].astype(np.float64), oy[inner].astype(np.float64)
+    sets = [(ox[m].astype(np.int64), oy[m].astype(np.int64)) for m in (cols_c, seam, outer)]
 
     def gather(sl: slice) -> None:
         k = gathered[sl]
-        kernels.gather_rows(flat, bflat, k, lin_c, p_c)
-        kernels.gather_rows(flat, bflat, k, lin_s, p_s)
-        kernels.gather_rows(flat, bflat, k, lin_o, p_o)
-        s_in[k] = kernels.offset_sums(flat, bflat, k, lin_in, oxi, oyi)
+        for (ox_, oy_), out in zip(sets, (p_c, p_s, p_o), strict=True):
+            kernels.gather_patch(img, base, k, ox_, oy_, out)
+        s_in[k] = kernels.patch_sums(img, base, k, ox[inner].astype(np.int64),
+                                     oy[inner].astype(np.int64))
         coef[k] = _core_planes(p_c[k], c[k] - base[k], oxc, oyc, quad, core_px)
 
     _run_chunks(gather, gathered.size)
-    padded = flat = None  # free the padded copy
     # on-sensor masks of the cut discs that are fitted: seam, outer, and inner moments
     cut_row = np.full(n, -1)
     cut_row[cut_fit] = np.arange(cut_fit.size)
@@ -616,21 +611,16 @@ def own_light_fit(
     ins_s = on_sensor(cut_fit, ox[seam], oy[seam])
     ins_o = on_sensor(cut_fit, ox[outer], oy[outer])
     mom_cut = on_sensor(cut_fit, ox, oy).astype(np.float64) @ w_in.astype(np.float64)
-    plane = np.empty((n, ns), np.float32)
+    coef32 = np.empty((n, 3), np.float32)  # the planes as the kernels take them
 
     def planes_on_seams() -> None:
-        """Cut lenses: the anchor's plane, extrapolated; every plane on the seam pixels."""
+        """Cut lenses: the anchor's plane, extrapolated; the float32 planes refreshed."""
         coef[fix] = coef[anchor[fix]]
         # extrapolated here (the Gauss–Newton path copies the plane instead): with touching
         # discs only edge ramps are shared, and on the rendered system 1 white the extrapolated
         # plane left the border row at 0.032 px against 0.039 px for the copy
         coef[fix, 0] += np.sum(coef[fix, 1:] * (base[fix] - base[anchor[fix]]), axis=1)
-
-        def one(sl: slice) -> None:
-            cf = coef[sl].astype(np.float32)
-            np.maximum(cf[:, :1] + cf[:, 1:2] * oxs + cf[:, 2:] * oys, 0.0, out=plane[sl])
-
-        _run_chunks(one, n)
+        coef32[:] = coef
 
     planes_on_seams()
     kmom = _coverage_moments(model)
@@ -654,7 +644,7 @@ def own_light_fit(
         def one(sl: slice) -> None:
             k = mov[sl]
             delta = np.empty((k.size, ns), np.float32)
-            kernels.seam_models(k, frac, oxs, oys, sup, inv2w, plane, m_cur, delta)
+            kernels.seam_models(k, frac, oxs, oys, sup, inv2w, coef32, m_cur, delta)
             c_mod[k] = c[k]
             with scatter_lock:
                 kernels.scatter_seams(total, bflat, k, lin_s, delta)
@@ -687,14 +677,13 @@ def own_light_fit(
         """Gauss–Newton step of the disc centres ``act`` on their ring pixels, against the data
         minus the neighbours' model (the disc edges; brightness planes held)."""
         dc = np.zeros((act.size, 2))
-        coef32 = coef.astype(np.float32)
 
         def one(sl: slice) -> None:
             k = act[sl]
             cr = cut_row[k]
             cm = cr >= 0
             sums = kernels.edge_sums(k, frac, coef32, sup, inv2w, total, bflat, lin_s, p_s,
-                                     plane, oxs, oys, p_o, oxo, oyo, cut_row, ins_s, ins_o)
+                                     oxs, oys, p_o, oxo, oyo, cut_row, ins_s, ins_o)
             # inner pixels: covered, no neighbour; the plane slides with the disc (as in
             # :func:`fit_discs`), so J = −g there and r = I − plane
             gx, gy = coef[k, 1], coef[k, 2]
