@@ -1,4 +1,4 @@
-"""Compiled inner loops of the own-light fit of touching micro-images (``numba``; compiled
+"""Compiled inner loops of the white calibration's micro-image fits (``numba``; compiled
 once, cached on disk).
 
 :func:`lfcam.calibrate.microimage.own_light_fit` keeps each lens's disc model on its *seam*
@@ -13,7 +13,9 @@ temporaries, and the scatter is a plain loop (repeated indices add up).
 The Gauss–Newton fit of overlapping discs (:func:`lfcam.calibrate.microimage.fit_discs`)
 has the same two passes a step over whole patches: the model image (:func:`disc_models`)
 and each disc's normal-equation sums against it (:func:`disc_step_sums`), each pixel's
-terms computed where they are used instead of kept as (lenses × patch) arrays.
+terms computed where they are used instead of kept as (lenses × patch) arrays; the
+brightness planes' least-squares sums (:func:`core_plane_sums`) likewise. The candidate
+search's score takes one pass between its filters (:func:`flat_score`).
 
 The arithmetic is that of the numpy chains they replaced, in float32 where they were float32
 (the disc models), with the per-lens sums accumulated in float64. The callers still run the

@@ -575,9 +575,8 @@ def own_light_fit(
     bflat = (base[:, 1] + pad) * wp + (base[:, 0] + pad)
     ns = int(seam.sum())
 
-
     # once: brightness planes about the base pixel (fixed lenses: the anchor's, extrapolated),
-    # inner sums, seam and outer pixel values, each plane on the seam pixels
+    # inner sums, and the core, seam and outer pixel values
     coef = np.zeros((n, 3))
     s_in = np.zeros((n, 3))
     p_s = np.zeros((n, ns), np.float32)
@@ -588,14 +587,15 @@ def own_light_fit(
                   & (c[fix, 1] <= h - 1)] if polish else fix[:0]
     gathered = np.r_[free, cut_fit]
 
-    sets = [(ox[m].astype(np.int64), oy[m].astype(np.int64)) for m in (cols_c, seam, outer)]
+    # the offsets (int) of the core, seam, outer and inner pixels from a lens's base pixel
+    sets = [(ox[m].astype(np.int64), oy[m].astype(np.int64))
+            for m in (cols_c, seam, outer, inner)]
 
     def gather(sl: slice) -> None:
         k = gathered[sl]
-        for (ox_, oy_), out in zip(sets, (p_c, p_s, p_o), strict=True):
+        for (ox_, oy_), out in zip(sets[:3], (p_c, p_s, p_o), strict=True):
             kernels.gather_patch(img, base, k, ox_, oy_, out)
-        s_in[k] = kernels.patch_sums(img, base, k, ox[inner].astype(np.int64),
-                                     oy[inner].astype(np.int64))
+        s_in[k] = kernels.patch_sums(img, base, k, *sets[3])
         coef[k] = _core_planes(p_c[k], c[k] - base[k], oxc, oyc, quad, core_px)
 
     _run_chunks(gather, gathered.size)
