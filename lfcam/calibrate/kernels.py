@@ -265,17 +265,11 @@ def core_plane_sums(h, w, centres, half, core_px, image):
         cy = centres[k, 1]
         bx = int(np.rint(cx))
         by = int(np.rint(cy))
-        for oy in range(-half, half + 1):
-            y = by + oy
-            if y < 0 or y >= h:
-                continue
+        for y in range(max(by - half, 0), min(by + half + 1, h)):  # the on-sensor patch
             dy = y - cy
             if not abs(dy) < core_px:
                 continue
-            for ox in range(-half, half + 1):
-                x = bx + ox
-                if x < 0 or x >= w:
-                    continue
+            for x in range(max(bx - half, 0), min(bx + half + 1, w)):
                 dx = x - cx
                 if not (abs(dx) < core_px and math.hypot(dx, dy) < core_px):
                     continue
@@ -290,6 +284,15 @@ def core_plane_sums(h, w, centres, half, core_px, image):
                 out[k, 7] += v * dx
                 out[k, 8] += v * dy
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _disc_base(centres, k):
+    """Disc ``k``'s base pixel (its centre rounded, half to even as ``np.round``) and the
+    centre's offset from it (float32)."""
+    bx = int(np.rint(centres[k, 0]))
+    by = int(np.rint(centres[k, 1]))
+    return bx, by, np.float32(centres[k, 0] - bx), np.float32(centres[k, 1] - by)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -321,18 +324,11 @@ def disc_models(h, w, centres, coef, half, sup, inv2w, total):
     zero = np.float32(0.0)
     one = np.float32(1.0)
     for k in range(centres.shape[0]):
-        bx = int(np.rint(centres[k, 0]))
-        by = int(np.rint(centres[k, 1]))
-        fx = np.float32(centres[k, 0] - bx)
-        fy = np.float32(centres[k, 1] - by)
-        for oy in range(-half, half + 1):
-            y = by + oy
-            if y < 0 or y >= h:
-                continue
-            for ox in range(-half, half + 1):
-                x = bx + ox
-                if x < 0 or x >= w:
-                    continue
+        bx, by, fx, fy = _disc_base(centres, k)
+        for y in range(max(by - half, 0), min(by + half + 1, h)):  # the on-sensor patch
+            oy = y - by
+            for x in range(max(bx - half, 0), min(bx + half + 1, w)):
+                ox = x - bx
                 _, _, _, t, b = _disc_pixel(np.float32(ox), np.float32(oy), fx, fy,
                                             coef[k, 0], coef[k, 1], coef[k, 2], sup, inv2w)
                 total[y * w + x] += max(b, zero) * min(max(t, zero), one)
@@ -356,10 +352,7 @@ def disc_step_sums(h, w, centres, coef, half, sup, inv2w, image, total, ks):
     two_w = one / inv2w  # 2 w
     for i in range(ks.size):
         k = ks[i]
-        bx = int(np.rint(centres[k, 0]))
-        by = int(np.rint(centres[k, 1]))
-        fx = np.float32(centres[k, 0] - bx)
-        fy = np.float32(centres[k, 1] - by)
+        bx, by, fx, fy = _disc_base(centres, k)
         cf1 = coef[k, 1]
         cf2 = coef[k, 2]
         axx = 0.0
@@ -367,14 +360,10 @@ def disc_step_sums(h, w, centres, coef, half, sup, inv2w, image, total, ks):
         axy = 0.0
         sbx = 0.0
         sby = 0.0
-        for oy in range(-half, half + 1):
-            y = by + oy
-            if y < 0 or y >= h:
-                continue
-            for ox in range(-half, half + 1):
-                x = bx + ox
-                if x < 0 or x >= w:
-                    continue
+        for y in range(max(by - half, 0), min(by + half + 1, h)):  # the on-sensor patch
+            oy = y - by
+            for x in range(max(bx - half, 0), min(bx + half + 1, w)):
+                ox = x - bx
                 dx, dy, d, t, b = _disc_pixel(np.float32(ox), np.float32(oy), fx, fy,
                                               coef[k, 0], cf1, cf2, sup, inv2w)
                 inv = zero
