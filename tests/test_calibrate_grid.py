@@ -130,3 +130,33 @@ def test_radial_term_recovered_and_only_when_warranted():
             # the distortion is recovered: predictions within the 0.01 px noise level
             err = predict_lattice(h_r, rad, ij) - predict_lattice(h, truth, ij)
             assert float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) < 0.005
+
+
+def test_nearest_measured_is_the_kd_tree_query():
+    """The lattice sites' nearest measured lens by table lookup (sites with a lens) and a k-d
+    tree for the rest, and the sites dropped far off the sensor, against a full query."""
+    from scipy.spatial import cKDTree
+
+    from lfcam.calibrate.grid import _nearest_measured
+
+    rng = np.random.default_rng(4)
+    pitch = 14.0
+    affine = np.array([[pitch, 0.5 * pitch, 30.0], [0.0, 0.866 * pitch, 25.0]])
+    gi, gj = np.mgrid[-3:40, -3:30]
+    sites = np.column_stack([gi.ravel(), gj.ravel()])
+    idx = sites[(sites >= 0).all(axis=1) & (sites[:, 0] < 35) & (sites[:, 1] < 26)]
+    idx = idx[rng.random(len(idx)) > 0.1]  # some lenses missed
+    shape = (int(0.866 * pitch * 26) + 40, int(pitch * 48) + 40)
+    kept, near = _nearest_measured(sites, idx, affine, shape, 2.0 * pitch)
+    full = cKDTree(idx).query(sites)[1]
+    where = {tuple(s): k for k, s in enumerate(map(tuple, sites))}
+    rows = np.array([where[tuple(s)] for s in kept])
+    dist_got = np.hypot(*(idx[near] - kept).T)
+    dist_ref = np.hypot(*(idx[full[rows]] - kept).T)
+    assert np.array_equal(dist_got, dist_ref)  # nearest (ties may pick another of equal reach)
+    occupied = (idx[near] == kept).all(axis=1)
+    assert occupied.sum() == len(idx)  # every measured lens's own site maps to it
+    xy = np.delete(sites, rows, axis=0) @ affine[:, :2].T + affine[:, 2]
+    off = np.maximum.reduce([-xy[:, 0], xy[:, 0] - (shape[1] - 1), -xy[:, 1],
+                             xy[:, 1] - (shape[0] - 1)])
+    assert len(xy) > 0 and np.all(off >= 2.0 * pitch)  # only sites far off the sensor dropped

@@ -777,8 +777,7 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     lo, hi = np.floor(f.min(axis=0)) - 1, np.ceil(f.max(axis=0)) + 1
     gi, gj = np.mgrid[int(lo[0]):int(hi[0]) + 1, int(lo[1]):int(hi[1]) + 1]
     sites = np.column_stack([gi.ravel(), gj.ravel()])
-    tree = cKDTree(idx)
-    _, near = tree.query(sites)
+    sites, near = _nearest_measured(sites, idx, affine, (h, w), reach + 2.0 * pitch)
     pred = pts[near] + (sites - idx[near]) @ basis.T
     if not fast:
         # overlapping micro-images: the first pass fitted the outermost lenses without their
@@ -826,6 +825,37 @@ def _model_centroids(img: np.ndarray, cand: np.ndarray, disc: DiscModel, pitch: 
     # the fully-visible test again on the fitted disc centres (the start may be ~0.1 px off)
     at_edge = np.r_[~inside(disc_all[measured]), np.ones(int((~full).sum()), bool)]
     return centres, flux, conv, at_edge
+
+
+def _nearest_measured(sites: np.ndarray, idx: np.ndarray, affine: np.ndarray,
+                      shape: tuple[int, int], margin_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each lattice site (i, j), the row of ``idx`` nearest it in index space: itself
+    where a lens was measured there (a table lookup), else by a k-d tree query. Sites that
+    the lattice ``affine`` puts over ``margin_px`` off the sensor are dropped (no micro-image
+    there reaches it); those sites and their rows are returned.
+
+    The same rows as a k-d tree query of every site (two lenses given one index: the first),
+    at a fraction of its cost: an Illum-size white has ~340 000 sites, of which ~230 000 are
+    measured, and the full query took 0.46 s of serial CPU.
+    """
+    h, w = shape
+    lo = sites.min(axis=0)
+    rel = idx - lo
+    span = sites.max(axis=0) - lo + 1
+    if (rel < 0).any() or (rel >= span).any():  # (measured lenses outside the sites' box)
+        return sites, cKDTree(idx).query(sites)[1]
+    slot = np.full(tuple(span), -1, np.int64)
+    rows = np.arange(len(idx))[::-1]  # the first lens of an index wins
+    slot[rel[rows, 0], rel[rows, 1]] = rows
+    near = slot[sites[:, 0] - lo[0], sites[:, 1] - lo[1]]
+    xy = sites @ affine[:, :2].T + affine[:, 2]
+    keep = ((xy[:, 0] > -margin_px) & (xy[:, 0] < w - 1 + margin_px)
+            & (xy[:, 1] > -margin_px) & (xy[:, 1] < h - 1 + margin_px)) | (near >= 0)
+    sites, near = sites[keep], near[keep]
+    free = near < 0
+    if free.any():
+        near[free] = cKDTree(idx).query(sites[free])[1]
+    return sites, near
 
 
 def _refit_discs(img: np.ndarray, disc: DiscModel, pitch: float, sel: np.ndarray,
