@@ -21,16 +21,20 @@ farther than pitch/4 from every lens that lights the sensor).
 "old" is the code at ``--baseline`` (default: the commit before the fast own-light fit),
 extracted with ``git archive`` into a temporary directory; "new" is a copy of this working
 tree's ``lfcam`` taken at the start.
-Both run in the same invocation, one after the other, on the same image.
+Both run in the same invocation on the same image, each first once untimed (its compiled
+kernels' disk cache: the extracted old code has none and would compile inside its first
+timed run; ``--cold`` skips that), then the new code ``--repeats`` times (with
+``--old-repeats`` the old code as often, the two alternating).
 
 ``--critical-path`` adds an idle-machine wall-time estimate for 2 threads from CPU times
 (:func:`critical_path`; for a loaded machine); ``--plenopticam PYTHON`` runs PlenoptiCam's
 ``LfpCalibrator`` on each case too (``benchmarks/plenopticam_driver.py``, micro-image size
 preset to the pitch by default), scored the same way; "vs new wall" is each row's wall time
-over the new code's.
+over the new code's (the median of its runs).
 
 Run:  python benchmarks/calibrate_touching.py [--cases illum-touching f01-touching ...]
-      [--skip-old] [--baseline REV] [--repeats N] [--critical-path] [--plenopticam PYTHON]
+      [--skip-old] [--baseline REV] [--repeats N] [--old-repeats] [--cold] [--critical-path]
+      [--plenopticam PYTHON]
 """
 
 from __future__ import annotations
@@ -237,6 +241,12 @@ def main() -> None:
     ap.add_argument("--baseline", default=BASELINE, help="git revision of the old code")
     ap.add_argument("--skip-old", action="store_true", help="run the new code only")
     ap.add_argument("--repeats", type=int, default=1, help="runs of the new code per case")
+    ap.add_argument("--old-repeats", action="store_true",
+                    help="as many runs of the old code, alternating with the new")
+    ap.add_argument("--cold", action="store_true",
+                    help="no discarded first run per implementation and case (the old code, "
+                         "extracted afresh, then compiles its kernels inside its first timed "
+                         "runs)")
     ap.add_argument("--critical-path", action="store_true",
                     help="also estimate the idle-machine wall time (see critical_path)")
     ap.add_argument("--plenopticam", metavar="PYTHON",
@@ -265,17 +275,22 @@ def main() -> None:
             with tempfile.TemporaryDirectory(prefix="lfcam_bt_img_") as tmp:
                 image_file = Path(tmp) / "image.npy"
                 np.save(image_file, image)
-                for label, root in impls:
-                    for _ in range(args.repeats if label == "new" else 1):
-                        r = run(root, image_file)
-                        s = score(r["centres"], truth, lit, float(r["pitch"]))
-                        crit = r["crit"] if "crit" in r else np.full(3, np.nan)
-                        rows.append((name, label, str(r["method"]), float(r["wall"]),
-                                     float(r["cpu"]), s, crit))
-                        print(f"{name} {label}: {float(r['wall']):.1f} s wall, "
-                              f"{float(r['cpu']):.1f} s CPU, critical path 2 threads "
-                              f"{crit[1]:.1f} s, rms {s['rms']:.4f}, "
-                              f"load {os.getloadavg()[0]:.1f}", flush=True)
+                if not args.cold:
+                    for _label, root in impls:
+                        run(root, image_file)  # (discarded: compiles or loads the caches)
+                order = [(label, root) for rep in range(args.repeats) for label, root in
+                         (impls if rep % 2 == 0 else impls[::-1])
+                         if label == "new" or rep == 0 or args.old_repeats]
+                for label, root in order:
+                    r = run(root, image_file)
+                    s = score(r["centres"], truth, lit, float(r["pitch"]))
+                    crit = r["crit"] if "crit" in r else np.full(3, np.nan)
+                    rows.append((name, label, str(r["method"]), float(r["wall"]),
+                                 float(r["cpu"]), s, crit))
+                    print(f"{name} {label}: {float(r['wall']):.1f} s wall, "
+                          f"{float(r['cpu']):.1f} s CPU, critical path 2 threads "
+                          f"{crit[1]:.1f} s, rms {s['rms']:.4f}, "
+                          f"load {os.getloadavg()[0]:.1f}", flush=True)
             if args.plenopticam:
                 from calibrate import run_plenopticam
 
@@ -303,7 +318,8 @@ def main() -> None:
                      "RMS px", "max px", "found/visible", "missed", "invented"))
     for name, label, method, wall, cpu, s, crit in rows:
         new = [r for r in rows if r[0] == name and r[1] == "new"]
-        ratio = f"{wall / new[0][3]:.1f}x" if new and label != "new" else "-"
+        ratio = (f"{wall / float(np.median([r[3] for r in new])):.1f}x"
+                 if new and label != "new" else "-")
         if s is None:
             print(fmt.format(name, label, method[:18], "-", "-", "-", "-", "-", "-", "-", "-",
                              "-"))

@@ -160,3 +160,38 @@ def test_nearest_measured_is_the_kd_tree_query():
     off = np.maximum.reduce([-xy[:, 0], xy[:, 0] - (shape[1] - 1), -xy[:, 1],
                              xy[:, 1] - (shape[0] - 1)])
     assert len(xy) > 0 and np.all(off >= 2.0 * pitch)  # only sites far off the sensor dropped
+
+
+def test_lattice_fits_recover_their_lattice():
+    """The similarity fit's normal equations from weighted sums against a generic weighted
+    least squares of its (2N × 4) rows, and the projective fit (compiled normal equations)
+    recovering the homography that made the points (truth: the generating parameters)."""
+    from lfcam.calibrate.grid import _robust_weights, fit_projective, predict_lattice
+
+    ij, pts, h = _lattice(None, 0.02, seed=3)
+    h_p, _ = fit_projective(ij, pts, np.ones(len(ij)), h + np.diag([0.05, -0.05, 0.0]))
+    err = predict_lattice(h_p, None, ij) - predict_lattice(h, None, ij)
+    assert float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) < 0.002  # 0.02 px noise, 5 000 pts
+    # the similarity fit, one round, against np.linalg.lstsq on its rows
+    rng = np.random.default_rng(4)
+    idx = np.mgrid[-30:31, -20:21].reshape(2, -1).T
+    a = 14.29 * rotation_matrix(0.0052) @ lattice_basis("rect")
+    xy = idx @ a.T + [3863.0, 2684.0] + rng.normal(0.0, 0.03, (len(idx), 2))
+    w0 = rng.uniform(0.2, 1.0, len(idx))
+    hs, pitch, rot, wts = fit_similarity(idx, xy, "rect", w0)
+    u = idx.astype(float) @ lattice_basis("rect").T
+    w = w0
+    for _ in range(4):  # the fit's own four rounds, by lstsq
+        rows = np.zeros((2 * len(u), 4))
+        rows[: len(u), 0], rows[len(u):, 1] = 1.0, 1.0
+        rows[: len(u), 2], rows[: len(u), 3] = u[:, 0], -u[:, 1]
+        rows[len(u):, 2], rows[len(u):, 3] = u[:, 1], u[:, 0]
+        sw = np.sqrt(np.concatenate([w, w]))
+        rhs = np.concatenate([xy[:, 0], xy[:, 1]])
+        sol = np.linalg.lstsq(rows * sw[:, None], rhs * sw, rcond=None)[0]
+        w = _robust_weights(xy - (rows @ sol).reshape(2, -1).T)
+    assert pitch == pytest.approx(float(np.hypot(sol[2], sol[3])), rel=1e-12)
+    assert rot == pytest.approx(float(np.arctan2(sol[3], sol[2])), abs=1e-12)
+    np.testing.assert_allclose(hs[:2, 2], sol[:2], rtol=1e-12)
+    np.testing.assert_allclose(wts, w, atol=1e-9)
+    assert pitch == pytest.approx(14.29, abs=2e-4) and rot == pytest.approx(0.0052, abs=2e-5)

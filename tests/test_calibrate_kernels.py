@@ -251,3 +251,27 @@ def test_flat_score_is_the_numpy_chain():
     kernels.flat_score(got, sq)
     assert np.array_equal(got, ref)
     assert np.any(sq < mean * mean) and np.any(got < mean)
+
+
+def test_projective_normal_is_the_jacobian_chain():
+    """The projective fit's normal equations (one compiled pass) against the (2N × 8)
+    Jacobian the fit built before, written out here, with zero and fractional weights."""
+    rng = np.random.default_rng(11)
+    ij = rng.integers(-300, 300, (500, 2)).astype(np.float64)
+    h = np.array([[14.3, 7.1, 3800.0], [0.2, 12.4, 2700.0], [3e-6, -2e-6, 1.0]])
+    q = ij @ h[:, :2].T + h[:, 2]
+    x, y, z = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2], q[:, 2]
+    pts = np.column_stack([x, y]) + rng.normal(0.0, 0.05, (500, 2))
+    w = rng.uniform(0.0, 1.0, 500)
+    w[::7] = 0.0
+    one, zero = np.ones(500), np.zeros(500)
+    i, j = ij[:, 0], ij[:, 1]
+    jx = np.column_stack([i / z, j / z, one / z, zero, zero, zero, -x * i / z, -x * j / z])
+    jy = np.column_stack([zero, zero, zero, i / z, j / z, one / z, -y * i / z, -y * j / z])
+    jac = np.vstack([jx, jy])
+    res = np.concatenate([pts[:, 0] - x, pts[:, 1] - y])
+    ww = np.concatenate([w, w])
+    a, b = kernels.projective_normal(ij, pts, w, h)
+    np.testing.assert_allclose(a, (jac * ww[:, None]).T @ jac, rtol=1e-12)
+    np.testing.assert_allclose(b, (jac * ww[:, None]).T @ res, rtol=1e-10,
+                               atol=1e-12 * np.abs((jac * ww[:, None]).T).sum(axis=1).max())

@@ -15,7 +15,8 @@ has the same two passes a step over whole patches: the model image (:func:`disc_
 and each disc's normal-equation sums against it (:func:`disc_step_sums`), each pixel's
 terms computed where they are used instead of kept as (lenses × patch) arrays; the
 brightness planes' least-squares sums (:func:`core_plane_sums`) likewise. The candidate
-search's score takes one pass between its filters (:func:`flat_score`).
+search's score takes one pass between its filters (:func:`flat_score`), and the projective
+lattice fit's normal equations one pass over the lenses (:func:`projective_normal`).
 
 The arithmetic is that of the numpy chains they replaced, in float32 where they were float32
 (the disc models), with the per-lens sums accumulated in float64. The callers still run the
@@ -401,6 +402,51 @@ def flat_score(mean, mean_sq):
             mean[i, j] = m - np.sqrt(max(v, zero)) * two
 
 
+@njit(cache=True, nogil=True)
+def projective_normal(ij, pts, wts, h):
+    """The weighted normal equations of one Gauss–Newton step of a projective lattice fit:
+    ``Σ w·JᵀJ`` (8, 8) and ``Σ w·Jᵀr`` (8,) over the points ``pts`` (N, 2) at lattice
+    indices ``ij`` (N, 2, float), ``r`` each point less its image through the homography
+    ``h`` (3 × 3, ``h[2, 2]`` = 1), ``J`` that image's derivatives in ``h``'s first eight
+    entries (row-major). One pass, no (2N × 8) Jacobian
+    (:func:`lfcam.calibrate.grid.fit_projective`)."""
+    a = np.zeros((8, 8))
+    b = np.zeros(8)
+    jx = np.zeros(8)
+    jy = np.zeros(8)
+    for n in range(ij.shape[0]):
+        w = wts[n]
+        if w == 0.0:
+            continue
+        i = ij[n, 0]
+        j = ij[n, 1]
+        iz = 1.0 / (h[2, 0] * i + h[2, 1] * j + h[2, 2])
+        x = (h[0, 0] * i + h[0, 1] * j + h[0, 2]) * iz
+        y = (h[1, 0] * i + h[1, 1] * j + h[1, 2]) * iz
+        jx[0] = i * iz
+        jx[1] = j * iz
+        jx[2] = iz
+        jx[6] = -x * i * iz
+        jx[7] = -x * j * iz
+        jy[3] = jx[0]
+        jy[4] = jx[1]
+        jy[5] = iz
+        jy[6] = -y * i * iz
+        jy[7] = -y * j * iz
+        rx = w * (pts[n, 0] - x)
+        ry = w * (pts[n, 1] - y)
+        for p in range(8):
+            b[p] += jx[p] * rx + jy[p] * ry
+            wx = w * jx[p]
+            wy = w * jy[p]
+            for q in range(p, 8):
+                a[p, q] += wx * jx[q] + wy * jy[q]
+    for p in range(8):
+        for q in range(p):
+            a[p, q] = a[q, p]
+    return a, b
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) the kernels for the types the fit uses."""
     f32 = np.float32
@@ -425,3 +471,4 @@ def warm_up() -> None:
     disc_step_sums(2, 2, cen, coef, 1, f32(1), f32(1), flat, flat, ks)
     core_plane_sums(2, 2, cen, 1, 1.0, flat)
     flat_score(np.zeros((2, 2), f32), np.zeros((2, 2), f32))
+    projective_normal(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(1), np.eye(3))

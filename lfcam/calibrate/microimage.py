@@ -189,15 +189,23 @@ def fit_disc_model(image: np.ndarray, centres: np.ndarray, pitch_px: float,
     r_eval = r_eval_lenses(radius_lenses) * pitch_px
     flat_img = crop.ravel()
 
-    def residual(params, pts: np.ndarray, coef: np.ndarray) -> tuple[float, float]:
+    def evaluated(pts: np.ndarray, half: int, cache: dict) -> np.ndarray:
+        # the crop pixels a trial's residual sums: those of the patches (half-size ``half``)
+        # within r_eval of the centre (the same for every trial of one patch size: kept)
+        if half not in cache:
+            p = _Patches(crop.shape, pts, half)
+            keep = p.inside & (np.hypot(p.x - mid[0], p.y - mid[1]) < r_eval)
+            cache[half] = np.unique(p.flat[keep])
+        return cache[half]
+
+    def residual(params, pts: np.ndarray, coef: np.ndarray,
+                 cache: dict | None = None) -> tuple[float, float]:
         radius, edge = float(params[0]), abs(float(params[1])) + 0.05
         if not 0.1 * pitch_px < radius < pitch_px:
             return np.inf, np.inf
         trial = DiscModel(radius, edge, 0.0)
         m = model_image(crop.shape, pts, coef, trial)
-        p = _Patches(crop.shape, pts, trial.patch_half_px())
-        keep = p.inside & (np.hypot(p.x - mid[0], p.y - mid[1]) < r_eval)
-        idx = np.unique(p.flat[keep])
+        idx = evaluated(pts, trial.patch_half_px(), {} if cache is None else cache)
         r = flat_img[idx] - m[idx]
         level = max(float(np.mean(coef[:, 0])), 1e-12)
         return float(np.sum(r * r)), float(np.sqrt(np.mean(r * r)) / level)
@@ -207,8 +215,10 @@ def fit_disc_model(image: np.ndarray, centres: np.ndarray, pitch_px: float,
     for _ in range(2 if refine else 1):
         coef = brightness_planes(crop, sel, model.patch_half_px() + 2,
                                  core_radius_px(model, pitch_px))
-        scale = residual(x0, sel, coef)[0]
-        res = minimize(lambda q, pts=sel, cf=coef, k=scale: residual(q, pts, cf)[0] / k, x0=x0,
+        pixels: dict = {}  # (this round's lenses: evaluated's pixels per patch size)
+        scale = residual(x0, sel, coef, pixels)[0]
+        res = minimize(lambda q, pts=sel, cf=coef, k=scale, px=pixels:
+                       residual(q, pts, cf, px)[0] / k, x0=x0,
                        method="Nelder-Mead", options={"xatol": 5e-3, "fatol": 1e-7,
                                                       "maxiter": 150})
         x0 = [float(res.x[0]), abs(float(res.x[1]))]
