@@ -117,6 +117,9 @@ SETTLED_GAIN = 0.05  # ... and lower the misfit² by less than this share, on a 
 SETTLED_SIGMA = 1e-3  # statistical σ (log distance) is under this: a shallower one is polished
 POLISH_NEAR_GATE = 0.7  # settled point fits are polished all the same when their misfit is
 # over this share of the line trigger or the poor-fit limit (the decision reads the misfit)
+LINE_JACOBIAN_ENDS = True  # on the cells a line's Jacobian along it from its two end points
+#                           (line_model; docs/distance.md, "A line's Jacobian along it from
+#                           its ends (stop 56)")
 LINE_TURNS = True  # each point of a line model turns its pupil sample (LensletModel.turns)
 LINE_POINTS = 12  # points of the line model, at least (and the count the ray budgets are for)
 LINE_POINTS_MAX = 48  # ... at most
@@ -1979,7 +1982,10 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
     endpoint (1 − t, t), gives both endpoints' lateral columns from one trace, and the
     distance column is a difference. Three traces of the line instead of the five of
     forward differences, the points' moments at ``q`` kept from the residual
-    (docs/distance.md, "A line's Jacobian from its points").
+    (docs/distance.md, "A line's Jacobian from its points"). On the cells
+    (:data:`LINE_JACOBIAN_ENDS`) the points are shifted across the line only, and the
+    columns along it come from the line's two end points: two traces of the line and two
+    points.
     """
     kept: dict[bytes, np.ndarray] = {}
 
@@ -1995,12 +2001,52 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
     shares = (1.0 - t, t)
     each = np.arange(count, dtype=np.int64)  # every point its own group
     shifted = np.r_[each, count + each, np.full(count, 2 * count, dtype=np.int64)]
+    # across and ends: the points shifted across the line, the distance step, the two ends
+    # (each set of points at the same place in the stack as the base's: the same pupil turns)
+    ends_groups = np.r_[each, np.full(count, count, dtype=np.int64), count + 1, count + 2]
+
+    def jac_ends(q: np.ndarray, pts: np.ndarray, shift: float, qd: np.ndarray
+                 ) -> np.ndarray | None:
+        # The lateral columns from the points shifted across the line and the line's two end
+        # points: along the line the points' weighted sums of derivatives telescope,
+        # Σ (1 − tᵢ)·∂mᵢ/∂s ≈ (M/N − m(a))/h and Σ tᵢ·∂mᵢ/∂s ≈ (m(b) − M/N)/h (h the points'
+        # spacing, M their sum, m(a), m(b) a point at either end), so the line's 3 traces of
+        # its N points become 2 and two points (docs/distance.md, "A line's Jacobian along
+        # it from its ends (stop 56)")
+        along = frame.z_rim - pts[0, 2]
+        a, b = q[1:3] * along, q[3:5] * along
+        length = float(np.hypot(*(b - a)))
+        if not length > 0.0:
+            return None
+        e = (b - a) / length
+        nv = np.array([-e[1], e[0]])
+        base = moments(q)
+        m = model.simulate_groups(
+            np.concatenate([pts + [shift * nv[0], shift * nv[1], 0.0],
+                            _line_points(frame, qd, count),
+                            [[a[0], a[1], pts[0, 2]], [b[0], b[1], pts[0, 2]]]]),
+            ends_groups, count + 3, 3)
+        m0 = base.sum(0)
+        r0 = model.residual_of(m0)
+        mean = m0 / count
+        h = length / count
+        slide = (shift / h * (mean - m[count + 1]), shift / h * (m[count + 2] - mean))
+        cols = [(model.residual_of(m[count]) - r0) / steps[0]]
+        for w, ds in zip(shares, slide, strict=True):
+            across = np.tensordot(w, m[:count] - base, 1)
+            cols += [(model.residual_of(m0 + e[k] * ds + nv[k] * across) - r0) / steps[1]
+                     for k in (0, 1)]
+        return np.column_stack(cols)
 
     def jac(q: np.ndarray, r: np.ndarray) -> np.ndarray:
         pts = _line_points(frame, q, count)
         shift = steps[1] * (frame.z_rim - pts[0, 2])
         qd = q.copy()
         qd[0] += steps[0]
+        if LINE_JACOBIAN_ENDS and model.cells:
+            got = jac_ends(q, pts, shift, qd)
+            if got is not None:
+                return got
         base = moments(q)
         m = model.simulate_groups(np.concatenate([pts + [shift, 0.0, 0.0],
                                                   pts + [0.0, shift, 0.0],
