@@ -394,14 +394,11 @@ def test_gauss_newton_does_not_evaluate_a_step_under_its_floor():
         assert f == pytest.approx(float((a @ q_min - b) @ (a @ q_min - b)), rel=1e-9)
 
 
-def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
-    # system 2 with a hexagonal MLA, a 3 mm line at 3400 mm and 135°: the fit's answer must be
-    # the minimum of the n = 6 model it reports, found here independently by
-    # Levenberg–Marquardt on that model alone from the fit's answer. With the coarse n = 2
-    # Jacobian for the fine steps (a hexagonal cell's borders cut n = 2's sub-cells: its
-    # distance column 10 % off) the answer lay 0.26 % from it (σ 0.21 %); measured 0.002 %,
-    # 0.027 % with the rim's cells cut (stop 46: the n = 4 and 6 models nearly the same, the
-    # settled step is the fine steps' last 3e-4)
+@pytest.fixture(scope="module")
+def hex_line_3400():
+    """System 2 with a hexagonal MLA: the benchmark's 3 mm line at 3400 mm and 135°
+    (``benchmarks/lines_on_cells.py``), its region's moments, its line fit, and the fit's
+    answer as the line model's parameters ``q``: (profile, geom, mom, line, frame, q)."""
     import sys
     from pathlib import Path
 
@@ -415,13 +412,24 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
     regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
     reg = max(regions, key=lambda r: len(r.lenslets))
     mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
-    point = ff.fit_lenslet_point(used, geom, img, reg, mom=mom)
-    line = ff.fit_lenslet_line(used, geom, img, reg, point, mom=mom)
-    assert line.ok
+    line = ff.fit_lenslet_line(used, geom, img, reg, mom=mom)
     frame = ff._Frame(used)
     a, b = line.ends_mm
     along = frame.z_rim - a[2]
     q = np.r_[math.log(frame.z_front - a[2]), a[:2] / along, b[:2] / along]
+    return used, geom, mom, line, frame, q
+
+
+def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum(hex_line_3400):
+    # system 2 with a hexagonal MLA, a 3 mm line at 3400 mm and 135°: the fit's answer must be
+    # the minimum of the n = 6 model it reports, found here independently by
+    # Levenberg–Marquardt on that model alone from the fit's answer. With the coarse n = 2
+    # Jacobian for the fine steps (a hexagonal cell's borders cut n = 2's sub-cells: its
+    # distance column 10 % off) the answer lay 0.26 % from it (σ 0.21 %); measured 0.002 %,
+    # 0.027 % with the rim's cells cut (stop 46: the n = 4 and 6 models nearly the same, the
+    # settled step is the fine steps' last 3e-4)
+    used, geom, mom, line, frame, q = hex_line_3400
+    assert line.ok
     fine = ff.LensletModel(used, geom, mom, 1000, cells=ff.LINE_CELLS_SETTLE)
     steps = np.r_[ff.COARSE_STEPS[0], np.full(4, ff.COARSE_STEPS[1])]
     # the fit's own point count (its footprint's length, LINE_SPACING_PITCH apart)
@@ -436,7 +444,7 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum():
     assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
 
 
-def test_line_jacobian_along_the_line_from_its_ends(monkeypatch):
+def test_line_jacobian_along_the_line_from_its_ends(hex_line_3400, monkeypatch):
     # On the cells a line's lateral columns along it come from its two end points (the
     # points' weighted derivative sums telescope: fastfit.line_model). Against the Jacobian
     # of every point shifted along x and y (the reference, its own differences), on the
@@ -445,25 +453,8 @@ def test_line_jacobian_along_the_line_from_its_ends(monkeypatch):
     # 0.5 % off, the fine stage's steps and the settled step with each Jacobian (taken
     # there) land within 0.02 % of each other (measured 0.0097 %; ≤ 0.006 % on eight of the
     # nine lines from the n = 6 minimum, 0.019 % on one; this line's σ is 0.23 %)
-    import sys
-    from pathlib import Path
-
-    from lfcam.measure.lenslets import lenslet_stats
-    from lfcam.measure.regions import find_regions
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from lines_on_cells import line_capture
-
-    img, used, geom = line_capture("hex", 3400.0, 135.0)
-    regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
-    reg = max(regions, key=lambda r: len(r.lenslets))
-    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
-    line = ff.fit_lenslet_line(used, geom, img, reg, mom=mom)
+    used, geom, mom, line, frame, q = hex_line_3400
     assert line.ok
-    frame = ff._Frame(used)
-    a, b = line.ends_mm
-    along = frame.z_rim - a[2]
-    q = np.r_[math.log(frame.z_front - a[2]), a[:2] / along, b[:2] / along]
     steps = np.r_[ff.COARSE_STEPS[0], np.full(4, ff.COARSE_STEPS[1])]
     fine = ff.LensletModel(used, geom, mom, 1000, cells=ff.LINE_CELLS_FINE)
     fun, jac = ff.line_model(fine, frame, ff.LINE_POINTS, steps)
