@@ -2005,14 +2005,14 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
     # (each set of points at the same place in the stack as the base's: the same pupil turns)
     ends_groups = np.r_[each, np.full(count, count, dtype=np.int64), count + 1, count + 2]
 
-    def jac_ends(q: np.ndarray, pts: np.ndarray, shift: float, qd: np.ndarray
-                 ) -> np.ndarray | None:
-        # The lateral columns from the points shifted across the line and the line's two end
+    def traced_ends(q: np.ndarray, pts: np.ndarray, shift: float, qd: np.ndarray,
+                    base: np.ndarray, m0: np.ndarray) -> tuple | None:
+        # The lateral changes from the points shifted across the line and the line's two end
         # points: along the line the points' weighted sums of derivatives telescope,
         # Σ (1 − tᵢ)·∂mᵢ/∂s ≈ (M/N − m(a))/h and Σ tᵢ·∂mᵢ/∂s ≈ (m(b) − M/N)/h (h the points'
         # spacing, M their sum, m(a), m(b) a point at either end), so the line's 3 traces of
         # its N points become 2 and two points (docs/distance.md, "A line's Jacobian along
-        # it from its ends (stop 56)")
+        # it from its ends (stop 56)"); None for a line of no length
         along = frame.z_rim - pts[0, 2]
         a, b = q[1:3] * along, q[3:5] * along
         length = float(np.hypot(*(b - a)))
@@ -2020,45 +2020,46 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
             return None
         e = (b - a) / length
         nv = np.array([-e[1], e[0]])
-        base = moments(q)
         m = model.simulate_groups(
             np.concatenate([pts + [shift * nv[0], shift * nv[1], 0.0],
                             _line_points(frame, qd, count),
                             [[a[0], a[1], pts[0, 2]], [b[0], b[1], pts[0, 2]]]]),
             ends_groups, count + 3, 3)
-        m0 = base.sum(0)
-        r0 = model.residual_of(m0)
         mean = m0 / count
         h = length / count
         slide = (shift / h * (mean - m[count + 1]), shift / h * (m[count + 2] - mean))
-        cols = [(model.residual_of(m[count]) - r0) / steps[0]]
+        moved = []
         for w, ds in zip(shares, slide, strict=True):
             across = np.tensordot(w, m[:count] - base, 1)
-            cols += [(model.residual_of(m0 + e[k] * ds + nv[k] * across) - r0) / steps[1]
-                     for k in (0, 1)]
-        return np.column_stack(cols)
+            moved.append([m0 + e[k] * ds + nv[k] * across for k in (0, 1)])
+        return m[count], moved
+
+    def traced_points(pts: np.ndarray, shift: float, qd: np.ndarray, base: np.ndarray,
+                      m0: np.ndarray) -> tuple:
+        # every point shifted along x, then y; each one's change weighted by its share of
+        # either end
+        m = model.simulate_groups(np.concatenate([pts + [shift, 0.0, 0.0],
+                                                  pts + [0.0, shift, 0.0],
+                                                  _line_points(frame, qd, count)]),
+                                  shifted, 2 * count + 1, 3)
+        return m[-1], [[m0 + np.tensordot(w, m[k * count:(k + 1) * count] - base, 1)
+                        for k in (0, 1)] for w in shares]
 
     def jac(q: np.ndarray, r: np.ndarray) -> np.ndarray:
         pts = _line_points(frame, q, count)
         shift = steps[1] * (frame.z_rim - pts[0, 2])
         qd = q.copy()
         qd[0] += steps[0]
-        if LINE_JACOBIAN_ENDS and model.cells:
-            got = jac_ends(q, pts, shift, qd)
-            if got is not None:
-                return got
         base = moments(q)
-        m = model.simulate_groups(np.concatenate([pts + [shift, 0.0, 0.0],
-                                                  pts + [0.0, shift, 0.0],
-                                                  _line_points(frame, qd, count)]),
-                                  shifted, 2 * count + 1, 3)
         m0 = base.sum(0)
         r0 = model.residual_of(m0)  # = r
-        lateral = [[(model.residual_of(m0 + np.tensordot(w, m[k * count:(k + 1) * count]
-                                                           - base, 1)) - r0) / steps[1]
-                    for k in (0, 1)] for w in shares]  # [[a_x, a_y], [b_x, b_y]]
-        return np.column_stack([(model.residual_of(m[-1]) - r0) / steps[0],
-                                *lateral[0], *lateral[1]])
+        # the moments at the distance step, and with either end moved along x and y
+        got = (traced_ends(q, pts, shift, qd, base, m0) if LINE_JACOBIAN_ENDS and model.cells
+               else None)
+        far, moved = got if got is not None else traced_points(pts, shift, qd, base, m0)
+        return np.column_stack([(model.residual_of(far) - r0) / steps[0],
+                                *[(model.residual_of(mk) - r0) / steps[1]
+                                  for end in moved for mk in end]])
 
     return (lambda q: model.residual_of(moments(q).sum(0))), jac
 
