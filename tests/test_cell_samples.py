@@ -483,6 +483,56 @@ def test_line_jacobian_along_the_line_from_its_ends(hex_line_3400, monkeypatch):
     assert abs(q_got[0] - q_ref[0]) < 2e-4
 
 
+def _matches_logged(monkeypatch):
+    """Spy on ``fastfit._match_summary``: (the model's n, whether ``jac0`` was given, the
+    model evaluations it made, its normalised misfit at the end) a call."""
+    log = []
+    match = ff._match_summary
+
+    def spy(*args, **kwargs):
+        model = args[4]
+        before = model.evaluations
+        out = match(*args, **kwargs)
+        log.append((model.cells, kwargs.get("jac0") is not None,
+                    model.evaluations - before, out[2]))
+        return out
+
+    monkeypatch.setattr(ff, "_match_summary", spy)
+    return log
+
+
+def test_a_lines_blur_is_summary_matched_on_the_scan_rays_alone(hex_line_3400, monkeypatch):
+    # A line's blur fitted as a point: a point's summary cannot match it (the scan's match
+    # ends at 0.05-0.27 on the grid's lines behind focus, 0.004-0.06 on its points), and its
+    # Broyden steps on the coarse cells (8-14 evaluations a start) changed nothing the line
+    # fit needs. With SUMMARY_SCAN_FIRST the point's coarse stage spends fewer evaluations on
+    # the cells matching it, and the line fit's answer is the one the cells' match gave
+    # (measured: the same to the last digit; σ 7 mm) and within 3σ of the truth
+    used, geom, mom, _, frame, _ = hex_line_3400
+    img = np.zeros((1, 1))  # (with ``mom`` given the fits read neither image nor region)
+
+    def fitted(scan_first):
+        monkeypatch.setattr(ff, "SUMMARY_SCAN_FIRST", scan_first)
+        log = _matches_logged(monkeypatch)
+        point = next(ff.point_fit_stages(used, geom, img, None, mom=mom, early=True))
+        line = ff.fit_lenslet_line(used, geom, img, None, point=point, mom=mom)
+        monkeypatch.undo()
+        assert point.ok and point.coarse and line.ok
+        return log, line
+
+    log, line = fitted(True)
+    log_cells, line_cells = fitted(False)
+    on_cells = sum(n for cells, _, n, _ in log if cells)
+    assert log and log[0][0] == 0  # (the scan's rays first)
+    # a match goes on on the cells only after a scan's match under SUMMARY_MATCHED
+    for (c0, _, _, err), (c1, jac0, _, _) in zip(log, log[1:], strict=False):
+        if c1:
+            assert c0 == 0 and err < ff.SUMMARY_MATCHED and jac0
+    assert on_cells < 0.5 * sum(n for _, _, n, _ in log_cells)  # (measured 0 against 16)
+    assert abs(line.source_mm[2] - line_cells.source_mm[2]) < 0.1 * line.sigma_distance_mm
+    assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
+
+
 def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, pieces=None):
     """deposit_cells of one whole cell (weight 1) and deposit_moments of ``dense``² samples
     spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,
@@ -616,12 +666,18 @@ def test_large_point_blur_is_fitted_on_the_cells_then_answered_by_the_rays(monke
             made.append(self)
 
     monkeypatch.setattr(ff, "LensletModel", Recorded)
+    matches = _matches_logged(monkeypatch)
     # (with ``mom`` given the fit reads neither the image nor the region)
     stages = ff.point_fit_stages(prof, geom, np.zeros((SIZE, SIZE)), None, mom=mom)
     first = next(stages)
     used_first = {m.cells for m in made if m.evaluations and not m.folded}
     fit = next(stages)
     assert first.ok and fit.ok
+    # a point's summary is matched on the scan's rays (measured 0.017-0.018), then on the
+    # coarse cells from there with that match's Jacobian (SUMMARY_SCAN_FIRST)
+    assert [(cells, jac0) for cells, jac0, _, _ in matches] == [
+        (0, False), (ff.LINE_CELLS_COARSE, True)] * 2
+    assert all(err < ff.SUMMARY_MATCHED for _, _, _, err in matches[::2])
     # the first look on the cells: the coarse, fine and polishing models' n
     assert {ff.LINE_CELLS_COARSE, ff.LINE_CELLS_FINE_WHOLE, ff.LINE_CELLS_SETTLE} <= used_first
     d_first = frame.z_front - first.source_mm[2]

@@ -83,6 +83,13 @@ COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L: differenc
 LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on the MLA by at
 #                            most this × the blur's diameter (point_steps)
 SUMMARY_ITERATIONS = 4
+SUMMARY_SCAN_FIRST = True  # a start on the cells is matched on the scan's rays first (4× cheaper
+#                           an evaluation than the coarse cells), and on the cells, from there
+#                           with that match's Jacobian, only where the summary was matched:
+SUMMARY_MATCHED = 0.05  # ... its normalised misfit under this (a point's blur: 0.001-0.06 on the
+#                         focus grid's points; a line's, which a point's summary cannot match:
+#                         0.07-0.27; docs/distance.md, "The summary matched on the scan's rays
+#                         (stop 57)")
 FINE_ITERATIONS = 4
 FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
 #                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
@@ -1419,12 +1426,17 @@ def _starts(profile, geom, mom, frame, model):
     return starts[:SCAN_KEEP], t_data
 
 
-def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS):
+def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMARY_ITERATIONS,
+                   jac0=None):
     """Broyden steps moving the model's summary at ``q`` onto the data's.
 
     The summary is smooth on the scale of a few % of distance, so the first Jacobian is taken
-    by differences over 3 % (and ~1 % of a lenslet pitch sideways, scaled by distance); later
-    steps update it by Broyden's rule (one model evaluation a step).
+    by differences over 3 % (and ~1 % of a lenslet pitch sideways, scaled by distance), or is
+    ``jac0`` (another model's match's, ending there); later steps update it by Broyden's rule
+    (one model evaluation a step).
+
+    Returns the parameters, the Jacobian (``None`` where the summary at ``q`` is not finite)
+    and the normalised misfit of the summary there.
     """
     steps = np.array([0.03, 2e-3, 2e-3])
     pitch = profile.mla.pitch_mm
@@ -1435,7 +1447,7 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
 
     t = t_of(q)
     if not np.isfinite(t).all():
-        return q
+        return q, None, math.inf
     err = float(np.linalg.norm((t - t_data) / scale))
 
     def t_many(qs):
@@ -1445,8 +1457,7 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
     def fd_jacobian(q, t):
         return _fd_jacobian(t_of, t_many, q, t, steps)
 
-    jac = fd_jacobian(q, t)
-    fresh = True
+    jac, fresh = (fd_jacobian(q, t), True) if jac0 is None else (jac0, False)
     for _ in range(iterations):
         if not np.isfinite(jac).all():
             break
@@ -1467,7 +1478,7 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         q, t, err = q + dq, t2, err2
         if abs(dq[0]) < 2e-3:
             break
-    return q
+    return q, jac, err
 
 
 def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
@@ -1837,7 +1848,16 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                 and _sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
             continue  # its light misses the data's: no summary matching has brought one back
         model = coarse_of[int(cells_ok[k])]
-        q = _match_summary(profile, geom, mom, frame, model, q0, t_data)
+        if cells_ok[k] and SUMMARY_SCAN_FIRST:
+            # a line's blur, which a point's summary cannot match, stays where the scan's rays
+            # leave it (its Broyden steps on the cells: 8-14 evaluations for nothing); a
+            # point's goes on on the cells (with the scan's end alone, its coarse stage took
+            # an iteration more)
+            q, jac_s, err = _match_summary(profile, geom, mom, frame, scan, q0, t_data)
+            if err < SUMMARY_MATCHED and jac_s is not None:
+                q = _match_summary(profile, geom, mom, frame, model, q, t_data, jac0=jac_s)[0]
+        else:
+            q = _match_summary(profile, geom, mom, frame, model, q0, t_data)[0]
         r = model.residual(frame.source(q))
         f = _sq(r)
         if best is None or f < best[1]:
