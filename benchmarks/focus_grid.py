@@ -490,6 +490,19 @@ SENSOR_GAIN = [True]  # the fits read the renders' full well (--no-sensor-gain: 
 TOLERANCE: list = [None]  # set from --tolerance (--method auto)
 
 
+def fastfit_overrides(text: str) -> dict[str, int | float | bool]:
+    """``NAME=VALUE,...`` as values for numeric constants of :mod:`lfcam.measure.fastfit`,
+    each of its constant's type (a bool: 0 or 1). ``ValueError`` names one that is not."""
+    out: dict[str, int | float | bool] = {}
+    for item in filter(None, text.split(",")):
+        name, _, value = item.partition("=")
+        old = getattr(FF, name, None)
+        if not isinstance(old, (int, float)) or not value:  # (bool: 0 or 1)
+            raise ValueError(f"{name!r} is not a numeric constant of lfcam.measure.fastfit")
+        out[name] = type(old)(float(value))
+    return out
+
+
 def main() -> None:
     """Render, measure, write the CSV, print the tables."""
     ap = argparse.ArgumentParser(description=__doc__,
@@ -544,13 +557,13 @@ def main() -> None:
         SENSOR_GAIN[0] = False
     if args.noise_free:
         NOISE.update({"photon_noise": False, "read_noise_e": 0.0})
-    for item in filter(None, args.fastfit.split(",")):
-        name, _, value = item.partition("=")
-        old = getattr(FF, name, None)
-        if not isinstance(old, (int, float)) or not value:  # (bool: 0 or 1)
-            ap.error(f"--fastfit: {name!r} is not a numeric constant of lfcam.measure.fastfit")
-        setattr(FF, name, type(old)(float(value)))
-        print(f"# fastfit {name}: {old} -> {getattr(FF, name)}", flush=True)
+    try:
+        overrides = fastfit_overrides(args.fastfit)
+    except ValueError as exc:
+        ap.error(f"--fastfit: {exc}")
+    for name, value in overrides.items():
+        print(f"# fastfit {name}: {getattr(FF, name)} -> {value}", flush=True)
+        setattr(FF, name, value)
     METHOD[0] = args.method
     if args.render_cache:
         args.render_cache.mkdir(parents=True, exist_ok=True)

@@ -16,6 +16,15 @@ Each region's :func:`lfcam.measure.fastfit.measure_lenslet` runs once to warm up
 Run two checkouts side by side (one core each) to compare them: the least CPU of several
 runs is the figure least disturbed by the other process (docs/distance.md, "A smaller label
 map and uncut rim cells (stop 49)").
+
+``--ab NAME=VALUE,...`` compares the code with itself with those constants of
+:mod:`lfcam.measure.fastfit` set (a switch such as ``SUMMARY_SCAN_FIRST=0``): each region is
+fitted alternately both ways in one process, so the machine's drift, which moves whole runs
+by ±10 % on this machine, falls on both alike; it prints both least CPUs, both answers and
+the ratio of their sums. ``--more`` adds eight regions: system 2's lines on the cells behind
+focus (hexagonal and rectangular, 1500–3400 mm, the field's centre to 80 %), a rectangular
+380 mm line, a hexagonal one at the centre, a 720 mm line, and three more of system 1's far
+lines (docs/distance.md, "The summary matched on the scan's rays (stop 57)").
 """
 
 from __future__ import annotations
@@ -54,6 +63,34 @@ CASES = (
     ("system1", "rect", 1024, 3400.0, 135.0, 0.8),
     ("system2", "rect", 1024, 560.0, 0.0, 0.0),
 )
+MORE = (  # (--more)
+    ("system2", "hex", 1536, 1500.0, 60.0, 0.6),
+    ("system2", "hex", 1536, 2200.0, 0.0, 0.8),
+    ("system2", "hex", 1024, 2900.0, 0.0, 0.0),
+    ("system2", "rect", 1536, 3400.0, 135.0, 0.6),
+    ("system2", "rect", 1024, 2900.0, 60.0, 0.0),
+    ("system2", "rect", 1536, 380.0, 60.0, 0.6),
+    ("system2", "hex", 1024, 380.0, 135.0, 0.0),
+    ("system2", "rect", 1024, 720.0, 60.0, 0.0),
+    ("system1", "rect", 1024, 2900.0, 0.0, 0.6),
+    ("system1", "rect", 1024, 2200.0, 0.0, 0.8),
+    ("system1", "rect", 1024, 1500.0, 135.0, 0.8),
+)
+
+
+def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, object]:
+    """One fit of the region with ``settings`` (fastfit constants) in force: its CPU (s) and
+    measurement."""
+    saved = {name: getattr(ff, name) for name in settings}
+    for name, value in settings.items():
+        setattr(ff, name, value)
+    try:
+        c0 = time.process_time()
+        m = ff.measure_lenslet(profile, geom, image, region, noise)
+        return time.process_time() - c0, m
+    finally:
+        for name, value in saved.items():
+            setattr(ff, name, value)
 
 
 def main() -> None:
@@ -64,14 +101,23 @@ def main() -> None:
                     help="folder for the white-image calibrations (as focus_grid.py's)")
     ap.add_argument("--render-cache", type=Path,
                     help="folder keeping the rendered captures (as focus_grid.py's)")
+    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
+                    help="fit each region alternately as it is and with these fastfit "
+                         "constants (e.g. SUMMARY_SCAN_FIRST=0)")
+    ap.add_argument("--more", action="store_true", help="eight more regions (module doc)")
     args = ap.parse_args()
+    try:
+        other = fg.fastfit_overrides(args.ab)
+    except ValueError as exc:
+        ap.error(f"--ab: {exc}")
     args.cache.mkdir(parents=True, exist_ok=True)
     if args.render_cache:
         args.render_cache.mkdir(parents=True, exist_ok=True)
         fg.RENDER_CACHE[0] = args.render_cache
     kernels.warm_up()
+    settings = [{}, other] if other else [{}]
     rows = []
-    for system, grid, size, distance_mm, angle, field in CASES:
+    for system, grid, size, distance_mm, angle, field in CASES + (MORE if args.more else ()):
         cam = fg.Camera(system, 1000.0, size, args.cache, False, grid=grid)
         image, _, _ = cam.render([cam.line(distance_mm, angle, field, 1_000_000,
                                            fg.LINE_HALF_MM)], seed=3, rays=1_000_000)
@@ -79,20 +125,34 @@ def main() -> None:
         regions = find_regions(lenslet_stats(image, geom.lmap), geom.lmap, geom.pitch_px)
         region = max(regions, key=lambda r: len(r.lenslets))
         noise = distance.noise_sigma(image)
-        ff.measure_lenslet(profile, geom, image, region, noise)  # warm up
-        spent = []
+        for s in settings:
+            _fit(profile, geom, image, region, noise, s)  # warm up
+        spent: list[list[float]] = [[] for _ in settings]
+        answers = [None] * len(settings)
         for _ in range(max(1, args.repeats)):
-            c0 = time.process_time()
-            m = ff.measure_lenslet(profile, geom, image, region, noise)
-            spent.append(time.process_time() - c0)
+            for k, s in enumerate(settings):  # (alternating: the machine's drift on both)
+                cpu, m = _fit(profile, geom, image, region, noise, s)
+                spent[k].append(cpu)
+                answers[k] = m
         rows.append((f"{system}, {grid}, {distance_mm:.0f} mm, {100 * field:.0f} % of the "
-                     f"field, {angle:.0f}°", len(region.lenslets), m.kind,
-                     100.0 * (m.distance_mm / distance_mm - 1.0), 1e3 * min(spent),
-                     1e3 * float(np.median(spent))))
+                     f"field, {angle:.0f}°", len(region.lenslets),
+                     [f"{m.kind} {100.0 * (m.distance_mm / distance_mm - 1.0):+.4f} %"
+                      for m in answers],
+                     [1e3 * min(t) for t in spent], [1e3 * float(np.median(t)) for t in spent]))
     print(f"\n# least and median CPU of {args.repeats} fits, one core")
-    print("| line region | lenslets | answer | least ms | median ms |\n|---|---|---|---|---|")
-    for name, lenslets, kind, err, least, median in rows:
-        print(f"| {name} | {lenslets} | {kind} {err:+.4f} % | {least:.1f} | {median:.1f} |")
+    if not other:
+        print("| line region | lenslets | answer | least ms | median ms |\n|---|---|---|---|---|")
+        for name, lenslets, ans, least, median in rows:
+            print(f"| {name} | {lenslets} | {ans[0]} | {least[0]:.1f} | {median[0]:.1f} |")
+        return
+    print(f"# B: {args.ab}, fitted alternately with A (the code as it is)")
+    print("| line region | lenslets | answer A | answer B | least ms A | B | median ms A | B |\n"
+          "|---|---|---|---|---|---|---|---|")
+    for name, lenslets, ans, least, median in rows:
+        print(f"| {name} | {lenslets} | {ans[0]} | {ans[1]} | {least[0]:.1f} | {least[1]:.1f} "
+              f"| {median[0]:.1f} | {median[1]:.1f} |")
+    sums = [sum(r[3][k] for r in rows) for k in range(2)]
+    print(f"| sum of least | | | | {sums[0]:.1f} | {sums[1]:.1f} | B/A {sums[1] / sums[0]:.3f} | |")
 
 
 if __name__ == "__main__":

@@ -616,3 +616,22 @@ def test_vogel_disc_is_ordered_along_alternating_bands():
     for k in np.unique(band):
         x = u[band == k]
         assert np.all(np.diff(x) > 0) if k % 2 == 0 else np.all(np.diff(x) < 0)
+
+
+def test_fastfit_overrides_take_each_constants_type():
+    # the benchmarks' switches (focus_grid.py --fastfit, line_regions.py --ab): each value
+    # takes its constant's type, a bool from 0 or 1, and a name that is no numeric constant
+    # of lfcam.measure.fastfit (unknown, or an array) is refused by name
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import focus_grid
+
+    got = focus_grid.fastfit_overrides("SUMMARY_SCAN_FIRST=0,SUMMARY_MATCHED=0.1,LINE_POINTS=14")
+    assert got == {"SUMMARY_SCAN_FIRST": False, "SUMMARY_MATCHED": 0.1, "LINE_POINTS": 14}
+    assert type(got["SUMMARY_SCAN_FIRST"]) is bool and type(got["LINE_POINTS"]) is int
+    assert focus_grid.fastfit_overrides("") == {}
+    for bad in ("NO_SUCH_CONSTANT=1", "COARSE_STEPS=1", "LINE_POINTS="):
+        with pytest.raises(ValueError, match=bad.split("=")[0]):
+            focus_grid.fastfit_overrides(bad)

@@ -86,10 +86,11 @@ SUMMARY_ITERATIONS = 4
 SUMMARY_SCAN_FIRST = True  # a start on the cells is matched on the scan's rays first (4× cheaper
 #                           an evaluation than the coarse cells), and on the cells, from there
 #                           with that match's Jacobian, only where the summary was matched:
-SUMMARY_MATCHED = 0.05  # ... its normalised misfit under this (a point's blur: 0.001-0.06 on the
-#                         focus grid's points; a line's, which a point's summary cannot match:
-#                         0.07-0.27; docs/distance.md, "The summary matched on the scan's rays
-#                         (stop 57)")
+SUMMARY_MATCHED = 0.05  # ... its normalised misfit under this: a point's blur (0.004-0.065 on the
+#                         focus grid's points), not a line's, which a point's summary cannot
+#                         match (0.04-0.27 on the grid's lines, most over 0.06; either side of
+#                         it costs only time: docs/distance.md, "The summary matched on the
+#                         scan's rays (stop 57)")
 FINE_ITERATIONS = 4
 FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
 #                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
@@ -1778,6 +1779,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``0`` always polishes, as the lens calibration does). ``mom``: the region's
     :func:`data_moments`, when the caller has them.
 
+    A start where the cells apply (:func:`cells_apply`) is matched on the scan's rays first,
+    and on the coarse cells only where that brought the summary within
+    :data:`SUMMARY_MATCHED` of the data's (:data:`SUMMARY_SCAN_FIRST`: a line's blur, which a
+    point's summary cannot match, spends no cells evaluations there).
     A large blur whose best start has the cells apply about it (:func:`cells_apply`,
     :data:`POINT_CELLS`) takes its first look on them, as a line does: the coarse and fine
     models sample the lenslet cells (n = :data:`LINE_CELLS_COARSE`, then
