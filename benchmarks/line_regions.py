@@ -1,6 +1,7 @@
 """Six line regions of the focus grid, each fitted several times: the least CPU (issue 17).
 
-Run: ``python benchmarks/line_regions.py [--repeats N] [--cache DIR] [--render-cache DIR]``
+Run: ``python benchmarks/line_regions.py [--repeats N] [--more] [--ab NAME=VALUE,...]
+[--cache DIR] [--render-cache DIR]``
 
 The regions are the grid's slow kinds (``benchmarks/focus_grid.py --lines``: a line 3 mm
 long on the MLA, a 1 m focus, photon and read noise, calibrated lenslet centres):
@@ -21,7 +22,7 @@ map and uncut rim cells (stop 49)").
 :mod:`lfcam.measure.fastfit` set (a switch such as ``SUMMARY_SCAN_FIRST=0``): each region is
 fitted alternately both ways in one process, so the machine's drift, which moves whole runs
 by ±10 % on this machine, falls on both alike; it prints both least CPUs, both answers and
-the ratio of their sums. ``--more`` adds eight regions: system 2's lines on the cells behind
+the ratio of their sums. ``--more`` adds eleven regions: system 2's lines on the cells behind
 focus (hexagonal and rectangular, 1500–3400 mm, the field's centre to 80 %), a rectangular
 380 mm line, a hexagonal one at the centre, a 720 mm line, and three more of system 1's far
 lines (docs/distance.md, "The summary matched on the scan's rays (stop 57)").
@@ -104,7 +105,7 @@ def main() -> None:
     ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
                     help="fit each region alternately as it is and with these fastfit "
                          "constants (e.g. SUMMARY_SCAN_FIRST=0)")
-    ap.add_argument("--more", action="store_true", help="eight more regions (module doc)")
+    ap.add_argument("--more", action="store_true", help="eleven more regions (module doc)")
     args = ap.parse_args()
     try:
         other = fg.fastfit_overrides(args.ab)
