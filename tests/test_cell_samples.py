@@ -503,7 +503,8 @@ def _matches_logged(monkeypatch):
 
 def test_a_lines_blur_is_summary_matched_on_the_scan_rays_alone(hex_line_3400, monkeypatch):
     # A line's blur fitted as a point: a point's summary cannot match it (the scan's match
-    # ends at 0.05-0.27 on the grid's lines behind focus, 0.004-0.06 on its points), and its
+    # ends at 0.04-0.27 on the grid's lines behind focus, most over 0.06, and at 0.004-0.065
+    # on its points; this line's at 0.051 and 0.052), and its
     # Broyden steps on the coarse cells (8-14 evaluations a start) changed nothing the line
     # fit needs. With SUMMARY_SCAN_FIRST the point's coarse stage spends fewer evaluations on
     # the cells matching it, and the line fit's answer is the one the cells' match gave
