@@ -495,6 +495,42 @@ def test_lm_ends_on_an_iteration_that_gains_little():
     assert f0 < f and abs(q0[0] - 1.0) < abs(q[0] - 1.0)
 
 
+def test_lm_ends_where_it_began_when_its_given_jacobians_first_step_fails():
+    # fastfit._levenberg_marquardt's ``first_or_stop`` (the point polish the settled test asks
+    # for: POLISH_FIRST_OR_STOP). r(q) = A (q − q*), a linear residual, from q0 = 0 with
+    # ``jac0`` = −A: its Gauss–Newton step goes to −q* and doubles the cost. With the flag the
+    # fit ends at q0 after that one evaluation, its cost and Jacobian those it began with;
+    # without it the damped trials along −A fail too, the Jacobian is taken by differences,
+    # and the fit reaches q* (Gauss–Newton on a linear residual: to the differences' error)
+    import lfcam.measure.fastfit as ff
+
+    a = np.array([[2.0, 0.5], [0.3, 1.5], [1.0, -1.0]])
+    target = np.array([0.4, -0.2])
+    calls = []
+
+    def fun(q):
+        calls.append(np.array(q))
+        return a @ (np.asarray(q) - target)
+
+    q0 = np.zeros(2)
+    r0 = fun(q0)
+    calls.clear()
+    steps = np.array([1e-6, 1e-6])
+    kw = dict(r0=r0, jac0=-a, broyden=True)
+    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, first_or_stop=True, **kw)
+    # (the one evaluation at −q*, damped by λ = 1e-4: within 1e-4)
+    assert len(calls) == 1 and np.allclose(calls[0], -target, atol=1e-4)
+    assert np.array_equal(q, q0) and f == pytest.approx(float(r0 @ r0)) and np.array_equal(jac, -a)
+    calls.clear()
+    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, **kw)
+    assert len(calls) > 4  # (the damped trials, the differences' columns, the steps)
+    np.testing.assert_allclose(q, target, atol=1e-5)
+    # a fit that starts by differences (no jac0) is not stopped by the flag
+    calls.clear()
+    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, r0=r0, first_or_stop=True)
+    np.testing.assert_allclose(q, target, atol=1e-5)
+
+
 def test_gauss_newton_tries_no_step_under_its_least():
     # fastfit._gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
     # r(q) = q − 1 (Jacobian 1), its cost raised by 4 on |q − 1| ≤ 0.015 (a model's ray noise

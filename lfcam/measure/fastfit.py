@@ -114,6 +114,13 @@ POLISH_MIN_TRIAL_LOG = FINE_MIN_TRIAL_LOG  # ... and tries no step under this th
 #                              step that lowers the misfit counts (scene (b): one of its sources
 #                              poor-fit otherwise; docs/distance.md, "The polish's steps under
 #                              the σ floor (stop 51)")
+POLISH_FIRST_OR_STOP = True  # a polish the settled test asked for ends where it began when its
+#                              first step (the fine model's Jacobian's, on the polishing model's
+#                              residual) does not lower the misfit: on the 108 grid points 8 of
+#                              77 polishes, whose damped trials and difference Jacobian then
+#                              moved the answer by at most 0.03 % in ~6 evaluations of 80 000
+#                              rays (docs/distance.md, "A polish whose first step fails (stop
+#                              57)")
 POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
 #                             answer does not meet it (point_fit_stages' ``accept``; the 108
 #                             points at 1 %: 26.6 -> 23.0 ms a region, docs/distance.md, "A
@@ -1205,7 +1212,8 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
-                         ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf):
+                         ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
+                         first_or_stop=False):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1233,6 +1241,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     difference step) and would lower the cost by less than ``trial_gain`` of it by the linear
     model; the fit ends there (such a step is the model's own ray noise to judge).
     ``stop_above``: the fit ends after an iteration that leaves the cost over this.
+    ``first_or_stop``: with ``jac0``, the fit ends where it began when the first step
+    evaluated (``jac0``'s own) does not lower the cost.
     """
     q = np.asarray(q0, dtype=np.float64)
     r = fun(q) if r0 is None else r0
@@ -1280,6 +1290,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 q, r, f = q + dq, r2, f2
                 lam = max(lam / 10, 1e-8)
                 improved = True
+                break
+            if first_or_stop and it == 0 and jac0 is not None:
+                settled = True  # (jac0's own first step failed: the fit ends where it began)
                 break
             failed = dq / steps
             lam *= 10
@@ -1958,13 +1971,16 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         #               own noise)
         jac, r, f = jac_q, r_p, _sq(r_p)
     else:
+        # (a polish the settled test asked for whose first step, that test's own, does not
+        # lower the polishing model's misfit ends there: POLISH_FIRST_OR_STOP)
         q, r, f, jac_fine = _levenberg_marquardt(fun_p, q, steps, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(polish), r0=r_p,
                                                  jac0=jac_q, broyden=True,
                                                  settle_log=POLISH_SETTLE_LOG,
                                                  min_trial=0.0 if near_gate
                                                  else POLISH_MIN_TRIAL_LOG,
-                                                 trial_gain=SETTLED_GAIN)
+                                                 trial_gain=SETTLED_GAIN,
+                                                 first_or_stop=POLISH_FIRST_OR_STOP)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
