@@ -483,6 +483,22 @@ def test_line_jacobian_along_the_line_from_its_ends(hex_line_3400, monkeypatch):
     assert abs(q_got[0] - q_ref[0]) < 2e-4
 
 
+def test_line_jacobian_of_a_folded_cells_model_is_the_per_point_one(hex_line_3400, monkeypatch):
+    # a cells model whose map folded samples rays from then on (LensletModel.folded): its
+    # line Jacobian is the per-point one, as every ray-sampled line's (the ends' own pupil
+    # samples moved ray-sampled answers by up to 1.4σ: docs/distance.md, "A line's Jacobian
+    # along it from its ends (stop 56)"), bit for bit
+    used, geom, mom, _, frame, q = hex_line_3400
+    steps = np.r_[ff.COARSE_STEPS[0], np.full(4, ff.COARSE_STEPS[1])]
+    model = ff.LensletModel(used, geom, mom, 1000, cells=ff.LINE_CELLS_FINE)
+    model.folded = True
+    fun, jac = ff.line_model(model, frame, ff.LINE_POINTS, steps)
+    r = fun(q)
+    got = jac(q, r)
+    monkeypatch.setattr(ff, "LINE_JACOBIAN_ENDS", False)
+    np.testing.assert_array_equal(got, jac(q, r))
+
+
 def _matches_logged(monkeypatch):
     """Spy on ``fastfit._match_summary``: (the model's n, whether ``jac0`` was given, the
     model evaluations it made, its normalised misfit at the end) a call."""

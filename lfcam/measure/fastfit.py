@@ -2094,9 +2094,10 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
         base = moments(q)
         m0 = base.sum(0)
         r0 = model.residual_of(m0)  # = r
-        # the moments at the distance step, and with either end moved along x and y
-        got = (traced_ends(q, pts, shift, qd, base, m0) if LINE_JACOBIAN_ENDS and model.cells
-               else None)
+        # the moments at the distance step, and with either end moved along x and y (from
+        # the ends on the cells only: a cells model that folded samples rays from then on)
+        got = (traced_ends(q, pts, shift, qd, base, m0)
+               if LINE_JACOBIAN_ENDS and model.cells and not model.folded else None)
         far, moved = got if got is not None else traced_points(pts, shift, qd, base, m0)
         return np.column_stack([(model.residual_of(far) - r0) / steps[0],
                                 *[(model.residual_of(mk) - r0) / steps[1]
