@@ -1,6 +1,6 @@
 """Six line regions of the focus grid, each fitted several times: the least CPU (issue 17).
 
-Run: ``python benchmarks/line_regions.py [--repeats N] [--more] [--ab NAME=VALUE,...]
+Run: ``python benchmarks/line_regions.py [--repeats N] [--more | --far1] [--ab NAME=VALUE,...]
 [--cache DIR] [--render-cache DIR]``
 
 The regions are the grid's slow kinds (``benchmarks/focus_grid.py --lines``: a line 3 mm
@@ -25,7 +25,10 @@ by ±10 % on this machine, falls on both alike; it prints both least CPUs, both 
 the ratio of their sums. ``--more`` adds eleven regions: system 2's lines on the cells behind
 focus (hexagonal and rectangular, 1500–3400 mm, the field's centre to 80 %), a rectangular
 380 mm line, a hexagonal one at the centre, a 720 mm line, and three more of system 1's far
-lines (docs/distance.md, "The summary matched on the scan's rays (stop 57)").
+lines (docs/distance.md, "The summary matched on the scan's rays (stop 57)"). ``--far1`` fits
+instead system 1's 24 lines behind focus at 60 and 80 % of the half-field (1500–3400 mm,
+0°, 60°, 135°): the ray-sampled, refitted kind (docs/distance.md, "The settled test before
+the fine fit's last iteration (stop 58)").
 """
 
 from __future__ import annotations
@@ -77,6 +80,9 @@ MORE = (  # (--more)
     ("system1", "rect", 1024, 2200.0, 0.0, 0.8),
     ("system1", "rect", 1024, 1500.0, 135.0, 0.8),
 )
+FAR1 = tuple(  # (--far1) system 1's 24 lines behind focus at 60 and 80 % of the half-field
+    ("system1", "rect", 1024, d, a, fld) for fld in (0.6, 0.8)
+    for d in (1500.0, 2200.0, 2900.0, 3400.0) for a in (0.0, 60.0, 135.0))
 
 
 def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, object]:
@@ -106,6 +112,8 @@ def main() -> None:
                     help="fit each region alternately as it is and with these fastfit "
                          "constants (e.g. SUMMARY_SCAN_FIRST=0)")
     ap.add_argument("--more", action="store_true", help="eleven more regions (module doc)")
+    ap.add_argument("--far1", action="store_true",
+                    help="system 1's 24 lines behind focus at 60 and 80 %% of the field only")
     args = ap.parse_args()
     try:
         other = fg.fastfit_overrides(args.ab)
@@ -118,7 +126,8 @@ def main() -> None:
     kernels.warm_up()
     settings = [{}, other] if other else [{}]
     rows = []
-    for system, grid, size, distance_mm, angle, field in CASES + (MORE if args.more else ()):
+    cases = FAR1 if args.far1 else CASES + (MORE if args.more else ())
+    for system, grid, size, distance_mm, angle, field in cases:
         cam = fg.Camera(system, 1000.0, size, args.cache, False, grid=grid)
         image, _, _ = cam.render([cam.line(distance_mm, angle, field, 1_000_000,
                                            fg.LINE_HALF_MM)], seed=3, rays=1_000_000)

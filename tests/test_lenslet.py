@@ -531,6 +531,48 @@ def test_lm_ends_where_it_began_when_its_given_jacobians_first_step_fails():
     np.testing.assert_allclose(q, target, atol=1e-5)
 
 
+def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
+    # fastfit._levenberg_marquardt's ``pause`` (a ray-sampled line's settled test before its
+    # fine fit's last iteration: LINE_REFIT_EARLY). Rosenbrock's residual (10 (y − x²), 1 − x)
+    # from (−1.2, 1): pause is called after each iteration but the last, with that
+    # iteration's end and the Jacobian it stepped with; returning true after the second ends
+    # the fit there, where the same fit without pause has gone on (at the same two iterations
+    # bit for bit); never returning true, the fit is the one without pause, and it reaches the
+    # analytic minimum (1, 1)
+    import lfcam.measure.fastfit as ff
+
+    def fun(q):
+        return np.array([10.0 * (q[1] - q[0] ** 2), 1.0 - q[0]])
+
+    def jac_of(q, r):
+        return np.array([[-20.0 * q[0], 10.0], [-1.0, 0.0]])
+
+    q0 = np.array([-1.2, 1.0])
+    steps = np.array([1e-6, 1e-6])
+    seen = []
+
+    def pause_after(k):
+        def pause(it, q, r, jac):
+            seen.append((it, np.array(q), np.array(r), np.array(jac)))
+            return it == k
+        return pause
+
+    free = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of)
+    np.testing.assert_allclose(free[0], [1.0, 1.0], atol=1e-6)
+    two = ff._levenberg_marquardt(fun, q0, steps, 2, 1e-12, jac_of=jac_of)
+    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
+                                           pause=pause_after(1))
+    assert [s[0] for s in seen] == [0, 1]
+    assert np.array_equal(q, two[0]) and np.array_equal(seen[1][1], q)
+    assert np.array_equal(seen[1][2], r) and f == pytest.approx(float(r @ r))
+    assert np.array_equal(jac, seen[1][3]) and np.array_equal(jac, two[3])
+    assert np.linalg.norm(q - [1.0, 1.0]) > 1e-3  # (stopped short of the minimum)
+    seen.clear()
+    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
+                                    pause=pause_after(-1))
+    assert np.array_equal(q, free[0]) and len(seen) >= 2
+
+
 def test_gauss_newton_tries_no_step_under_its_least():
     # fastfit._gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
     # r(q) = q − 1 (Jacobian 1), its cost raised by 4 on |q − 1| ≤ 0.015 (a model's ray noise
