@@ -91,6 +91,11 @@ SUMMARY_MATCHED = 0.05  # ... its normalised misfit under this: a point's blur (
 #                         match (0.04-0.27 on the grid's lines, most over 0.06; either side of
 #                         it costs only time: docs/distance.md, "The summary matched on the
 #                         scan's rays (stop 57)")
+SUMMARY_SAME_LOG = 0.01  # a start whose scan match lands within this (log distance) and
+#                         SUMMARY_SAME_ANGLE (x/L, y/L) of an earlier start's is that start's
+#                         basin: it is not matched on the cells again (docs/distance.md, "One
+#                         cells match a basin (stop 58)")
+SUMMARY_SAME_ANGLE = 1e-3
 FINE_ITERATIONS = 4
 FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
 #                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
@@ -1870,6 +1875,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             coarse_of.append(LensletModel(profile, geom, mom, coarse_rays,
                                           cells=LINE_CELLS_COARSE))
     best = None
+    scan_ends: list[np.ndarray] = []  # where the starts matched on the cells had their scan match
     for k, q0 in enumerate(starts):
         if (k > 0 and best[1] <= START_GOOD
                 and _sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
@@ -1881,6 +1887,11 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             # point's goes on on the cells (with the scan's end alone, its coarse stage took
             # an iteration more)
             q, jac_s, err = _match_summary(profile, geom, mom, frame, scan, q0, t_data)
+            if any(abs(q[0] - e[0]) < SUMMARY_SAME_LOG
+                   and float(np.max(np.abs(q[1:] - e[1:]))) < SUMMARY_SAME_ANGLE
+                   for e in scan_ends):
+                continue  # an earlier start's basin, matched on the cells already
+            scan_ends.append(q)
             if err < SUMMARY_MATCHED and jac_s is not None:
                 q = _match_summary(profile, geom, mom, frame, model, q, t_data, jac0=jac_s)[0]
         else:
