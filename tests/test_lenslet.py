@@ -573,6 +573,31 @@ def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
     assert np.array_equal(q, free[0]) and len(seen) >= 2
 
 
+def test_refit_starts_at_its_guess_only_where_the_misfit_is_no_worse():
+    # fastfit._refit_start (LINE_REFIT_EARLY's start of a line's refit at the linear step to
+    # the two samples' mean minimum): r(q) = q − 1, the fine model's misfit² where the fit
+    # stands f = 0.04 (q = 1.2). A guess at 1.1 (misfit² 0.01) is the start, its residual the
+    # one evaluation; a wild one at 3 (4.0) is not: the start is q, at one evaluation more;
+    # no guess, q at one evaluation
+    import lfcam.measure.fastfit as ff
+
+    calls = []
+
+    def fun_r(q):
+        calls.append(float(q[0]))
+        return np.asarray(q, dtype=float) - 1.0
+
+    q = np.array([1.2])
+    start, r = ff._refit_start(fun_r, q, 0.04, np.array([1.1]))
+    assert calls == [1.1] and start[0] == 1.1 and r[0] == pytest.approx(0.1)
+    calls.clear()
+    start, r = ff._refit_start(fun_r, q, 0.04, np.array([3.0]))
+    assert calls == [3.0, 1.2] and start is q and r[0] == pytest.approx(0.2)
+    calls.clear()
+    start, r = ff._refit_start(fun_r, q, 0.04, None)
+    assert calls == [1.2] and start is q
+
+
 def test_gauss_newton_tries_no_step_under_its_least():
     # fastfit._gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
     # r(q) = q − 1 (Jacobian 1), its cost raised by 4 on |q − 1| ≤ 0.015 (a model's ray noise
