@@ -56,6 +56,7 @@ import lfcam.distance as distance  # noqa: E402
 from lfcam.measure import fastfit as ff  # noqa: E402
 from lfcam.measure import kernels  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
+from lfcam.measure.noise import capture_noise  # noqa: E402
 from lfcam.measure.regions import find_regions  # noqa: E402
 
 # (system, MLA grid, sensor px, distance mm, line angle °, share of the half-field)
@@ -83,6 +84,19 @@ MORE = (  # (--more)
 FAR1 = tuple(  # (--far1) system 1's 24 lines behind focus at 60 and 80 % of the half-field
     ("system1", "rect", 1024, d, a, fld) for fld in (0.6, 0.8)
     for d in (1500.0, 2200.0, 2900.0, 3400.0) for a in (0.0, 60.0, 135.0))
+
+
+def prepare(cam, image: np.ndarray) -> tuple:
+    """(profile, geometry, largest region, pixel noise) of a capture, made ready as
+    ``focus_grid.py`` measures it: its measuring profile, and the capture's noise model (the
+    fits' gates read it) registered as :func:`lfcam.distance.run_distance` registers it."""
+    geom, profile = cam.geom, cam.measuring_profile()
+    stats = lenslet_stats(image, geom.lmap)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    capture_noise(image, geom.lmap, geom.pitch_px, stats, sensor_gain=distance.sensor_gain(
+        profile, float(cam.used.sensor.white_level - cam.used.sensor.black_level)))
+    return profile, geom, max(regions, key=lambda r: len(r.lenslets)), \
+        distance.noise_sigma(image)
 
 
 def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, object]:
@@ -131,10 +145,7 @@ def main() -> None:
         cam = fg.Camera(system, 1000.0, size, args.cache, False, grid=grid)
         image, _, _ = cam.render([cam.line(distance_mm, angle, field, 1_000_000,
                                            fg.LINE_HALF_MM)], seed=3, rays=1_000_000)
-        geom, profile = cam.geom, cam.used
-        regions = find_regions(lenslet_stats(image, geom.lmap), geom.lmap, geom.pitch_px)
-        region = max(regions, key=lambda r: len(r.lenslets))
-        noise = distance.noise_sigma(image)
+        profile, geom, region, noise = prepare(cam, image)
         for s in settings:
             _fit(profile, geom, image, region, noise, s)  # warm up
         spent: list[list[float]] = [[] for _ in settings]

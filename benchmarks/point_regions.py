@@ -1,0 +1,117 @@
+"""The focus grid's 108 point regions, each fitted several times in one process: the least CPU
+(issue 17).
+
+Run: ``python benchmarks/point_regions.py [--repeats N] [--ab NAME=VALUE,...] [--systems S]
+[--cache DIR] [--render-cache DIR]``
+
+The captures are ``benchmarks/focus_grid.py``'s single points (system 1 and 2, foci 1000 mm,
+1500 mm and infinity, the grid's distances, 0, 40 and 80 % of the half-field; photon and read
+noise, calibrated lenslet centres), measured as it measures them (its measuring profile and
+the capture's noise model: ``line_regions.prepare``; the largest region). Each region's
+:func:`lfcam.measure.fastfit.measure_lenslet` runs once to warm up, then ``--repeats`` times
+on one core; ``--ab`` fits each region alternately as the code is and with those fastfit
+constants set, as ``line_regions.py --ab`` does for lines, so the machine's drift falls on
+both alike. Prints a row a region and a summary: mean, max and count over 50 ms of the least
+CPUs, the ratio of their sums, the errors and how many answers moved (docs/distance.md, "One
+cells match a basin (stop 58)").
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import focus_grid as fg  # noqa: E402
+import line_regions as lr  # noqa: E402
+
+from lfcam.measure import kernels  # noqa: E402
+
+BUDGET_MS = 50.0  # issue 17's point region on one core
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--systems", default="system1,system2")
+    ap.add_argument("--cache", type=Path,
+                    default=Path(tempfile.gettempdir()) / "lfcam_focus_grid",
+                    help="folder for the white-image calibrations (as focus_grid.py's)")
+    ap.add_argument("--render-cache", type=Path,
+                    help="folder keeping the rendered captures (as focus_grid.py's)")
+    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
+                    help="fit each region alternately as it is and with these fastfit "
+                         "constants (e.g. SUMMARY_SAME_LOG=0)")
+    args = ap.parse_args()
+    try:
+        other = fg.fastfit_overrides(args.ab)
+    except ValueError as exc:
+        ap.error(f"--ab: {exc}")
+    args.cache.mkdir(parents=True, exist_ok=True)
+    if args.render_cache:
+        args.render_cache.mkdir(parents=True, exist_ok=True)
+        fg.RENDER_CACHE[0] = args.render_cache
+    kernels.warm_up()
+    settings = [{}, other] if other else [{}]
+    rows = []
+    print("| point region | lenslets | " + " | ".join(
+        f"{k} error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
+    print("|---|---|" + "---|---|" * len(settings))
+    for system in args.systems.split(","):
+        for focus in (1000.0, 1500.0, math.inf):
+            cam = fg.Camera(system, focus, None, args.cache, False)
+            dists = fg.DEFAULT_DISTANCES.get(focus, fg.DEFAULT_DISTANCES[1000.0])
+            for ad in (float(v) for v in dists.split(",")):
+                for frac in (0.0, 0.4, 0.8):
+                    obj = {"type": "point", "distance_mm": ad,
+                           "position_mm": cam.position(ad, cam.field_xy(frac))}
+                    image, _, _ = cam.render([obj], seed=3, rays=1_000_000)
+                    profile, geom, region, noise = lr.prepare(cam, image)
+                    for s in settings:
+                        lr._fit(profile, geom, image, region, noise, s)  # warm up
+                    spent: list[list[float]] = [[] for _ in settings]
+                    errors = [math.nan] * len(settings)
+                    for _ in range(max(1, args.repeats)):
+                        for k, s in enumerate(settings):
+                            cpu, m = lr._fit(profile, geom, image, region, noise, s)
+                            spent[k].append(1e3 * cpu)
+                            errors[k] = (100.0 * (m.distance_mm / ad - 1.0)
+                                         if m.status == "ok" else math.nan)
+                    least = [min(t) for t in spent]
+                    rows.append((least, errors))
+                    focus_txt = "inf" if math.isinf(focus) else f"{focus:.0f}"
+                    print(f"| {system}, focus {focus_txt}, {ad:.0f} mm, {100 * frac:.0f} % | "
+                          f"{len(region.lenslets)} | " + " | ".join(
+                              f"{e:+.4f} | {t:.1f}" for e, t in zip(errors, least,
+                                                                    strict=True)) + " |",
+                          flush=True)
+    for k, name in enumerate("AB"[:len(settings)]):
+        t = np.array([r[0][k] for r in rows])
+        e = np.abs([r[1][k] for r in rows])
+        label = "the code as it is" if k == 0 else args.ab
+        print(f"# {name} ({label}): {len(rows)} regions, least CPU mean {t.mean():.1f} ms, "
+              f"max {t.max():.0f} ms, over {BUDGET_MS:.0f} ms {int((t > BUDGET_MS).sum())}; "
+              f"error mean {np.nanmean(e):.4f} %, max {np.nanmax(e):.3f} %")
+    if other:
+        ta = sum(r[0][0] for r in rows)
+        tb = sum(r[0][1] for r in rows)
+        moved = [abs(r[1][0] - r[1][1]) for r in rows if r[1][0] != r[1][1]]
+        print(f"# sum of least B/A {tb / ta:.3f}; {len(moved)} answers moved"
+              + (f", by at most {max(moved):.4f} %" if moved else ""))
+
+
+if __name__ == "__main__":
+    main()
