@@ -573,6 +573,38 @@ def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
     assert np.array_equal(q, free[0]) and len(seen) >= 2
 
 
+def test_lm_tries_no_step_under_its_least_with_a_lateral_share():
+    # fastfit._levenberg_marquardt's ``trial_lateral`` (a ray-sampled line's fine fit:
+    # LINE_FINE_TRIAL_LATERAL). r(q) = A (q − q*), a linear residual whose minimum q* lies
+    # 1e-4 from q0 in the first parameter (log distance) and 0.3 difference steps in the
+    # second: the step there is under min_trial = 3e-4 and under half a difference step, so
+    # with trial_lateral = 0.5 no trial is evaluated (the Jacobian's columns only) and the fit
+    # stays at q0; with 0.2 it is tried and the fit reaches q* (to λ's damping: 1e-4 of the
+    # step). The rule without the share (the largest share × steps[0]: 0.3 × 1e-2 = 3e-3,
+    # over min_trial) tries it too
+    import lfcam.measure.fastfit as ff
+
+    a = np.array([[3.0, 1.0], [0.5, 2.0], [1.0, -1.0]])
+    steps = np.array([1e-2, 1e-3])
+    target = np.array([1e-4, 0.3 * steps[1]])
+    calls = []
+
+    def fun(q):
+        calls.append(np.array(q))
+        return a @ (np.asarray(q) - target)
+
+    q0 = np.zeros(2)
+    kw = dict(min_trial=3e-4, trial_gain=1.0, jac_of=lambda q, r: a)
+    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.5, **kw)
+    assert len(calls) == 1 and np.array_equal(q, q0)  # (the start's residual alone)
+    calls.clear()
+    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.2, **kw)
+    assert len(calls) > 1
+    np.testing.assert_allclose(q, target, rtol=1e-3)
+    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, **kw)
+    np.testing.assert_allclose(q, target, rtol=1e-3)
+
+
 def test_refit_starts_at_its_guess_only_where_the_misfit_is_no_worse():
     # fastfit._refit_start (LINE_REFIT_EARLY's start of a line's refit at the linear step to
     # the two samples' mean minimum): r(q) = q − 1, the fine model's misfit² where the fit

@@ -109,6 +109,10 @@ FINE_LM_ITERATIONS = 6  # Levenberg–Marquardt iterations of the polish (its ow
 #                         +20 % by the path, its minimum at +4.4 %, σ 3.7 %)
 LINE_SETTLE_LOG = 2e-5  # the line's fine fit ends on a step under this in log distance
 LINE_FINE_LM_ITERATIONS = 3  # ... and of the line (2: lines grid 0.134 → 0.156 % mean, 8 ms saved)
+LINE_FINE_TRIAL_LATERAL = 0.5  # the ray-sampled line's fine LM tries no step under
+#                                 LINE_REFIT_MIN_TRIAL_LOG in log distance and this share of
+#                                 a difference step in each lateral angle: it ends there
+#                                 (0: no such rule)
 LINE_REFIT_EARLY = True  # on the rays the settled test is read before the fine fit's last
 #                          iteration, and a line it refits goes to the refit from there
 #                          (docs/distance.md, "The settled test before the fine fit's last
@@ -1222,7 +1226,7 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
                          ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
-                         first_or_stop=False, pause=None):
+                         first_or_stop=False, pause=None, trial_lateral=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1249,6 +1253,9 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     less than ``min_trial`` (each other parameter by less than as large a share of its
     difference step) and would lower the cost by less than ``trial_gain`` of it by the linear
     model; the fit ends there (such a step is the model's own ray noise to judge).
+    ``trial_lateral`` (optional): with it, a step is that small where its log distance
+    moves by less than ``min_trial`` and each other parameter by less than this share of
+    its difference step.
     ``stop_above``: the fit ends after an iteration that leaves the cost over this.
     ``first_or_stop``: with ``jac0``, the fit ends where it began when the first step
     evaluated (``jac0``'s own) does not lower the cost.
@@ -1283,8 +1290,11 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
                 settled = True
                 break
-            if (float(np.max(np.abs(dq / steps))) * steps[0] < min_trial
-                    and f - _sq(r + jac @ dq) < trial_gain * f):
+            small = (abs(dq[0]) < min_trial
+                     and float(np.max(np.abs(dq[1:] / steps[1:]))) < trial_lateral
+                     if trial_lateral > 0.0
+                     else float(np.max(np.abs(dq / steps))) * steps[0] < min_trial)
+            if small and f - _sq(r + jac @ dq) < trial_gain * f:
                 settled = True
                 break
             if failed is not None and (np.linalg.norm(dq / steps - failed)
@@ -2485,7 +2495,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if not fine.cells:
         q, r, f, jac_fine = _levenberg_marquardt(
             fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r, jac_of=jac_f,
-            settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None)
+            settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None,
+            min_trial=LINE_REFIT_MIN_TRIAL_LOG, trial_gain=1.0,
+            trial_lateral=LINE_FINE_TRIAL_LATERAL)
         if jac_fine is not None:
             jac = jac_fine
     if math.sqrt(f) < useful_below:
