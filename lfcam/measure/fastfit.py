@@ -2496,8 +2496,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         q, r, f, jac_fine = _levenberg_marquardt(
             fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r, jac_of=jac_f,
             settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None,
-            min_trial=LINE_REFIT_MIN_TRIAL_LOG, trial_gain=1.0,
-            trial_lateral=LINE_FINE_TRIAL_LATERAL)
+            min_trial=LINE_REFIT_MIN_TRIAL_LOG if LINE_FINE_TRIAL_LATERAL > 0.0 else 0.0,
+            trial_gain=1.0, trial_lateral=LINE_FINE_TRIAL_LATERAL)
         if jac_fine is not None:
             jac = jac_fine
     if math.sqrt(f) < useful_below:
