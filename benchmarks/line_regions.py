@@ -99,6 +99,36 @@ def prepare(cam, image: np.ndarray) -> tuple:
         distance.noise_sigma(image)
 
 
+def add_ab_options(ap: argparse.ArgumentParser, repeats: int, example: str) -> None:
+    """``--repeats``, ``--cache``, ``--render-cache`` and ``--ab`` (``example``: a switch
+    to name in its help), as this script and ``point_regions.py`` take them."""
+    ap.add_argument("--repeats", type=int, default=repeats)
+    ap.add_argument("--cache", type=Path,
+                    default=Path(tempfile.gettempdir()) / "lfcam_focus_grid",
+                    help="folder for the white-image calibrations (as focus_grid.py's)")
+    ap.add_argument("--render-cache", type=Path,
+                    help="folder keeping the rendered captures (as focus_grid.py's)")
+    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
+                    help="fit each region alternately as it is and with these fastfit "
+                         f"constants (e.g. {example})")
+
+
+def ab_settings(ap: argparse.ArgumentParser, args) -> list[dict]:
+    """The fastfit settings to fit with: ``[{}]`` (the code as it is), or with ``--ab``
+    ``[{}, its constants]``; the caches made and the kernels warmed up first (``--cache``,
+    ``--render-cache``)."""
+    try:
+        other = fg.fastfit_overrides(args.ab)
+    except ValueError as exc:
+        ap.error(f"--ab: {exc}")
+    args.cache.mkdir(parents=True, exist_ok=True)
+    if args.render_cache:
+        args.render_cache.mkdir(parents=True, exist_ok=True)
+        fg.RENDER_CACHE[0] = args.render_cache
+    kernels.warm_up()
+    return [{}, other] if other else [{}]
+
+
 def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, object]:
     """One fit of the region with ``settings`` (fastfit constants) in force: its CPU (s) and
     measurement."""
@@ -116,29 +146,13 @@ def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, ob
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--cache", type=Path,
-                    default=Path(tempfile.gettempdir()) / "lfcam_focus_grid",
-                    help="folder for the white-image calibrations (as focus_grid.py's)")
-    ap.add_argument("--render-cache", type=Path,
-                    help="folder keeping the rendered captures (as focus_grid.py's)")
-    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
-                    help="fit each region alternately as it is and with these fastfit "
-                         "constants (e.g. SUMMARY_SCAN_FIRST=0)")
+    add_ab_options(ap, 7, "SUMMARY_SCAN_FIRST=0")
     ap.add_argument("--more", action="store_true", help="eleven more regions (module doc)")
     ap.add_argument("--far1", action="store_true",
                     help="system 1's 24 lines behind focus at 60 and 80 %% of the field only")
     args = ap.parse_args()
-    try:
-        other = fg.fastfit_overrides(args.ab)
-    except ValueError as exc:
-        ap.error(f"--ab: {exc}")
-    args.cache.mkdir(parents=True, exist_ok=True)
-    if args.render_cache:
-        args.render_cache.mkdir(parents=True, exist_ok=True)
-        fg.RENDER_CACHE[0] = args.render_cache
-    kernels.warm_up()
-    settings = [{}, other] if other else [{}]
+    settings = ab_settings(ap, args)
+    other = settings[-1]
     rows = []
     cases = FAR1 if args.far1 else CASES + (MORE if args.more else ())
     for system, grid, size, distance_mm, angle, field in cases:

@@ -26,7 +26,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -38,34 +37,16 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import focus_grid as fg  # noqa: E402
 import line_regions as lr  # noqa: E402
 
-from lfcam.measure import kernels  # noqa: E402
-
 BUDGET_MS = 50.0  # issue 17's point region on one core
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=3)
+    lr.add_ab_options(ap, 3, "SUMMARY_SAME_LOG=0")
     ap.add_argument("--systems", default="system1,system2")
-    ap.add_argument("--cache", type=Path,
-                    default=Path(tempfile.gettempdir()) / "lfcam_focus_grid",
-                    help="folder for the white-image calibrations (as focus_grid.py's)")
-    ap.add_argument("--render-cache", type=Path,
-                    help="folder keeping the rendered captures (as focus_grid.py's)")
-    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
-                    help="fit each region alternately as it is and with these fastfit "
-                         "constants (e.g. SUMMARY_SAME_LOG=0)")
     args = ap.parse_args()
-    try:
-        other = fg.fastfit_overrides(args.ab)
-    except ValueError as exc:
-        ap.error(f"--ab: {exc}")
-    args.cache.mkdir(parents=True, exist_ok=True)
-    if args.render_cache:
-        args.render_cache.mkdir(parents=True, exist_ok=True)
-        fg.RENDER_CACHE[0] = args.render_cache
-    kernels.warm_up()
-    settings = [{}, other] if other else [{}]
+    settings = lr.ab_settings(ap, args)
+    other = settings[-1]
     rows = []
     print("| point region | lenslets | " + " | ".join(
         f"{k} error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
