@@ -144,6 +144,22 @@ def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, ob
             setattr(ff, name, value)
 
 
+def alternate(profile, geom, image, region, noise, settings: list[dict],
+              repeats: int) -> tuple[list[list[float]], list]:
+    """Each of ``settings`` fitted once to warm up, then ``repeats`` rounds of one fit a
+    setting in turn (the machine's drift falls on all alike): each setting's CPU (s) of
+    every round and its last measurement."""
+    for s in settings:
+        _fit(profile, geom, image, region, noise, s)  # warm up
+    spent: list[list[float]] = [[] for _ in settings]
+    answers: list = [None] * len(settings)
+    for _ in range(max(1, repeats)):
+        for k, s in enumerate(settings):
+            cpu, answers[k] = _fit(profile, geom, image, region, noise, s)
+            spent[k].append(cpu)
+    return spent, answers
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_ab_options(ap, 7, "SUMMARY_SCAN_FIRST=0")
@@ -160,15 +176,7 @@ def main() -> None:
         image, _, _ = cam.render([cam.line(distance_mm, angle, field, 1_000_000,
                                            fg.LINE_HALF_MM)], seed=3, rays=1_000_000)
         profile, geom, region, noise = prepare(cam, image)
-        for s in settings:
-            _fit(profile, geom, image, region, noise, s)  # warm up
-        spent: list[list[float]] = [[] for _ in settings]
-        answers = [None] * len(settings)
-        for _ in range(max(1, args.repeats)):
-            for k, s in enumerate(settings):  # (alternating: the machine's drift on both)
-                cpu, m = _fit(profile, geom, image, region, noise, s)
-                spent[k].append(cpu)
-                answers[k] = m
+        spent, answers = alternate(profile, geom, image, region, noise, settings, args.repeats)
         rows.append((f"{system}, {grid}, {distance_mm:.0f} mm, {100 * field:.0f} % of the "
                      f"field, {angle:.0f}°", len(region.lenslets),
                      [f"{m.kind} {100.0 * (m.distance_mm / distance_mm - 1.0):+.4f} %"

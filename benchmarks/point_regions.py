@@ -61,17 +61,11 @@ def main() -> None:
                            "position_mm": cam.position(ad, cam.field_xy(frac))}
                     image, _, _ = cam.render([obj], seed=3, rays=1_000_000)
                     profile, geom, region, noise = lr.prepare(cam, image)
-                    for s in settings:
-                        lr._fit(profile, geom, image, region, noise, s)  # warm up
-                    spent: list[list[float]] = [[] for _ in settings]
-                    errors = [math.nan] * len(settings)
-                    for _ in range(max(1, args.repeats)):
-                        for k, s in enumerate(settings):
-                            cpu, m = lr._fit(profile, geom, image, region, noise, s)
-                            spent[k].append(1e3 * cpu)
-                            errors[k] = (100.0 * (m.distance_mm / ad - 1.0)
-                                         if m.status == "ok" else math.nan)
-                    least = [min(t) for t in spent]
+                    spent, answers = lr.alternate(profile, geom, image, region, noise,
+                                                  settings, args.repeats)
+                    errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok"
+                              else math.nan for m in answers]
+                    least = [1e3 * min(t) for t in spent]
                     rows.append((least, errors))
                     focus_txt = "inf" if math.isinf(focus) else f"{focus:.0f}"
                     print(f"| {system}, focus {focus_txt}, {ad:.0f} mm, {100 * frac:.0f} % | "
