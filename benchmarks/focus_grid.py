@@ -344,9 +344,10 @@ def run_points(cam: Camera, distances, fields, rays: int, emit) -> None:
                          t_r, wall / max(1, len(results)), cpu / max(1, len(results))))
 
 
-def run_scene12(cam: Camera, rays: int, emit) -> None:
-    """12 point sources in one capture."""
-    # a 4 × 3 grid, corners at 75 % of the half-field, near and far sources alternating
+def scene12_objects(cam: Camera) -> tuple[list[dict], list[tuple]]:
+    """The 12-source scene's objects, and each one's (Ad mm, field fraction, azimuth °,
+    sensor radius mm): a 4 × 3 grid, corners at 75 % of the half-field, near and far
+    sources alternating."""
     grid = [(fx, fy) for fy in (-0.45, 0.0, 0.45) for fx in (-0.6, -0.2, 0.2, 0.6)]
     near, far = scene12_distances(cam)
     dists = [near[k // 2] if k % 2 == 0 else far[k // 2] for k in range(12)]
@@ -356,6 +357,12 @@ def run_scene12(cam: Camera, rays: int, emit) -> None:
         objects.append({"type": "point", "distance_mm": ad, "position_mm": cam.position(ad, xy)})
         placed.append((ad, float(np.hypot(fx, fy)), math.degrees(math.atan2(fy, fx)),
                        float(np.hypot(*xy))))
+    return objects, placed
+
+
+def run_scene12(cam: Camera, rays: int, emit) -> None:
+    """12 point sources in one capture."""
+    objects, placed = scene12_objects(cam)
     img, truth, t_r = cam.render(objects, seed=4, rays=rays)
     results, per_region, wall, cpu = cam.measure(img)
     n = max(1, len(results))

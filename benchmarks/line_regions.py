@@ -86,17 +86,18 @@ FAR1 = tuple(  # (--far1) system 1's 24 lines behind focus at 60 and 80 % of the
     for d in (1500.0, 2200.0, 2900.0, 3400.0) for a in (0.0, 60.0, 135.0))
 
 
-def prepare(cam, image: np.ndarray) -> tuple:
+def prepare(cam, image: np.ndarray, every: bool = False) -> tuple:
     """(profile, geometry, largest region, pixel noise) of a capture, made ready as
     ``focus_grid.py`` measures it: its measuring profile, and the capture's noise model (the
-    fits' gates read it) registered as :func:`lfcam.distance.run_distance` registers it."""
+    fits' gates read it) registered as :func:`lfcam.distance.run_distance` registers it.
+    ``every``: the list of all its regions instead of the largest."""
     geom, profile = cam.geom, cam.measuring_profile()
     stats = lenslet_stats(image, geom.lmap)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
     capture_noise(image, geom.lmap, geom.pitch_px, stats, sensor_gain=distance.sensor_gain(
         profile, float(cam.used.sensor.white_level - cam.used.sensor.black_level)))
-    return profile, geom, max(regions, key=lambda r: len(r.lenslets)), \
-        distance.noise_sigma(image)
+    return (profile, geom, regions if every else max(regions, key=lambda r: len(r.lenslets)),
+            distance.noise_sigma(image))
 
 
 def add_ab_options(ap: argparse.ArgumentParser, repeats: int, example: str) -> None:

@@ -2,7 +2,7 @@
 (issue 17).
 
 Run: ``python benchmarks/point_regions.py [--repeats N] [--ab NAME=VALUE,...] [--systems S]
-[--cache DIR] [--render-cache DIR]``
+[--scene12] [--cache DIR] [--render-cache DIR]``
 
 The captures are ``benchmarks/focus_grid.py``'s single points (system 1 and 2, foci 1000 mm,
 1500 mm and infinity, the grid's distances, 0, 40 and 80 % of the half-field; photon and read
@@ -14,6 +14,10 @@ constants set, as ``line_regions.py --ab`` does for lines, so the machine's drif
 both alike. Prints a row a region and a summary: mean, max and count over 50 ms of the least
 CPUs, the ratio of their sums, the errors and how many answers moved (docs/distance.md, "One
 cells match a basin (stop 58)").
+
+``--scene12``: every region of ``focus_grid.py --scene12``'s six 12-source captures instead
+(the same captures, seed and noise), each one's error against the source its box holds: the
+crowded, far and dim blurs of a real scene, where the single points are one a capture.
 """
 
 from __future__ import annotations
@@ -44,14 +48,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     lr.add_ab_options(ap, 3, "SUMMARY_SAME_LOG=0")
     ap.add_argument("--systems", default="system1,system2")
+    ap.add_argument("--scene12", action="store_true",
+                    help="the regions of focus_grid.py's six 12-source captures instead")
     args = ap.parse_args()
     settings = lr.ab_settings(ap, args)
-    other = settings[-1]
-    rows = []
     print("| point region | lenslets | " + " | ".join(
         f"{k} error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
     print("|---|---|" + "---|---|" * len(settings))
-    for system in args.systems.split(","):
+    rows = scene12_rows(args, settings) if args.scene12 else []
+    for system in args.systems.split(",") if not args.scene12 else ():
         for focus in (1000.0, 1500.0, math.inf):
             cam = fg.Camera(system, focus, None, args.cache, False)
             dists = fg.DEFAULT_DISTANCES.get(focus, fg.DEFAULT_DISTANCES[1000.0])
@@ -61,29 +66,66 @@ def main() -> None:
                            "position_mm": cam.position(ad, cam.field_xy(frac))}
                     image, _, _ = cam.render([obj], seed=3, rays=1_000_000)
                     profile, geom, region, noise = lr.prepare(cam, image)
-                    spent, answers = lr.alternate(profile, geom, image, region, noise,
-                                                  settings, args.repeats)
-                    errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok"
-                              else math.nan for m in answers]
-                    least = [1e3 * min(t) for t in spent]
-                    rows.append((least, errors))
-                    focus_txt = "inf" if math.isinf(focus) else f"{focus:.0f}"
-                    print(f"| {system}, focus {focus_txt}, {ad:.0f} mm, {100 * frac:.0f} % | "
-                          f"{len(region.lenslets)} | " + " | ".join(
-                              f"{e:+.4f} | {t:.1f}" for e, t in zip(errors, least,
-                                                                    strict=True)) + " |",
-                          flush=True)
+                    rows.append(fit_row(f"{_case(system, focus)}, {ad:.0f} mm, "
+                                        f"{100 * frac:.0f} %", args, settings, profile, geom,
+                                        image, region, noise, ad))
+    summary(rows, settings, args.ab)
+
+
+def scene12_rows(args, settings: list[dict]) -> list[tuple]:
+    """Each region of the six 12-source captures (``focus_grid.py --scene12``: systems 1
+    and 2, foci 1000 mm, 1500 mm and ∞), fitted as :func:`main` fits the single points; its
+    error against the source whose centroid its box holds (NaN: none or several)."""
+    rows = []
+    for system in args.systems.split(","):
+        for focus in (1000.0, 1500.0, math.inf):
+            cam = fg.Camera(system, focus, None, args.cache, False)
+            objects, placed = fg.scene12_objects(cam)
+            image, truth, _ = cam.render(objects, seed=4, rays=1_000_000)
+            profile, geom, regions, noise = lr.prepare(cam, image, every=True)
+            for region in regions:
+                x0, y0, x1, y1 = region.box_px
+                held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
+                        if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
+                ad = held[0] if len(held) == 1 else math.nan
+                rows.append(fit_row(f"{_case(system, focus)}, scene12, {ad:.0f} mm", args,
+                                    settings, profile, geom, image, region, noise, ad))
+    return rows
+
+
+def _case(system: str, focus: float) -> str:
+    return f"{system}, focus {'inf' if math.isinf(focus) else f'{focus:.0f}'}"
+
+
+def fit_row(label: str, args, settings: list[dict], profile, geom, image, region, noise,
+            ad: float) -> tuple[list[float], list[float]]:
+    """One region fitted alternately with each of ``settings`` (``line_regions.alternate``),
+    its table row printed: each setting's least CPU (ms) and error (%) against ``ad``."""
+    spent, answers = lr.alternate(profile, geom, image, region, noise, settings, args.repeats)
+    errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok" else math.nan
+              for m in answers]
+    least = [1e3 * min(t) for t in spent]
+    print(f"| {label} | {len(region.lenslets)} | " + " | ".join(
+        f"{e:+.4f} | {t:.1f}" for e, t in zip(errors, least, strict=True)) + " |", flush=True)
+    return least, errors
+
+
+def summary(rows: list[tuple], settings: list[dict], ab: str) -> None:
+    """The summary lines: each setting's least CPUs (mean, max, over the budget) and errors;
+    with ``--ab``, the ratio of the sums and the answers moved."""
+    other = settings[-1]
     for k, name in enumerate("AB"[:len(settings)]):
         t = np.array([r[0][k] for r in rows])
         e = np.abs([r[1][k] for r in rows])
-        label = "the code as it is" if k == 0 else args.ab
+        label = "the code as it is" if k == 0 else ab
         print(f"# {name} ({label}): {len(rows)} regions, least CPU mean {t.mean():.1f} ms, "
               f"max {t.max():.0f} ms, over {BUDGET_MS:.0f} ms {int((t > BUDGET_MS).sum())}; "
               f"error mean {np.nanmean(e):.4f} %, max {np.nanmax(e):.3f} %")
     if other:
         ta = sum(r[0][0] for r in rows)
         tb = sum(r[0][1] for r in rows)
-        moved = [abs(r[1][0] - r[1][1]) for r in rows if r[1][0] != r[1][1]]
+        moved = [abs(r[1][0] - r[1][1]) for r in rows
+                 if r[1][0] != r[1][1] and not (math.isnan(r[1][0]) and math.isnan(r[1][1]))]
         print(f"# sum of least B/A {tb / ta:.3f}; {len(moved)} answers moved"
               + (f", by at most {max(moved):.4f} %" if moved else ""))
 
