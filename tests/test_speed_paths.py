@@ -206,6 +206,44 @@ def test_compiled_moments_equal_the_numpy_chain(grid, lens):
     assert not np.allclose(a[0], fast.__class__(prof, fast.geom, fast.mom, 6000).simulate(three))
 
 
+@pytest.mark.parametrize(("grid", "lens"), [("rect", "system1"), ("hex", "double_gauss")])
+def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypatch):
+    # kernels.trace_deposit_moments (a point's rays deposited as it is traced) against the
+    # trace and the deposit it fuses (TRACE_DEPOSIT_FUSED=0): the same sums bit for bit, for
+    # a line's points in groups with their own pupil turns, stacked sets, and a source the
+    # lens stops altogether
+    from lfcam.measure import fastfit
+    from lfcam.sim.capture import apply_overrides
+    from lfcam.sim.geometry import truth_geometry
+
+    base = load_profile(Path(__file__).resolve().parents[1] / "calibration" / f"{lens}.toml")
+    prof = apply_overrides(base, {"mla": {"focus_mm": 1000.0, "grid": grid},
+                                  "sensor": {"width_px": 400, "height_px": 400}})
+    prof = prof.with_d_in(prof.d_in_mm)
+    shape = (prof.sensor.height_px, prof.sensor.width_px)
+    geom = truth_geometry(prof, shape)
+    z = _Frame(prof).z_front
+    line = np.array([[0.2 * k, 0.1 * k, z - 2900.0] for k in range(4)])
+    away = np.array([[40.0, 0.0, z - 2900.0]])  # another source, off the line
+    lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # ~72° off axis: no ray passes
+    sets = [line, np.vstack([line, lost]), away, line + [0.3, -0.2, 40.0]]
+
+    def moments() -> list[np.ndarray]:  # (a new model each time: simulate keeps its last)
+        model = _model_pair(prof, geom, shape, 5000, turn_every=4)[0]
+        return [model.simulate_sets(sets), model.simulate(line), model.simulate(lost)]
+
+    got = moments()
+    monkeypatch.setattr(fastfit, "TRACE_DEPOSIT_FUSED", False)
+    want = moments()
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    energy = want[0][:, :, 0].sum(axis=1)
+    assert energy[0] > 0 and energy[2] > 0 and not want[2].any()
+    # the stopped source adds nothing (the line's points keep their turns: 4 a run)
+    np.testing.assert_array_equal(want[0][1], want[0][0])
+    np.testing.assert_array_equal(want[1], want[0][0])
+
+
 def test_compiled_trace_drops_the_rays_the_lens_stops():
     # vignetting, a source behind the lens and a ray that misses a steep surface: the compiled
     # trace keeps exactly the rays lfcam.optics.trace passes, and their positions

@@ -350,6 +350,10 @@ RAY_SHARE_RICHARDSON = True  # a ray sample's share across a cell border by two 
 #                              model's distance −0.38 % off far behind focus (docs/distance.md,
 #                              "Ray shares without the box's variance (stop 53)")
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
+TRACE_DEPOSIT_FUSED = True  # the compiled ray models trace and deposit a point's rays in one
+#                             pass (kernels.trace_deposit_moments; False: the two calls, the
+#                             same sums bit for bit: docs/distance.md, "The trace and the
+#                             deposit in one pass (stop 59)")
 _LATTICES = ObjectCache(8)
 _RULES = ObjectCache(8)
 _PEDESTAL = ObjectCache(1)
@@ -624,27 +628,43 @@ class LensletModel:
 
     def _simulate_compiled(self, points: np.ndarray, group: np.ndarray | None, groups: int,
                            out: np.ndarray) -> np.ndarray:
-        """:meth:`_simulate` through the compiled trace and deposit
-        (:mod:`lfcam.measure.kernels`): the same rays, weights, spacings and sums."""
-        from lfcam.measure.kernels import trace_model_rays  # numba
+        """:meth:`_simulate` through the compiled trace and deposit, in one pass a point
+        (:func:`lfcam.measure.kernels.trace_deposit_moments`): the same rays, weights,
+        spacings and sums as the trace (``trace_model_rays``) and :meth:`_deposit`."""
+        from lfcam.measure.kernels import trace_deposit_moments, trace_model_rays  # numba
 
         p = self.profile
         lens = p.main_lens
         if self.packed is None:
             self.packed = _packed_lens(lens)
-        table, coef = self.packed.table, self.packed.coef
+        if not TRACE_DEPOSIT_FUSED:  # the two calls (the reference the tests compare with)
+            x, y, sx, sy, wt, rows, _, foot = trace_model_rays(
+                np.ascontiguousarray(points, dtype=np.float64),
+                compiled_pupil_maps(lens, points, self.packed), self.turns(len(points)),
+                self.rx, self.ry, self.packed.table, self.packed.coef,
+                float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
+                float(p.mla.focal_length_mm))
+            if rows.size == 0:
+                return out
+            spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
+            return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
+                                 self.s_px, RAY_SHARE_RICHARDSON)
+        if group is None:
+            group = np.zeros(len(points), dtype=np.int64)
+        la, lb, rect = self.cell_shape or _cell_shape(self.lattice)  # (none: fails as before)
+        lat = self.lattice
+        ax, ay = p.sensor.axis_xy_px
         # the real stop's image on the aperture plane, per point (identity for the singlet)
-        maps = compiled_pupil_maps(lens, points, self.packed)
-        x, y, sx, sy, wt, rows, _, foot = trace_model_rays(
-            np.ascontiguousarray(points, dtype=np.float64), maps, self.turns(len(points)),
-            self.rx, self.ry, table, coef,
+        return trace_deposit_moments(
+            np.ascontiguousarray(points, dtype=np.float64),
+            compiled_pupil_maps(lens, points, self.packed), self.turns(len(points)),
+            self.rx, self.ry, self.packed.table, self.packed.coef,
             float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
-            float(p.mla.focal_length_mm))
-        if rows.size == 0:
-            return out
-        spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
-        return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
-                             self.s_px, RAY_SHARE_RICHARDSON)
+            float(p.mla.focal_length_mm), float(self.spacing), float(lens.pupil_diameter_mm),
+            np.asarray(group, dtype=np.int64), int(groups), lat.origin, lat.basis,
+            lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm), float(ax), float(ay),
+            int(self.mom.box[0]), int(self.mom.box[1]), float(self.s_px), self.mom.labels,
+            self.mom.centres_px, float(self.geom.pitch_px), bool(RAY_SHARE_RICHARDSON))
 
     def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m,
                  s_px: float | np.ndarray, richardson: bool = False) -> np.ndarray:

@@ -275,10 +275,10 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
     seps = _separations(basis)
-    h, wd = labels.shape
     ray = np.empty((7, DEPOSIT_BLOCK))  # x, y, sx, sy, wt, spacing, s
     cell = np.empty((5, DEPOSIT_BLOCK))
     land = np.empty((2, 7, DEPOSIT_BLOCK))
+    bases = np.empty(DEPOSIT_BLOCK, dtype=np.int64)
     each = s_ray.size > 0
     for lo in range(0, x.size, DEPOSIT_BLOCK):
         k = min(DEPOSIT_BLOCK, x.size - lo)
@@ -291,66 +291,79 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             ray[4, b] = wt[r]
             ray[5, b] = spacing[rows[r]]
             ray[6, b] = s_ray[r] if each else s_px
-        _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson)
-        for c in range(2):
-            _block_landings(ray, cell, land[c], k, c, origin, basis, inv_pp, ax, ay,
-                            float(x0), float(y0))
-        for b in range(k):
-            base = group[rows[lo + b]] * n_k
-            # the ray's share in its cell, then (share ≠ 0) in the neighbour's
-            for c in range(2):
-                w = land[c, 6, b]
-                if c == 1 and cell[4, b] == 0.0:
-                    break
-                ic = int(land[c, 0, b])
-                ir = int(land[c, 1, b])
-                inx = int(land[c, 2, b])
-                iny = int(land[c, 3, b])
-                ex = land[c, 4, b]
-                ey = land[c, 5, b]
-                # (`&`, not `and`: whether the box reaches over a border is a coin toss from
-                # ray to ray, s ~ 0.1-0.5 px; a share of 0 adds 0: the same sums)
-                if ((0 <= min(ic, inx)) & (max(ic, inx) < wd) & (0 <= min(ir, iny))
-                        & (max(ir, iny) < h)):
-                    kk = labels[ir, ic]
-                    if ((kk >= 0) & (labels[ir, inx] == kk) & (labels[iny, ic] == kk)
-                            & (labels[iny, inx] == kk)):
-                        # the (up to) four pixels belong to one lenslet: one update
-                        cxk = centres_px[kk, 0]
-                        cyk = centres_px[kk, 1]
-                        dx0 = (ic + x0 - cxk) * inv_pitch
-                        dx1 = (inx + x0 - cxk) * inv_pitch
-                        dy0 = (ir + y0 - cyk) * inv_pitch
-                        dy1 = (iny + y0 - cyk) * inv_pitch
-                        n = base + kk
-                        out[n, 0] += w
-                        out[n, 1] += w * ((1 - ex) * dx0 + ex * dx1)
-                        out[n, 2] += w * ((1 - ey) * dy0 + ey * dy1)
-                        out[n, 3] += w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
-                                          + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
-                        continue
-                    if ((kk < 0) & (labels[ir, inx] < 0) & (labels[iny, ic] < 0)
-                            & (labels[iny, inx] < 0)):
-                        continue  # every pixel dark: nothing to add
-                elif ((max(ic, inx) < 0) | (min(ic, inx) >= wd) | (max(ir, iny) < 0)
-                        | (min(ir, iny) >= h)):
-                    continue  # every pixel outside the box: nothing to add
-                # (a landing on dark pixels or outside the box, 28 % of a line's distance
-                # scan's and 11 % of a 380 mm line's: the early exits above, 80 -> 29 and
-                # 40 -> 28 ns a ray: docs/distance.md, "Landings with nothing to add (stop
-                # 52)")
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir,
-                       w * (1 - ex) * (1 - ey))
-                if ex > 0:
-                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, ir,
-                           w * ex * (1 - ey))
-                if ey > 0:
-                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, iny,
-                           w * (1 - ex) * ey)
-                if ex > 0 and ey > 0:
-                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, iny,
-                           w * ex * ey)
+            bases[b] = group[rows[r]] * n_k
+        _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la, lb,
+                       seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch)
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la, lb, seps,
+                   richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch):
+    """The first ``k`` rays of a block (``ray`` rows as :func:`deposit_moments` fills them;
+    ray ``b``'s moments at rows ``bases[b]`` + lenslet of ``out``) added to the moments: the
+    passes with no branch on the ray (:func:`_block_cells`, :func:`_block_landings`), then
+    the sums in the rays' order."""
+    _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson)
+    for c in range(2):
+        _block_landings(ray, cell, land[c], k, c, origin, basis, inv_pp, ax, ay, float(x0),
+                        float(y0))
+    h, wd = labels.shape
+    for b in range(k):
+        base = bases[b]
+        # the ray's share in its cell, then (share ≠ 0) in the neighbour's
+        for c in range(2):
+            w = land[c, 6, b]
+            if c == 1 and cell[4, b] == 0.0:
+                break
+            ic = int(land[c, 0, b])
+            ir = int(land[c, 1, b])
+            inx = int(land[c, 2, b])
+            iny = int(land[c, 3, b])
+            ex = land[c, 4, b]
+            ey = land[c, 5, b]
+            # (`&`, not `and`: whether the box reaches over a border is a coin toss from
+            # ray to ray, s ~ 0.1-0.5 px; a share of 0 adds 0: the same sums)
+            if ((0 <= min(ic, inx)) & (max(ic, inx) < wd) & (0 <= min(ir, iny))
+                    & (max(ir, iny) < h)):
+                kk = labels[ir, ic]
+                if ((kk >= 0) & (labels[ir, inx] == kk) & (labels[iny, ic] == kk)
+                        & (labels[iny, inx] == kk)):
+                    # the (up to) four pixels belong to one lenslet: one update
+                    cxk = centres_px[kk, 0]
+                    cyk = centres_px[kk, 1]
+                    dx0 = (ic + x0 - cxk) * inv_pitch
+                    dx1 = (inx + x0 - cxk) * inv_pitch
+                    dy0 = (ir + y0 - cyk) * inv_pitch
+                    dy1 = (iny + y0 - cyk) * inv_pitch
+                    n = base + kk
+                    out[n, 0] += w
+                    out[n, 1] += w * ((1 - ex) * dx0 + ex * dx1)
+                    out[n, 2] += w * ((1 - ey) * dy0 + ey * dy1)
+                    out[n, 3] += w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
+                                      + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
+                    continue
+                if ((kk < 0) & (labels[ir, inx] < 0) & (labels[iny, ic] < 0)
+                        & (labels[iny, inx] < 0)):
+                    continue  # every pixel dark: nothing to add
+            elif ((max(ic, inx) < 0) | (min(ic, inx) >= wd) | (max(ir, iny) < 0)
+                    | (min(ir, iny) >= h)):
+                continue  # every pixel outside the box: nothing to add
+            # (a landing on dark pixels or outside the box, 28 % of a line's distance
+            # scan's and 11 % of a 380 mm line's: the early exits above, 80 -> 29 and
+            # 40 -> 28 ns a ray: docs/distance.md, "Landings with nothing to add (stop
+            # 52)")
+            _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir,
+                   w * (1 - ex) * (1 - ey))
+            if ex > 0:
+                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, ir,
+                       w * ex * (1 - ey))
+            if ey > 0:
+                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, iny,
+                       w * (1 - ex) * ey)
+            if ex > 0 and ey > 0:
+                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, iny,
+                       w * ex * ey)
 
 
 # glibc's mallopt parameters (malloc.h) and the values keep_large_buffers sets
@@ -403,6 +416,11 @@ def warm_up() -> None:
                     np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, np.empty(0), True)
     table = np.zeros((1, 8))
     table[0, 3:6] = (1.0, 1.0, 1.0)
+    trace_deposit_moments(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
+                          np.array([[1.0, 0.0]]), one, one, table, np.zeros((1, 1)), 0.0, 0.0,
+                          1.0, 1.0, 1.0, 1.0, np.zeros(1, dtype=np.int64), 1, np.zeros(2), eye,
+                          eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
+                          np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, True)
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
                      np.array([[1.0, 0.0]]), one, one,
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
@@ -797,75 +815,151 @@ def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front
     block = min(TRACE_BLOCK, widest)
     # one block of rays at a time through every surface: scratch arrays that stay in cache
     scratch = np.empty((7, block))
-    x, y, z, dx, dy, dz, wt = (scratch[0], scratch[1], scratch[2], scratch[3], scratch[4],
-                               scratch[5], scratch[6])
+    x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
     ok = np.empty(block, dtype=np.uint8)
     res = np.empty((5, size))  # the passing rays: x, y, sx, sy, wt
-    xs, ys, sxs, sys_, wts = res[0], res[1], res[2], res[3], res[4]
     rows = np.empty(size, dtype=np.int64)
     rays = np.empty(size, dtype=np.int64)
-    lo_x = np.full(m, np.inf)
-    hi_x = np.full(m, -np.inf)
-    lo_y = np.full(m, np.inf)
-    hi_y = np.full(m, -np.inf)
-    zp = z_plane - front_z
+    extent = np.empty(4)
+    foot = np.zeros(m)
     count = 0
     for p in range(m):
-        px = points[p, 0]
-        py = points[p, 1]
-        pz = points[p, 2]
-        along = rim_z - pz
-        a2 = along * along
-        tc = turns[p, 0]
-        ts = turns[p, 1]
+        extent[:] = (np.inf, -np.inf, np.inf, -np.inf)
         end = first[p] + n_rays[p]
         for lo in range(first[p], end, block):
             k = min(block, end - lo)
-            for b in range(k):
-                j = lo + b
-                ax = tc * rx[j] - ts * ry[j]  # (1, 0): rx, ry unchanged, bit for bit
-                ay = ts * rx[j] + tc * ry[j]
-                ex = maps[p, 0] + maps[p, 2] * ax - px
-                ey = maps[p, 1] + maps[p, 3] * ay - py
-                norm = 1.0 / math.sqrt(ex * ex + ey * ey + along * along)
-                x[b] = px
-                y[b] = py
-                z[b] = pz - front_z
-                dx[b] = ex * norm
-                dy[b] = ey * norm
-                dz[b] = along * norm
-                ok[b] = along * norm > 0.0
-                ux = ax - px
-                uy = ay - py
-                cos2 = a2 / (ux * ux + uy * uy + a2)
-                wt[b] = cos2 * math.sqrt(cos2)  # (cos² θ)^1.5, without pow
+            _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
             for i in range(table.shape[0]):
                 _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
-            for b in range(k):
-                t = (zp - z[b]) / dz[b]
-                xr = x[b] + t * dx[b]
-                yr = y[b] + t * dy[b]
-                if not (ok[b] and math.isfinite(xr) and math.isfinite(yr)
-                        and math.isfinite(dz[b])):
-                    continue
-                xs[count] = xr
-                ys[count] = yr
-                sxs[count] = fx * dx[b] / dz[b]
-                sys_[count] = fx * dy[b] / dz[b]
-                wts[count] = wt[b]
-                rows[count] = p
-                rays[count] = lo + b
-                count += 1
-                lo_x[p] = min(lo_x[p], xr)
-                hi_x[p] = max(hi_x[p], xr)
-                lo_y[p] = min(lo_y[p], yr)
-                hi_y[p] = max(hi_y[p], yr)
-    foot = np.zeros(m)
+            start = count
+            count = _land(scratch, ok, k, z_plane - front_z, fx, res, count, rays, lo, extent)
+            rows[start:count] = p
+        if extent[1] >= extent[0]:
+            foot[p] = max(extent[1] - extent[0], extent[3] - extent[2])
+    return (res[0, :count], res[1, :count], res[2, :count], res[3, :count], res[4, :count],
+            rows[:count], rays[:count], foot)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z) -> None:
+    """The first ``k`` rays of a trace block (``scratch`` rows x, y, z, dx, dy, dz, wt): from
+    point ``p`` toward the aperture points ``lo`` … ``lo + k − 1`` (turned by ``turns[p]``,
+    mapped by ``maps[p]``), at the source, with their cosine³ weights."""
+    px = points[p, 0]
+    py = points[p, 1]
+    pz = points[p, 2]
+    along = rim_z - pz
+    a2 = along * along
+    tc = turns[p, 0]
+    ts = turns[p, 1]
+    for b in range(k):
+        j = lo + b
+        ax = tc * rx[j] - ts * ry[j]  # (1, 0): rx, ry unchanged, bit for bit
+        ay = ts * rx[j] + tc * ry[j]
+        ex = maps[p, 0] + maps[p, 2] * ax - px
+        ey = maps[p, 1] + maps[p, 3] * ay - py
+        norm = 1.0 / math.sqrt(ex * ex + ey * ey + along * along)
+        scratch[0, b] = px
+        scratch[1, b] = py
+        scratch[2, b] = pz - front_z
+        scratch[3, b] = ex * norm
+        scratch[4, b] = ey * norm
+        scratch[5, b] = along * norm
+        ok[b] = along * norm > 0.0
+        ux = ax - px
+        uy = ay - py
+        cos2 = a2 / (ux * ux + uy * uy + a2)
+        scratch[6, b] = cos2 * math.sqrt(cos2)  # (cos² θ)^1.5, without pow
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _land(scratch, ok, k, zp, fx, res, count, rays, lo, extent) -> int:
+    """The first ``k`` rays of a traced block on the plane ``zp`` (lens frame): those that
+    pass appended to ``res`` (x, y, ``fx`` × slopes, weight) from ``count`` on, their
+    aperture point's index to ``rays`` (``lo`` + their place in the block), ``extent``
+    (x and y: least, most) widened; returns the new count."""
+    for b in range(k):
+        dz = scratch[5, b]
+        t = (zp - scratch[2, b]) / dz
+        xr = scratch[0, b] + t * scratch[3, b]
+        yr = scratch[1, b] + t * scratch[4, b]
+        if not (ok[b] and math.isfinite(xr) and math.isfinite(yr) and math.isfinite(dz)):
+            continue
+        res[0, count] = xr
+        res[1, count] = yr
+        res[2, count] = fx * scratch[3, b] / dz
+        res[3, count] = fx * scratch[4, b] / dz
+        res[4, count] = scratch[6, b]
+        rays[count] = lo + b
+        count += 1
+        extent[0] = min(extent[0], xr)
+        extent[1] = max(extent[1], xr)
+        extent[2] = min(extent[2], yr)
+        extent[3] = max(extent[3], yr)
+    return count
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z_plane,
+                          fx, spacing_scale, pupil_mm, group, groups, origin, basis, inverse,
+                          rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px,
+                          pitch_px, richardson):
+    """:func:`trace_model_rays` and :func:`deposit_moments` in one pass a point: the moments
+    ``(groups·K, 4)`` of the rays from ``points`` through the aperture points ``(rx, ry)``
+    (arguments up to ``fx`` as :func:`trace_model_rays`'), point ``p``'s rays
+    ``max(spacing_scale · foot_p / pupil_mm, 1e-12)`` apart on the MLA (``foot_p`` its
+    footprint's extent) and spread as ``s_px`` boxes into group ``group[p]`` (the rest as
+    :func:`deposit_moments`' arguments). The same sums as the two calls, bit for bit; a
+    point's traced rays are deposited while they are still in cache, and no ray-sized array
+    of the whole call is made (the two calls wrote and read back ~56 bytes a ray: 44 → 37 ns
+    a ray on system 1's far lines, docs/distance.md, "The trace and the deposit in one pass
+    (stop 59)")."""
+    m = points.shape[0]
+    n_k = centres_px.shape[0]
+    out = np.zeros((groups * n_k, 4))
+    block = min(TRACE_BLOCK, max(rx.size, 1))
+    scratch = np.empty((7, block))
+    x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
+    ok = np.empty(block, dtype=np.uint8)
+    res = np.empty((5, rx.size))  # one point's passing rays: x, y, sx, sy, wt
+    rays = np.empty(rx.size, dtype=np.int64)
+    extent = np.empty(4)
+    inv_pitch = 1.0 / pitch_px
+    inv_pp = 1.0 / pp
+    seps = _separations(basis)
+    ray = np.empty((7, DEPOSIT_BLOCK))  # as deposit_moments'
+    cell = np.empty((5, DEPOSIT_BLOCK))
+    land = np.empty((2, 7, DEPOSIT_BLOCK))
+    bases = np.empty(DEPOSIT_BLOCK, dtype=np.int64)
     for p in range(m):
-        if hi_x[p] >= lo_x[p]:
-            foot[p] = max(hi_x[p] - lo_x[p], hi_y[p] - lo_y[p])
-    return (xs[:count], ys[:count], sxs[:count], sys_[:count], wts[:count], rows[:count],
-            rays[:count], foot)
+        extent[:] = (np.inf, -np.inf, np.inf, -np.inf)
+        count = 0
+        for lo in range(0, rx.size, block):
+            k = min(block, rx.size - lo)
+            _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
+            for i in range(table.shape[0]):
+                _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
+            count = _land(scratch, ok, k, z_plane - front_z, fx, res, count, rays, lo, extent)
+        if count == 0:
+            continue
+        spacing = max(spacing_scale * max(extent[1] - extent[0], extent[3] - extent[2])
+                      / pupil_mm, 1e-12)
+        bases[:] = group[p] * n_k
+        for lo in range(0, count, DEPOSIT_BLOCK):
+            k = min(DEPOSIT_BLOCK, count - lo)
+            for b in range(k):
+                r = lo + b
+                ray[0, b] = res[0, r]
+                ray[1, b] = res[1, r]
+                ray[2, b] = res[2, r]
+                ray[3, b] = res[3, r]
+                ray[4, b] = res[4, r]
+                ray[5, b] = spacing
+                ray[6, b] = s_px
+            _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la,
+                           lb, seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px,
+                           inv_pitch)
+    return out
 
 
 # ----------------------------------------------------------------------------- ray aiming
