@@ -31,6 +31,9 @@ Loops that numpy can only express as chains of frame- or ray-sized temporaries:
   With numpy this cost ~75 % of a model evaluation. Steps 1–3 run a block of rays at a time
   in SIMD lanes, step 4 after them in the rays' order (docs/distance.md, "The deposit's
   arithmetic in SIMD lanes (stop 52)").
+* :func:`trace_deposit_moments`: the two above in one pass a point, the ray models' path:
+  a point's rays are deposited while they are still in cache, the same sums bit for bit
+  (docs/distance.md, "The trace and the deposit in one pass (stop 59)").
 * :func:`cell_samples`, :func:`cell_centres`, :func:`deposit_cells`: a point's pupil samples
   fixed on the lenslet cells (n × n a cell), and on a rectangular lattice the cells it lights
   whole, integrated by a 2 × 2 Gauss rule and landed as their cell's linear image on the
