@@ -820,7 +820,7 @@ def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front
     scratch = np.empty((7, block))
     x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
     ok = np.empty(block, dtype=np.uint8)
-    res = np.empty((5, size))  # the passing rays: x, y, sx, sy, wt
+    res = np.empty((1, 7, size))  # the passing rays: x, y, sx, sy, wt (_land's layout)
     rows = np.empty(size, dtype=np.int64)
     rays = np.empty(size, dtype=np.int64)
     extent = np.empty(4)
@@ -839,8 +839,8 @@ def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front
             rows[start:count] = p
         if extent[1] >= extent[0]:
             foot[p] = max(extent[1] - extent[0], extent[3] - extent[2])
-    return (res[0, :count], res[1, :count], res[2, :count], res[3, :count], res[4, :count],
-            rows[:count], rays[:count], foot)
+    return (res[0, 0, :count], res[0, 1, :count], res[0, 2, :count], res[0, 3, :count],
+            res[0, 4, :count], rows[:count], rays[:count], foot)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -876,11 +876,16 @@ def _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z) 
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _land(scratch, ok, k, zp, fx, res, count, rays, lo, extent) -> int:
+def _land(scratch, ok, k, zp, fx, dest, count, rays, lo, extent) -> int:
     """The first ``k`` rays of a traced block on the plane ``zp`` (lens frame): those that
-    pass appended to ``res`` (x, y, ``fx`` × slopes, weight) from ``count`` on, their
-    aperture point's index to ``rays`` (``lo`` + their place in the block), ``extent``
-    (x and y: least, most) widened; returns the new count."""
+    pass appended from the ``count``-th on to ``dest`` (B, 7, W): ray ``c`` at
+    ``dest[c // W, :5, c % W]`` (x, y, ``fx`` × slopes, weight; rows 5 and 6 untouched), their
+    aperture point's index to ``rays`` (``lo`` + their place in the block; none where
+    ``rays`` is empty); ``extent`` (x and y: least, most) widened. Returns the new count."""
+    width = dest.shape[2]
+    i = count // width  # (once a block: no division a ray)
+    j = count - i * width
+    keep = rays.size > 0
     for b in range(k):
         dz = scratch[5, b]
         t = (zp - scratch[2, b]) / dz
@@ -888,13 +893,18 @@ def _land(scratch, ok, k, zp, fx, res, count, rays, lo, extent) -> int:
         yr = scratch[1, b] + t * scratch[4, b]
         if not (ok[b] and math.isfinite(xr) and math.isfinite(yr) and math.isfinite(dz)):
             continue
-        res[0, count] = xr
-        res[1, count] = yr
-        res[2, count] = fx * scratch[3, b] / dz
-        res[3, count] = fx * scratch[4, b] / dz
-        res[4, count] = scratch[6, b]
-        rays[count] = lo + b
+        dest[i, 0, j] = xr
+        dest[i, 1, j] = yr
+        dest[i, 2, j] = fx * scratch[3, b] / dz
+        dest[i, 3, j] = fx * scratch[4, b] / dz
+        dest[i, 4, j] = scratch[6, b]
+        if keep:
+            rays[count] = lo + b
         count += 1
+        j += 1
+        if j == width:
+            i += 1
+            j = 0
         extent[0] = min(extent[0], xr)
         extent[1] = max(extent[1], xr)
         extent[2] = min(extent[2], yr)
@@ -913,10 +923,10 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
     ``max(spacing_scale · foot_p / pupil_mm, 1e-12)`` apart on the MLA (``foot_p`` its
     footprint's extent) and spread as ``s_px`` boxes into group ``group[p]`` (the rest as
     :func:`deposit_moments`' arguments). The same sums as the two calls, bit for bit; a
-    point's traced rays are deposited while they are still in cache, and no ray-sized array
-    of the whole call is made (the two calls wrote and read back ~56 bytes a ray: 44 → 37 ns
-    a ray on system 1's far lines, docs/distance.md, "The trace and the deposit in one pass
-    (stop 59)")."""
+    point's traced rays land straight in the deposit's blocks and are deposited while they
+    are still in cache, and no ray-sized array of the whole call is made (the two calls wrote
+    and read back ~56 bytes a ray: 44 → 35 ns a ray on system 1's far lines,
+    docs/distance.md, "The trace and the deposit in one pass (stop 59)")."""
     m = points.shape[0]
     n_k = centres_px.shape[0]
     out = np.zeros((groups * n_k, 4))
@@ -924,13 +934,16 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
     scratch = np.empty((7, block))
     x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
     ok = np.empty(block, dtype=np.uint8)
-    res = np.empty((5, rx.size))  # one point's passing rays: x, y, sx, sy, wt
-    rays = np.empty(rx.size, dtype=np.int64)
+    # one point's passing rays, landed straight into the deposit's blocks (rows x, y, sx, sy,
+    # wt, spacing, s: deposit_moments' `ray`)
+    blocks = np.empty((max((rx.size + DEPOSIT_BLOCK - 1) // DEPOSIT_BLOCK, 1), 7,
+                       DEPOSIT_BLOCK))
+    blocks[:, 6, :] = s_px
+    no_index = np.empty(0, dtype=np.int64)
     extent = np.empty(4)
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
     seps = _separations(basis)
-    ray = np.empty((7, DEPOSIT_BLOCK))  # as deposit_moments'
     cell = np.empty((5, DEPOSIT_BLOCK))
     land = np.empty((2, 7, DEPOSIT_BLOCK))
     bases = np.empty(DEPOSIT_BLOCK, dtype=np.int64)
@@ -942,26 +955,20 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
             _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
             for i in range(table.shape[0]):
                 _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
-            count = _land(scratch, ok, k, z_plane - front_z, fx, res, count, rays, lo, extent)
+            count = _land(scratch, ok, k, z_plane - front_z, fx, blocks, count, no_index, lo,
+                          extent)
         if count == 0:
             continue
         spacing = max(spacing_scale * max(extent[1] - extent[0], extent[3] - extent[2])
                       / pupil_mm, 1e-12)
         bases[:] = group[p] * n_k
-        for lo in range(0, count, DEPOSIT_BLOCK):
-            k = min(DEPOSIT_BLOCK, count - lo)
-            for b in range(k):
-                r = lo + b
-                ray[0, b] = res[0, r]
-                ray[1, b] = res[1, r]
-                ray[2, b] = res[2, r]
-                ray[3, b] = res[3, r]
-                ray[4, b] = res[4, r]
-                ray[5, b] = spacing
-                ray[6, b] = s_px
-            _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la,
-                           lb, seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px,
-                           inv_pitch)
+        for i in range((count + DEPOSIT_BLOCK - 1) // DEPOSIT_BLOCK):
+            ray = blocks[i]
+            ray[5, :] = spacing
+            _deposit_block(out, ray, cell, land, bases, min(DEPOSIT_BLOCK, count - i *
+                                                           DEPOSIT_BLOCK),
+                           origin, basis, inverse, rect, la, lb, seps, richardson, inv_pp, ax,
+                           ay, x0, y0, labels, centres_px, inv_pitch)
     return out
 
 
