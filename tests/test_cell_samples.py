@@ -279,18 +279,29 @@ def _fold_of_exact_trace(prof, src, grid=41):
     return bool((det > 0).any() and (det < 0).any())
 
 
+@pytest.mark.parametrize("fold_first", [True, False])
 @pytest.mark.parametrize("distance_mm, folds", [(380.0, True), (3400.0, False)])
-def test_cells_apply_only_where_the_map_is_one_to_one(distance_mm, folds):
+def test_cells_apply_only_where_the_map_is_one_to_one(distance_mm, folds, fold_first,
+                                                      monkeypatch):
     # In front of a 1 m focus (380 mm) the MLA cuts the spherical caustic: the exact trace's
     # map from the pupil to the MLA folds, each sub-grid point has several pupil points, and
     # the cell model falls back to rays (its samples' pupil areas add up to 0.25-0.95 π
-    # there); behind focus the map is one to one
+    # there); behind focus the map is one to one. The polynomial map's Jacobian sign
+    # (CELLS_FOLD_FIRST) tells the fold before the whole cells are inverted (no call of
+    # cell_centres), as the samples' area does after them
+    from lfcam.measure import kernels
+
+    monkeypatch.setattr(ff, "CELLS_FOLD_FIRST", fold_first)
+    calls = []
+    inner = kernels.cell_centres
+    monkeypatch.setattr(kernels, "cell_centres", lambda *a: calls.append(1) or inner(*a))
     prof, geom = _system2()
     mom = _moments_box(prof, geom)
     src = _line_points(prof, distance_mm, count=1)[0]
     assert _fold_of_exact_trace(prof, src) == folds
     model = ff.LensletModel(prof, geom, mom, 4000, cells=4)
     assert model.invertible(src[None]) == (not folds)
+    assert bool(calls) == (not (folds and fold_first))
     model.simulate(src)
     assert model.folded == folds
 
