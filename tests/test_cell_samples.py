@@ -594,6 +594,49 @@ def test_a_lines_blur_is_summary_matched_on_the_scan_rays_alone(hex_line_3400, m
     assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
 
 
+def test_a_point_at_the_far_bound_gives_the_line_no_start(hex_line_3400, monkeypatch):
+    # A point fit run out to the far bound (system 2's lines at 380 mm, 60-80 % of the
+    # field) says nothing of where the line is: with LINE_FAR_POINT_START the line fit's
+    # starts are the scan's best node alone, without it the far bound and its turned copies
+    # raced too (a Jacobian and failed steps each). Either way this line is found where
+    # the fit from its own point finds it (within a tenth of its σ) and within 3σ of the
+    # truth (3400 mm)
+    import dataclasses
+
+    used, geom, mom, line, frame, _ = hex_line_3400
+    img = np.zeros((1, 1))  # (with ``mom`` given the fits read neither image nor region)
+    point = next(ff.point_fit_stages(used, geom, img, None, mom=mom))
+    far = math.exp(ff.LOG_DISTANCE_RANGE[1])
+    at_bound = dataclasses.replace(point, source_mm=np.array([3.0, -2.0, frame.z_front - far]))
+
+    def raced(flag):
+        monkeypatch.setattr(ff, "LINE_FAR_POINT_START", flag)
+        # (every start races: on this line the far ones start over 10× the best's misfit²,
+        # which alone keeps them out; on the 380 mm lines they start within 5×)
+        monkeypatch.setattr(ff, "LINE_RACE_START_RATIO", 1e9)
+        monkeypatch.setattr(ff, "LINE_RACE_HOPELESS", 1e9)
+        starts = []
+        inner = ff._levenberg_marquardt
+
+        def logged(fun, q0, *args, **kwargs):
+            starts.append(float(q0[0]))
+            return inner(fun, q0, *args, **kwargs)
+
+        monkeypatch.setattr(ff, "_levenberg_marquardt", logged)
+        fit = ff.fit_lenslet_line(used, geom, img, None, point=at_bound, mom=mom)
+        monkeypatch.undo()
+        return starts, fit
+
+    new_starts, new = raced(True)
+    old_starts, old = raced(False)
+    bound = ff.LOG_DISTANCE_RANGE[1] - 1e-6
+    assert any(q >= bound for q in old_starts) and not any(q >= bound for q in new_starts)
+    for fit in (new, old):
+        assert fit.ok
+        assert abs(fit.source_mm[2] - line.source_mm[2]) < 0.1 * line.sigma_distance_mm
+        assert abs(fit.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * fit.sigma_distance_mm
+
+
 def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, pieces=None):
     """deposit_cells of one whole cell (weight 1) and deposit_moments of ``dense``² samples
     spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,

@@ -324,6 +324,9 @@ PROFILE_GN_STEPS = 2  # lateral Gauss–Newton steps at each trial distance (fix
 PROFILE_START = 2.0  # the first trial step, in units of the Jacobian's σ
 CELL_MAP_TOLERANCE = 0.01  # a point's polynomial map off its ring's traced rays by at most this
 #                            (pitches), or the cells do not apply
+LINE_FAR_POINT_START = True  # a line whose point fit ran out to the far bound starts from
+#                              the scan alone (docs/distance.md, "No line start at the far
+#                              bound (stop 59)")
 CELLS_FOLD_FIRST = True  # a map that folds is refused by its Jacobian's sign before the
 #                          cells are sampled (docs/distance.md, "A folded map refused
 #                          before its samples (stop 59)")
@@ -2374,7 +2377,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
     # off on average: the scan's coarser model reads higher misfits, not a worse basin)
     starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
-    if stretched:
+    if LINE_FAR_POINT_START and _at_far_bound(q0):
+        # a point fit run out to the far bound tells nothing of where the line is: the scan's
+        # best node is the one start (the far bound and its turned copies raced too, and lost:
+        # on the hexagonal 380 mm line at 80 % of the field three of them, ~17 ms)
+        starts = [best_scan]
+    elif stretched:
         # the footprint's axis is the field's: turned starts about the axis of the footprint
         # less the point's, at that length and the footprint's own
         starts += oriented(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1],
