@@ -639,38 +639,51 @@ class LensletModel:
         spacings and sums as the trace (``trace_model_rays``) and :meth:`_deposit`."""
         from lfcam.measure.kernels import trace_deposit_moments, trace_model_rays  # numba
 
-        p = self.profile
-        lens = p.main_lens
-        if self.packed is None:
-            self.packed = _packed_lens(lens)
+        lens = self.profile.main_lens
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        lens_args = self._trace_args()
+        # the real stop's image on the aperture plane, per point (identity for the singlet)
+        rays = (pts, compiled_pupil_maps(lens, pts, self.packed), self.turns(len(pts)),
+                self.rx, self.ry, *lens_args)
         if not TRACE_DEPOSIT_FUSED:  # the two calls (the reference the tests compare with)
-            x, y, sx, sy, wt, rows, _, foot = trace_model_rays(
-                np.ascontiguousarray(points, dtype=np.float64),
-                compiled_pupil_maps(lens, points, self.packed), self.turns(len(points)),
-                self.rx, self.ry, self.packed.table, self.packed.coef,
-                float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
-                float(p.mla.focal_length_mm))
+            x, y, sx, sy, wt, rows, _, foot = trace_model_rays(*rays)
             if rows.size == 0:
                 return out
             spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
             return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
                                  self.s_px, RAY_SHARE_RICHARDSON)
-        if group is None:
-            group = np.zeros(len(points), dtype=np.int64)
-        la, lb, rect = self.cell_shape or _cell_shape(self.lattice)  # (none: fails as before)
-        lat = self.lattice
-        ax, ay = p.sensor.axis_xy_px
-        # the real stop's image on the aperture plane, per point (identity for the singlet)
         return trace_deposit_moments(
-            np.ascontiguousarray(points, dtype=np.float64),
-            compiled_pupil_maps(lens, points, self.packed), self.turns(len(points)),
-            self.rx, self.ry, self.packed.table, self.packed.coef,
-            float(lens.front_vertex_z_mm), float(lens.rim_z_mm), float(self.geom.d_in_mm),
-            float(p.mla.focal_length_mm), float(self.spacing), float(lens.pupil_diameter_mm),
-            np.asarray(group, dtype=np.int64), int(groups), lat.origin, lat.basis,
-            lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm), float(ax), float(ay),
-            int(self.mom.box[0]), int(self.mom.box[1]), float(self.s_px), self.mom.labels,
+            *rays, float(self.spacing), float(lens.pupil_diameter_mm),
+            *self._lattice_args(group, groups, len(points)), float(self.s_px), self.mom.labels,
             self.mom.centres_px, float(self.geom.pitch_px), bool(RAY_SHARE_RICHARDSON))
+
+    def _trace_args(self) -> tuple:
+        """The compiled trace's lens arguments (:func:`lfcam.measure.kernels.trace_model_rays`
+        after the aperture points): the packed prescription, its front vertex and rim, the MLA
+        plane and the lenslets' focal length."""
+        p = self.profile
+        lens = p.main_lens
+        if self.packed is None:
+            self.packed = _packed_lens(lens)
+        return (self.packed.table, self.packed.coef, float(lens.front_vertex_z_mm),
+                float(lens.rim_z_mm), float(self.geom.d_in_mm), float(p.mla.focal_length_mm))
+
+    def _lattice_args(self, group: np.ndarray | None, groups: int, m: int) -> tuple:
+        """The deposits' arguments from ``group`` to the box's corner
+        (:func:`lfcam.measure.kernels.deposit_moments`, ``trace_deposit_moments``): each of
+        the ``m`` points' group (None: one group), the lattice and its cells' shape, the pixel
+        pitch, the sensor axis and the box's corner, each as the kernels' one signature
+        takes it (a new one would compile again, ~3 s)."""
+        p = self.profile
+        if group is None:
+            group = np.zeros(m, dtype=np.int64)
+        lat = self.lattice
+        la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
+        ax, ay = p.sensor.axis_xy_px
+        x0, y0 = self.mom.box[:2]
+        return (np.asarray(group, dtype=np.int64), int(groups), lat.origin, lat.basis,
+                lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm), float(ax),
+                float(ay), int(x0), int(y0))
 
     def _deposit(self, x, y, sx, sy, wt, rows, spacing, group, groups, m,
                  s_px: float | np.ndarray, richardson: bool = False) -> np.ndarray:
@@ -682,21 +695,10 @@ class LensletModel:
         samples), else by one box (the samples on the cells)."""
         from lfcam.measure.kernels import deposit_moments  # numba
 
-        p = self.profile
-        if group is None:
-            group = np.zeros(m, dtype=np.int64)
-        lat = self.lattice
-        la, lb, rect = self.cell_shape or _cell_shape(lat)  # (no lattice: fails as before)
-        ax, ay = p.sensor.axis_xy_px
-        x0, y0 = self.mom.box[:2]
         each = isinstance(s_px, np.ndarray)  # (the kernel's scalar then unread)
-        # one argument signature for every call: the compiled code is cached on disk per
-        # signature, and a new one would compile again (~3 s)
         return deposit_moments(
             x, y, sx, sy, wt, rows.astype(np.int64, copy=False), spacing,
-            np.asarray(group, dtype=np.int64), int(groups),
-            lat.origin, lat.basis, lat.inverse, rect, la, lb, float(p.sensor.pixel_pitch_mm),
-            float(ax), float(ay), int(x0), int(y0), 1.0 if each else float(s_px),
+            *self._lattice_args(group, groups, m), 1.0 if each else float(s_px),
             self.mom.labels, self.mom.centres_px, float(self.geom.pitch_px),
             s_px if each else _ONE_BOX, bool(richardson))
 
@@ -732,8 +734,7 @@ class LensletModel:
 
         p = self.profile
         lens = p.main_lens
-        if self.packed is None:
-            self.packed = _packed_lens(lens)
+        trace_args = self._trace_args()
         half = 0.5 * lens.pupil_diameter_mm
         lat = self.lattice
         if lat is None:
@@ -742,9 +743,6 @@ class LensletModel:
         m = len(pts)
         maps = compiled_pupil_maps(lens, pts, self.packed)
         ring, pinv, ring_basis = _cell_ring()
-        trace_args = (self.packed.table, self.packed.coef, float(lens.front_vertex_z_mm),
-                      float(lens.rim_z_mm), float(self.geom.d_in_mm),
-                      float(p.mla.focal_length_mm))
         x, y, sx, sy, _, rows, ray, _ = trace_model_rays(pts, maps, np.tile([1.0, 0.0], (m, 1)),
                                                          ring[:, 0] * half, ring[:, 1] * half,
                                                          *trace_args)
@@ -769,8 +767,7 @@ class LensletModel:
             # its samples' area fails the test below (0.25-0.95 of π), told here before the
             # whole cells' Newton inversions and the samples (~10 ms on a 380 mm line's three
             # calls; the same decisions on the focus grid's 231 lines and 180 points)
-            det = _disc_det(cx, cy)
-            if not np.all(det * det[:, :1] > 0.0):
+            if not _sign_kept(_disc_det(cx, cy)).all():
                 return None
         margin = pitch * (1.0 + 1.0 / n)
         boxes[:, 0] = xr.min(axis=1) - margin
@@ -1066,6 +1063,12 @@ def _disc_det(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     return (cx @ du.T) * (cy @ dv.T) - (cx @ dv.T) * (cy @ du.T)
 
 
+def _sign_kept(det: np.ndarray) -> np.ndarray:
+    """(M,): whether each point's determinant (:func:`_disc_det`) keeps the sign it has at
+    the disc's centre on every ring: a map whose determinant changes sign folds."""
+    return np.all(det * det[:, :1] > 0.0, axis=1)
+
+
 def _one_to_one(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     """Whether each point's polynomial pupil → MLA map (``cx``, ``cy`` (M, terms):
     :func:`_map_basis`'s) is one to one on the unit disc, and resolved by the cells: its
@@ -1077,7 +1080,7 @@ def _one_to_one(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     |det| is under :data:`FOLD_MIN_DET_RATIO` of its largest squeezes part of the pupil
     into less than the cells resolve, and fails too. (M,)."""
     det = _disc_det(cx, cy)
-    ok = np.all(det * det[:, :1] > 0.0, axis=1)  # (the first point: the disc's centre)
+    ok = _sign_kept(det)
     size = np.abs(det)
     ok &= size.min(axis=1) >= FOLD_MIN_DET_RATIO * size.max(axis=1)
     rim = _fold_grid()[2]

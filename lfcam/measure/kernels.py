@@ -818,7 +818,6 @@ def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front
     block = min(TRACE_BLOCK, widest)
     # one block of rays at a time through every surface: scratch arrays that stay in cache
     scratch = np.empty((7, block))
-    x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
     ok = np.empty(block, dtype=np.uint8)
     res = np.empty((1, 7, size))  # the passing rays: x, y, sx, sy, wt (_land's layout)
     rows = np.empty(size, dtype=np.int64)
@@ -830,17 +829,28 @@ def _trace_ranges(points, maps, turns, rx, ry, first, n_rays, table, coef, front
         extent[:] = (np.inf, -np.inf, np.inf, -np.inf)
         end = first[p] + n_rays[p]
         for lo in range(first[p], end, block):
-            k = min(block, end - lo)
-            _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
-            for i in range(table.shape[0]):
-                _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
             start = count
-            count = _land(scratch, ok, k, z_plane - front_z, fx, res, count, rays, lo, extent)
+            count = _trace_block(points, maps, turns, rx, ry, p, lo, min(block, end - lo),
+                                 scratch, ok, table, coef, front_z, rim_z, z_plane, fx, res,
+                                 count, rays, extent)
             rows[start:count] = p
         if extent[1] >= extent[0]:
             foot[p] = max(extent[1] - extent[0], extent[3] - extent[2])
     return (res[0, 0, :count], res[0, 1, :count], res[0, 2, :count], res[0, 3, :count],
             res[0, 4, :count], rows[:count], rays[:count], foot)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _trace_block(points, maps, turns, rx, ry, p, lo, k, scratch, ok, table, coef, front_z,
+                 rim_z, z_plane, fx, dest, count, rays, extent) -> int:
+    """Point ``p``'s rays toward the aperture points ``lo`` … ``lo + k − 1`` through every
+    surface (:func:`_launch`, :func:`_surface` a surface) to the MLA plane ``z_plane``, those
+    that pass appended to ``dest`` (:func:`_land`); returns the new count."""
+    x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
+    _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
+    for i in range(table.shape[0]):
+        _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
+    return _land(scratch, ok, k, z_plane - front_z, fx, dest, count, rays, lo, extent)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -932,7 +942,6 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
     out = np.zeros((groups * n_k, 4))
     block = min(TRACE_BLOCK, max(rx.size, 1))
     scratch = np.empty((7, block))
-    x, y, z, dx, dy, dz = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
     ok = np.empty(block, dtype=np.uint8)
     # one point's passing rays, landed straight into the deposit's blocks (rows x, y, sx, sy,
     # wt, spacing, s: deposit_moments' `ray`)
@@ -951,24 +960,20 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
         extent[:] = (np.inf, -np.inf, np.inf, -np.inf)
         count = 0
         for lo in range(0, rx.size, block):
-            k = min(block, rx.size - lo)
-            _launch(points, maps, turns, rx, ry, p, lo, k, scratch, ok, front_z, rim_z)
-            for i in range(table.shape[0]):
-                _surface(x[:k], y[:k], z[:k], dx[:k], dy[:k], dz[:k], ok[:k], i, table, coef)
-            count = _land(scratch, ok, k, z_plane - front_z, fx, blocks, count, no_index, lo,
-                          extent)
+            count = _trace_block(points, maps, turns, rx, ry, p, lo, min(block, rx.size - lo),
+                                 scratch, ok, table, coef, front_z, rim_z, z_plane, fx, blocks,
+                                 count, no_index, extent)
         if count == 0:
             continue
         spacing = max(spacing_scale * max(extent[1] - extent[0], extent[3] - extent[2])
                       / pupil_mm, 1e-12)
         bases[:] = group[p] * n_k
-        for i in range((count + DEPOSIT_BLOCK - 1) // DEPOSIT_BLOCK):
-            ray = blocks[i]
+        for lo in range(0, count, DEPOSIT_BLOCK):
+            ray = blocks[lo // DEPOSIT_BLOCK]
             ray[5, :] = spacing
-            _deposit_block(out, ray, cell, land, bases, min(DEPOSIT_BLOCK, count - i *
-                                                           DEPOSIT_BLOCK),
-                           origin, basis, inverse, rect, la, lb, seps, richardson, inv_pp, ax,
-                           ay, x0, y0, labels, centres_px, inv_pitch)
+            _deposit_block(out, ray, cell, land, bases, min(DEPOSIT_BLOCK, count - lo), origin,
+                           basis, inverse, rect, la, lb, seps, richardson, inv_pp, ax, ay, x0,
+                           y0, labels, centres_px, inv_pitch)
     return out
 
 
