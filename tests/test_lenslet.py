@@ -178,6 +178,74 @@ def test_points_at_the_models_own_noise_try_no_line(name, floor_tries, monkeypat
     assert bool(calls) == floor_tries
 
 
+def test_polish_floor_is_zero_where_a_linear_step_removes_most_of_the_misfit():
+    # a linear residual r(q) = A q − b: one Gauss–Newton step removes exactly f − f_min, so
+    # the floor's prediction is exact. Far from the minimum (the step removes 99 % of f) the
+    # fit is unsettled and the floor is 0; near it, the old bound (f less 5 × the step's gain,
+    # at least 10 % of f, never under 10 % of the misfit)
+    from lfcam.measure import fastfit
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(40, 3))
+    q_min = np.array([6.5, 0.1, -0.2])
+    noise = 0.01 * rng.normal(size=40)
+    b = a @ q_min + noise - a @ np.linalg.lstsq(a, noise, rcond=None)[0]  # q_min is the LS
+    f_min = float(np.sum((a @ q_min - b) ** 2))
+
+    def fun(q):
+        return a @ q - b
+
+    steps = np.array([1e-3, 1e-3, 1e-3])
+    for dq, unsettled in ((np.array([0.3, 0.0, 0.0]), True),
+                          (np.array([0.003, 0.0, 0.0]), False)):
+        q = q_min + dq
+        r = fun(q)
+        f = float(r @ r)
+        gain = f - f_min  # what the step removes (exact: the model is linear)
+        assert (gain > fastfit.POLISH_UNSETTLED * f) == unsettled
+        floor = fastfit._polish_floor(fun, None, q, r, r, 0.0, steps, jac=a)
+        old = max(0.1 * math.sqrt(f), math.sqrt(max(f - max(5.0 * gain, 0.1 * f), 0.0)))
+        assert floor == (0.0 if unsettled else pytest.approx(old, rel=1e-9))
+
+
+def test_an_unsettled_point_is_polished_before_a_line_is_tried(monkeypatch):
+    # system 2's 1100 mm seed point, its start put 10 % too far and its coarse and fine
+    # stages cut to one iteration each: the fine fit leaves a misfit of 0.17 (the truth's
+    # 0.0008) that one linear step would remove almost whole. The old floor (90 % of the
+    # misfit at most) kept it over the trigger, and the line was tried first (it lost: ~40 ms);
+    # now the point is polished first, and it lands on the truth with no line tried (an F/2
+    # point at 75 % of system 1's field in a 12-source capture: a line of almost no length
+    # won there, 50 ms, and the region was reported as a line)
+    from lfcam.measure import fastfit
+
+    calls = []
+    line_fit = fastfit.fit_lenslet_line
+    monkeypatch.setattr(fastfit, "fit_lenslet_line",
+                        lambda *a, **k: calls.append(1) or line_fit(*a, **k))
+    starts = fastfit._starts
+
+    def far_start(*a, **k):
+        qs, t = starts(*a, **k)
+        return [qs[0] + np.array([0.1, 0.0, 0.0])], t
+
+    monkeypatch.setattr(fastfit, "_starts", far_start)
+    monkeypatch.setattr(fastfit, "COARSE_ITERATIONS", 1)
+    monkeypatch.setattr(fastfit, "FINE_ITERATIONS", 1)
+    img, prof, cal, geom, truth = _capture("point_system2_1100mm_dh5", "system2")
+
+    def answer():
+        calls.clear()
+        r = run_distance(img, prof, cal, model="exact", method="lenslet", geometry=geom,
+                         jobs=1).regions[0]
+        assert r.kind == "spot" and r.status == "ok"
+        assert abs(r.distance_mm / truth["distance_mm"] - 1.0) < 0.0005  # measured 0.001 %
+        return bool(calls)
+
+    assert not answer()
+    monkeypatch.setattr(fastfit, "POLISH_UNSETTLED", 1.0)  # never unsettled: the old floor
+    assert answer()
+
+
 def test_a_start_whose_light_misses_the_data_is_not_matched(monkeypatch):
     # system 2's 300 mm seed blur (~1 250 lenslets): the scan's second start lies near
     # 1500 mm, where the model lights none of the data's lenslets (scan misfit² 0.998); its

@@ -310,6 +310,12 @@ POLISH_GAIN_SAFETY = 5.0  # ... and its misfit² by at most this × a linear ste
 POLISH_GAIN_MIN = 0.1  # ... or by this share of it, whichever is more (docs/distance.md,
 #                         "The polish's reach": measured up to 1.9 × the prediction where it
 #                         matters, 4.3 × where it is under 0.005)
+POLISH_UNSETTLED = 0.5  # ... unless that step removes over this share of the misfit²: the fine
+#                         fit is far from its own minimum, and there is no floor (a point is
+#                         polished before a line is tried; lines fitted as points: at most 5 %
+#                         on the focus grid; an F/2 point at 75 % of the field left 98 %, and
+#                         its polish 98.7 %: docs/distance.md, "An unsettled point is polished
+#                         before a line (stop 60)")
 POOR_FIT = 0.12  # best misfit over this: neither model explains the data (status poor-fit)
 # The distance profile (docs/distance.md, "Blurs of a few lenslets"). A blur over a 2×2 block
 # of lenslets splits the pupil into four parts whose shapes fix only the ratio of the image
@@ -1729,6 +1735,9 @@ def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarr
     fine model's own Jacobian at ``q`` (``jac``, when the caller has it; else by
     differences): the polish removes at most ``POLISH_GAIN_SAFETY`` × the misfit² that linear
     step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md, "The polish's reach").
+    Where that step removes over ``POLISH_UNSETTLED`` of the misfit² (1: never), the fit is
+    far from its own minimum and the bound is 0: the point is polished before a line is tried
+    (docs/distance.md, "An unsettled point is polished before a line (stop 60)").
     """
     f = _sq(r_check)
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
@@ -1739,6 +1748,8 @@ def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarr
     if step_gain is None:
         return floor
     gain = step_gain[1]
+    if gain > POLISH_UNSETTLED * f:
+        return 0.0  # the fine fit has not reached its minimum: its polish may remove it all
     return max(floor, math.sqrt(max(f - max(POLISH_GAIN_SAFETY * gain, POLISH_GAIN_MIN * f),
                                         0.0)))
 
