@@ -130,15 +130,16 @@ def ab_settings(ap: argparse.ArgumentParser, args) -> list[dict]:
     return [{}, other] if other else [{}]
 
 
-def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, object]:
+def _fit(profile, geom, image, region, noise, settings: dict,
+         others: tuple = ()) -> tuple[float, object]:
     """One fit of the region with ``settings`` (fastfit constants) in force: its CPU (s) and
-    measurement."""
+    measurement (``others``: the capture's nearby regions, as ``run_distance`` passes them)."""
     saved = {name: getattr(ff, name) for name in settings}
     for name, value in settings.items():
         setattr(ff, name, value)
     try:
         c0 = time.process_time()
-        m = ff.measure_lenslet(profile, geom, image, region, noise)
+        m = ff.measure_lenslet(profile, geom, image, region, noise, others=others)
         return time.process_time() - c0, m
     finally:
         for name, value in saved.items():
@@ -146,17 +147,17 @@ def _fit(profile, geom, image, region, noise, settings: dict) -> tuple[float, ob
 
 
 def alternate(profile, geom, image, region, noise, settings: list[dict],
-              repeats: int) -> tuple[list[list[float]], list]:
+              repeats: int, others: tuple = ()) -> tuple[list[list[float]], list]:
     """Each of ``settings`` fitted once to warm up, then ``repeats`` rounds of one fit a
     setting in turn (the machine's drift falls on all alike): each setting's CPU (s) of
-    every round and its last measurement."""
+    every round and its last measurement (``others``: as :func:`_fit`)."""
     for s in settings:
-        _fit(profile, geom, image, region, noise, s)  # warm up
+        _fit(profile, geom, image, region, noise, s, others)  # warm up
     spent: list[list[float]] = [[] for _ in settings]
     answers: list = [None] * len(settings)
     for _ in range(max(1, repeats)):
         for k, s in enumerate(settings):
-            cpu, answers[k] = _fit(profile, geom, image, region, noise, s)
+            cpu, answers[k] = _fit(profile, geom, image, region, noise, s, others)
             spent[k].append(cpu)
     return spent, answers
 

@@ -172,6 +172,18 @@ def match(regions, truth: dict, t_half: float) -> list[float]:
     return errs
 
 
+def region_budgets(regions, region_s) -> dict:
+    """Per kind the answer reports (spot, line): the regions over issue 17's budget (50 ms a
+    point region, 100 ms a line region, each region's own CPU) and the slowest one's ms."""
+    out = {}
+    for kind, budget_ms in (("spot", 50.0), ("line", 100.0)):
+        ms = [1e3 * t for r, t in zip(regions, region_s, strict=False) if r.kind == kind]
+        out[f"{kind}_regions"] = len(ms)
+        out[f"{kind}_over_{budget_ms:.0f}ms"] = sum(v > budget_ms for v in ms)
+        out[f"{kind}_worst_ms"] = max(ms, default=0.0)
+    return out
+
+
 def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> dict:
     """One method on one scene: stage times, CLI wall time, worst region, errors."""
     png, cal_path, truth = prepare(name, workdir)
@@ -196,6 +208,7 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> d
         "fits_s": res.timings_s["measure"], "export_s": t4 - t3, "total_s": t4 - t0,
         "region_cpu_sum_s": float(sum(res.timings_s["region_s"])),
         "worst_region_ms": 1e3 * max(res.timings_s["region_s"], default=0.0),
+        **region_budgets(res.regions, res.timings_s["region_s"]),
         "missing": int(np.isnan(errs).sum()),
         "within_0.3pct": int((errs <= 0.3).sum()), "within_1pct": int((errs <= 1.0).sum()),
         "mean_error_pct": float(np.nanmean(errs)), "max_error_pct": float(np.nanmax(errs)),

@@ -41,6 +41,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import focus_grid as fg  # noqa: E402
 import line_regions as lr  # noqa: E402
 
+from lfcam.measure.regions import nearby_regions  # noqa: E402
+
 BUDGET_MS = 50.0  # issue 17's point region on one core
 
 
@@ -83,13 +85,13 @@ def scene12_rows(args, settings: list[dict]) -> list[tuple]:
             objects, placed = fg.scene12_objects(cam)
             image, truth, _ = cam.render(objects, seed=4, rays=1_000_000)
             profile, geom, regions, noise = lr.prepare(cam, image, every=True)
-            for region in regions:
+            for region, near in zip(regions, nearby_regions(regions), strict=True):
                 x0, y0, x1, y1 = region.box_px
                 held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
                         if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
                 ad = held[0] if len(held) == 1 else math.nan
                 rows.append(fit_row(f"{_case(system, focus)}, scene12, {ad:.0f} mm", args,
-                                    settings, profile, geom, image, region, noise, ad))
+                                    settings, profile, geom, image, region, noise, ad, near))
     return rows
 
 
@@ -98,10 +100,12 @@ def _case(system: str, focus: float) -> str:
 
 
 def fit_row(label: str, args, settings: list[dict], profile, geom, image, region, noise,
-            ad: float) -> tuple[list[float], list[float]]:
-    """One region fitted alternately with each of ``settings`` (``line_regions.alternate``),
-    its table row printed: each setting's least CPU (ms) and error (%) against ``ad``."""
-    spent, answers = lr.alternate(profile, geom, image, region, noise, settings, args.repeats)
+            ad: float, others: tuple = ()) -> tuple[list[float], list[float]]:
+    """One region fitted alternately with each of ``settings`` (``line_regions.alternate``;
+    ``others``: the capture's nearby regions, as ``run_distance`` passes them), its table row
+    printed: each setting's least CPU (ms) and error (%) against ``ad``."""
+    spent, answers = lr.alternate(profile, geom, image, region, noise, settings, args.repeats,
+                                  others)
     errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok" else math.nan
               for m in answers]
     least = [1e3 * min(t) for t in spent]

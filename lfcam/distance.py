@@ -170,7 +170,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
             # regions shaped like lines): a line's answer stands (no method measures lines
             # better), a spot's where its own σ meets the tolerance; the pixel fit (seconds)
             # only for the other spots, and for failed regions that look like spots
-            first = measure_lenslet(profile, geom, img, reg, noise, accept)
+            first = measure_lenslet(profile, geom, img, reg, noise, accept, others=nearby)
             if first.status != RegionStatus.OK:
                 meas = first if method == "lenslet" else None
             elif first.kind == "line" or auto.lenslet_answer_meets(
@@ -181,7 +181,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
         if method == "lightfield":
             meas = measure_lightfield(profile, geom, img, reg, noise, fast, nearby)
         elif method == "lenslet":
-            meas = measure_lenslet(profile, geom, img, reg, noise, accept)
+            meas = measure_lenslet(profile, geom, img, reg, noise, accept, others=nearby)
         else:
             meas = measure_diameter(profile, geom, img, stats, reg, noise)
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
@@ -294,7 +294,7 @@ def run_distance(
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)
         jobs = max(1, min(int(jobs), len(regions)))
-        near = nearby_regions(regions)  # each region's touching blurs (the pixel fit's)
+        near = nearby_regions(regions)  # each region's touching blurs (both fits read them)
         if pool is not None and jobs > 1:
             estimates = pool.estimate(profile, geom, img, stats, regions, near, noise, args,
                                       progress, noise_model)

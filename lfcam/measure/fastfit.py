@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -96,6 +96,20 @@ SUMMARY_SAME_LOG = 0.01  # a start whose scan match lands within this (log dista
 #                         basin: it is not matched on the cells again (docs/distance.md, "One
 #                         cells match a basin (stop 58)")
 SUMMARY_SAME_ANGLE = 1e-3
+SUMMARY_RECENTRE_ABOVE = 1.0  # a match that leaves the summary's normalised misfit over this
+#                               (no step of it lowered that: a start near focus, where the
+#                               slope gain's difference step crosses it) is followed by lateral
+#                               steps alone, the model's light centroid onto the data's
+#                               (focus grid: points ≤ 0.065; 91 point fits of the 231 lines
+#                               1.0-35, 2 of them moved, every line's answer the same; a
+#                               caustic-cut point of the Illum-size scene 3.19, its start
+#                               aside and its fit lost: docs/distance.md, "A start moved onto
+#                               the light (stop 60)")
+SUMMARY_RECENTRE_STEPS = 2  # ... at most this many (the least misfit of them is kept ...
+SUMMARY_RECENTRE_GAIN = 0.5  # ... where its misfit² is under this × the start's: a line's
+#                              blur, which no point's summary matches (380 mm lines: 2.0), is
+#                              left where it was (misfit 0.667 → 0.665 there; the caustic-cut
+#                              point: 0.82 → 0.17)
 FINE_ITERATIONS = 4
 FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
 #                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
@@ -362,6 +376,7 @@ RAY_SHARE_RICHARDSON = True  # a ray sample's share across a cell border by two 
 #                              model's distance −0.38 % off far behind focus (docs/distance.md,
 #                              "Ray shares without the box's variance (stop 53)")
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
+OTHERS_EXCLUDED = True  # measure_lenslet leaves its ``others``' lenslets out of the box
 TRACE_DEPOSIT_FUSED = True  # the compiled ray models trace and deposit a point's rays in one
 #                             pass (kernels.trace_deposit_moments; False: the two calls, the
 #                             same sums bit for bit: docs/distance.md, "The trace and the
@@ -425,13 +440,18 @@ def pedestal(image: np.ndarray) -> float:
 
 
 def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int],
-                 kernel: str | None = None) -> _Moments:
+                 kernel: str | None = None, exclude: np.ndarray | None = None) -> _Moments:
     """Moments of the data over the lenslets whose pixels lie in ``box`` (the dark pedestal
     removed, :func:`pedestal`), and their noise sums. ``kernel``: "compiled"
     (:func:`lfcam.measure.kernels.box_moments`, one pass) or "numpy" (the reference);
-    default :data:`KERNEL`."""
+    default :data:`KERNEL`. ``exclude``: lenslet indices left out of the box (the other
+    regions' lenslets: a neighbouring blur's light is not this source's). The models read
+    the same compact map, so they leave them out too (docs/distance.md, "Other regions'
+    lenslets left out of a box (stop 60)")."""
     x0, y0, x1, y1 = box
     lab = geom.lmap.labels[y0:y1, x0:x1]
+    if exclude is not None and len(exclude):
+        lab = np.where(np.isin(lab, exclude), -1, lab)
     ped = pedestal(image)
     if (KERNEL if kernel is None else kernel) == "compiled":
         from lfcam.measure.kernels import box_moments  # numba
@@ -1566,7 +1586,38 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         q, t, err = q + dq, t2, err2
         if abs(dq[0]) < 2e-3:
             break
+    if jac0 is None and err > SUMMARY_RECENTRE_ABOVE:
+        q, err = _recentre(profile, geom, mom, frame, model, q, t_data, scale, err)
     return q, jac, err
+
+
+def _recentre(profile, geom, mom, frame, model, q, t_data, scale, err):
+    """Lateral steps after a summary match that failed (:data:`SUMMARY_RECENTRE_ABOVE`): the
+    model's light centroid (the summary's ``x̄, ȳ`` on the MLA) moved onto the data's at
+    ``q``'s distance, by the chief ray's gain there. Near focus the blur's core is a few
+    lenslets wide inside a halo of a thousand, and a start two lenslets aside leaves a misfit
+    of 0.8 that no local step mends; the centroid, which the halo holds, is smooth in the
+    lateral position. At most :data:`SUMMARY_RECENTRE_STEPS` steps; the one of least
+    residual misfit is kept where its misfit² is under :data:`SUMMARY_RECENTRE_GAIN` × the
+    start's (else ``q`` itself: a line's blur moves a little and goes where it went).
+
+    Returns the parameters and the summary's normalised misfit there (``err`` at ``q``)."""
+    gain = float(chief_ray_gains(profile, geom.d_in_mm, math.exp(_log_distance(q)))[0])
+    m = model.simulate(frame.source(q))
+    t = summary(profile, geom, mom, m)
+    best = (SUMMARY_RECENTRE_GAIN * _sq(model.residual_of(m)), q, err)
+    for _ in range(SUMMARY_RECENTRE_STEPS):
+        if gain == 0 or not np.isfinite(t).all():
+            break
+        along = frame.z_rim - frame.source(q)[2]
+        q = q + np.r_[0.0, (t_data[1:3] - t[1:3]) / (gain * along)]
+        m = model.simulate(frame.source(q))
+        t = summary(profile, geom, mom, m)
+        f = _sq(model.residual_of(m))
+        if f < best[0]:
+            best = (f, q, float(np.linalg.norm((t - t_data) / scale))
+                    if np.isfinite(t).all() else math.inf)
+    return best[1], best[2]
 
 
 def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
@@ -2627,7 +2678,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                     region: Region, noise: float,
-                    accept: Callable[[float, float], bool] | None = None) -> Measurement:
+                    accept: Callable[[float, float], bool] | None = None,
+                    others: Sequence[Region] = ()) -> Measurement:
     """Lenslet-statistics fit of one region (module docstring).
 
     Parameters
@@ -2642,6 +2694,12 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         caller: a line's before its refit (:func:`fit_lenslet_line`), a point's before its
         polish (:func:`point_fit_stages`); without it every line is refitted and every point
         polished where their settled tests ask.
+    others : sequence of Region, optional
+        The capture's other regions near this one (:func:`lfcam.measure.regions.nearby_regions`):
+        their lenslets inside this region's box are left out of its data and models
+        (:func:`data_moments`' ``exclude``). In a crowded capture a neighbouring blur's
+        lenslets in the box put misfits of 0.24-0.50 on a point whose own light the model
+        fits to 0.04 (docs/distance.md, "Other regions' lenslets left out of a box (stop 60)").
 
     Returns
     -------
@@ -2650,7 +2708,10 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
-    mom = data_moments(geom, image, box)  # once: the noise misfit, the point and the line fit
+    exclude = (np.concatenate([o.lenslets for o in others]) if others and OTHERS_EXCLUDED
+               else None)
+    # once: the noise misfit, the point and the line fit
+    mom = data_moments(geom, image, box, exclude=exclude)
     nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
                                                                            mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
