@@ -1,7 +1,7 @@
 """Many-source scenes (issue 17): the distance run of a whole frame, stage by stage.
 
 Run: ``python benchmarks/many_sources.py --scene a|b [--workdir DIR] [--methods lenslet]
-[--jobs N] [--no-cli]``
+[--jobs N] [--no-cli]``, or ``… --per-region N [--ab NAME=VALUE,...]``
 
 * ``a``: a 1568² system-2 capture (focus 3.5 m) with 12 point sources, 600…3000 mm, spread
   over the field. Target: ``lfcam distance`` ≤ 5 s wall on the 2-core machine.
@@ -24,23 +24,37 @@ the worst single region's CPU time, and the errors against the truth (each truth
 matched to the region nearest its light centroid; ``regions_shared`` counts regions that
 several sources claim — touching blurs — and ``regions_unclaimed`` those no source claims —
 fragments).
+
+``--per-region N``: instead, every spot and line region's ``lenslet`` fit in this process
+on one core (BLAS at one thread), once to warm up and then ``N`` times, least CPU, as
+``line_regions.py`` times its regions (with ``--ab``, alternately as the code is and with
+those fastfit constants), each with its error against the one truth source its box holds; a
+summary per kind: regions over issue 17's budgets (50 ms a point region, 100 ms a line
+region), the slowest, the errors. A region's time inside ``lfcam distance`` also carries
+the process's first calls and, with ``--jobs``, two workers sharing the caches.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import math
 import os
-import subprocess
 import sys
-import time
-from pathlib import Path
 
-import numpy as np
+if "--per-region" in sys.argv:  # (before numpy loads: one BLAS thread, as a region worker)
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.calibrate.model import Calibration, save_calibration  # noqa: E402
@@ -234,6 +248,54 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> d
     return rec
 
 
+def per_region(name: str, workdir: Path, repeats: int, settings: list[dict]) -> None:
+    """Every spot and line region's ``lenslet`` fit in this process (module docstring): a row
+    each (region, the kind the fit answers, lenslets, error against the truth source its box
+    holds, least ms per setting) and a summary per kind."""
+    import line_regions as lr
+
+    from lfcam import distance
+    from lfcam.measure import find_regions, lenslet_stats
+    from lfcam.measure.noise import capture_noise
+    from lfcam.measure.regions import nearby_regions
+
+    png, cal_path, truth = prepare(name, workdir)
+    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
+    img = load_capture(png, prof).grey()
+    geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
+    stats = lenslet_stats(img, geom.lmap)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    capture_noise(img, geom.lmap, geom.pitch_px, stats, sensor_gain=distance.sensor_gain(
+        prof, float(prof.sensor.white_level - prof.sensor.black_level)))
+    noise = distance.noise_sigma(img)
+    rows = {}  # kind (setting A's answer) -> [(least ms per setting, error % per setting)]
+    print("| region | lenslets | " + " | ".join(
+        f"{k} kind, status, error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
+    for reg, near in zip(regions, nearby_regions(regions), strict=True):
+        if reg.kind not in ("spot", "line"):
+            continue
+        spent, answers = lr.alternate(prof, geom, img, reg, noise, settings, repeats, near)
+        x0, y0, x1, y1 = reg.box_px
+        held = [src["distance_mm"] for src in truth["sources"]
+                if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
+        errs = [100.0 * (m.distance_mm / held[0] - 1.0)
+                if len(held) == 1 and m.status == "ok" else math.nan for m in answers]
+        least = [1e3 * min(t) for t in spent]
+        rows.setdefault(answers[0].kind, []).append((least, errs))
+        print(f"| {reg.region_id} | {len(reg.lenslets)} | " + " | ".join(
+            f"{m.kind}, {m.status}, {e:+.4f} | {t:.1f}"
+            for m, e, t in zip(answers, errs, least, strict=True)) + " |", flush=True)
+    for kind, budget in (("spot", 50.0), ("line", 100.0)):
+        got = rows.get(kind, [])
+        for k, name_k in enumerate("AB"[:len(settings)]):
+            t = np.array([r[0][k] for r in got])
+            e = np.abs([r[1][k] for r in got])
+            print(f"# {name_k} {kind}: {len(got)} regions, {int((t > budget).sum())} over "
+                  f"{budget:.0f} ms, slowest {t.max(initial=0.0):.0f} ms, sum {t.sum():.0f} ms; "
+                  f"{int(np.isfinite(e).sum())} with an error, mean {np.nanmean(e):.4f} %, "
+                  f"max {np.nanmax(e, initial=0.0):.3f} %")
+
+
 def main(argv=None) -> list[dict]:
     """Run and print (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -242,7 +304,23 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--methods", default="lenslet")
     ap.add_argument("--jobs", type=int, default=None, help="default: all cores")
     ap.add_argument("--no-cli", action="store_true")
+    ap.add_argument("--per-region", type=int, default=0, metavar="N",
+                    help="each region's lenslet fit in this process, least CPU of N")
+    ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
+                    help="with --per-region: also fit each region with these fastfit constants")
     args = ap.parse_args(argv)
+    if args.per_region:
+        import focus_grid as fg
+
+        from lfcam.measure import kernels
+
+        try:
+            other = fg.fastfit_overrides(args.ab)
+        except ValueError as exc:
+            ap.error(f"--ab: {exc}")
+        kernels.warm_up()
+        per_region(args.scene, args.workdir, args.per_region, [{}, other] if other else [{}])
+        return []
     recs = []
     for method in args.methods.split(","):
         rec = run(args.scene, args.workdir, method, args.jobs, not args.no_cli)

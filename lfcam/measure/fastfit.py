@@ -451,7 +451,9 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     x0, y0, x1, y1 = box
     lab = geom.lmap.labels[y0:y1, x0:x1]
     if exclude is not None and len(exclude):
-        lab = np.where(np.isin(lab, exclude), -1, lab)
+        drop = np.zeros(geom.lmap.count + 1, dtype=bool)  # (label −1 reads the last: kept)
+        drop[exclude] = True
+        lab = np.where(drop[lab], -1, lab)
     ped = pedestal(image)
     if (KERNEL if kernel is None else kernel) == "compiled":
         from lfcam.measure.kernels import box_moments  # numba
