@@ -60,6 +60,7 @@ from lfcam.measure import (
     noise_sigma,
     prepare_geometry,
 )
+from lfcam.measure.fastfit import keep_lattice, lattice_of
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.regions import nearby_regions
 from lfcam.measure.verify import verify_regions
@@ -291,13 +292,17 @@ def run_distance(
         noise_model = (capture_noise(img, geom.lmap, geom.pitch_px, stats,
                                      sensor_gain=sensor_gain(profile, white_value))
                        if method != "diameter" and regions else None)
+        # the geometry's lenslet lattice, which every lenslet fit reads: here (~40 ms at
+        # Illum size), not in the time of each worker's first region (the pool gets it)
+        lattice = ((lattice_of(geom, profile.mla.pitch_mm),)
+                   if method in ("lenslet", "auto") and regions else None)
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)
         jobs = max(1, min(int(jobs), len(regions)))
         near = nearby_regions(regions)  # each region's touching blurs (both fits read them)
         if pool is not None and jobs > 1:
             estimates = pool.estimate(profile, geom, img, stats, regions, near, noise, args,
-                                      progress, noise_model)
+                                      progress, noise_model, lattice)
         else:
             estimates = []
             for i, reg in enumerate(regions):
@@ -411,6 +416,8 @@ def _worker_attach(names: tuple[str, str, str], shape: tuple[int, int]) -> dict:
                     d_in_mm)
     if ctx["noise_model"] is not None:  # the parent's, remembered for this image
         capture_noise(img, geom.lmap, pitch_px, known=ctx["noise_model"])
+    if ctx["lattice"] is not None:  # the parent's, remembered for this geometry
+        keep_lattice(geom, ctx["lattice"][0])
     _WORKER.clear()
     _WORKER.update(names=names, profile=ctx["profile"], geom=geom, img=img,
                    stats=LensletStats(*ctx["stats"]), noise=ctx["noise"], args=ctx["args"],
@@ -466,9 +473,11 @@ class _RegionPool:
             _restore_environ(saved)
 
     def estimate(self, profile, geom, img, stats, regions, nearby, noise, args, progress,
-                 noise_model=None) -> list:
+                 noise_model=None, lattice=None) -> list:
         """:func:`_timed_estimate` of every region, in region order (``nearby``: each
-        region's :func:`~lfcam.measure.regions.nearby_regions`)."""
+        region's :func:`~lfcam.measure.regions.nearby_regions`; ``noise_model`` and
+        ``lattice``, a 1-tuple of :func:`~lfcam.measure.fastfit.lattice_of`'s: the parent's,
+        which the workers keep)."""
         import pickle
         from concurrent.futures import as_completed
         from multiprocessing import shared_memory
@@ -479,7 +488,7 @@ class _RegionPool:
             "profile": profile, "geom": ((geom.lmap.centres_px, geom.lmap.radius_px),
                                          geom.lens_centres_mm, geom.pitch_px, geom.d_in_mm),
             "stats": (stats.energy, stats.centroid_px, stats.pixels), "noise": noise,
-            "noise_model": noise_model,
+            "noise_model": noise_model, "lattice": lattice,
             "args": args}, protocol=pickle.HIGHEST_PROTOCOL)
         shms = []
         try:

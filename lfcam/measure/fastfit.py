@@ -394,6 +394,12 @@ def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
     return _LATTICES.get(geom, lambda: LocalLattice.fit(geom.lens_centres_mm, pitch_mm))
 
 
+def keep_lattice(geom: Geometry, lattice: LocalLattice | None) -> None:
+    """Remember ``lattice`` (:func:`lattice_of`'s, computed elsewhere: a region worker gets
+    its parent's) for ``geom``."""
+    _LATTICES.get(geom, lambda: lattice)
+
+
 @dataclass
 class _Moments:
     """The region's lenslets and the data's moments (module docstring)."""

@@ -416,6 +416,9 @@ class ImageFit:
     reason: str = ""
 
 
+NEAREST_KEPT = 16  # LocalLattice.fit: nearest centres searched for the basis first
+
+
 @dataclass(frozen=True)
 class LocalLattice:
     """Exact nearest-lenslet lookup for centres that form an affine lattice."""
@@ -436,12 +439,20 @@ class LocalLattice:
             return None
         ref = c[0]
         d = c - ref
-        # nominal basis from the nearest neighbours of the reference centre
-        order = np.argsort(np.hypot(d[:, 0], d[:, 1]))[1:]
-        a1 = d[order[0]]
-        a2 = next((d[k] for k in order[1:]
-                   if abs(a1[0] * d[k][1] - a1[1] * d[k][0]) > 0.5 * pitch_mm * pitch_mm), None)
-        if a2 is None:
+        # nominal basis from the nearest neighbours of the reference centre (the nearest
+        # NEAREST_KEPT in order, partitioned out of all: a full sort of an Illum's 235 000
+        # took 20 ms; all of them where those hold no second direction)
+        r = np.hypot(d[:, 0], d[:, 1])
+        for keep in (min(NEAREST_KEPT, len(r)), len(r)):
+            near = np.argpartition(r, keep - 1)[:keep] if keep < len(r) else np.arange(len(r))
+            order = near[np.argsort(r[near])][1:]
+            a1 = d[order[0]]
+            a2 = next((d[k] for k in order[1:]
+                       if abs(a1[0] * d[k][1] - a1[1] * d[k][0]) > 0.5 * pitch_mm * pitch_mm),
+                      None)
+            if a2 is not None:
+                break
+        else:
             return None
         ij = np.round(np.linalg.solve(np.column_stack([a1, a2]), d.T).T).astype(np.int64)
         a = np.column_stack([np.ones(len(ij)), ij])
