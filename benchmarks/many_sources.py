@@ -287,6 +287,9 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict]) -> 
             for m, e, t in zip(answers, errs, least, strict=True)) + " |", flush=True)
     for kind, budget in (("spot", 50.0), ("line", 100.0)):
         got = rows.get(kind, [])
+        if not got:
+            print(f"# {kind}: no regions")
+            continue
         for k, name_k in enumerate("AB"[:len(settings)]):
             t = np.array([r[0][k] for r in got])
             e = np.abs([r[1][k] for r in got])
