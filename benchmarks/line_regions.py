@@ -92,12 +92,20 @@ def prepare(cam, image: np.ndarray, every: bool = False) -> tuple:
     fits' gates read it) registered as :func:`lfcam.distance.run_distance` registers it.
     ``every``: the list of all its regions instead of the largest."""
     geom, profile = cam.geom, cam.measuring_profile()
-    stats = lenslet_stats(image, geom.lmap)
-    regions = find_regions(stats, geom.lmap, geom.pitch_px)
-    capture_noise(image, geom.lmap, geom.pitch_px, stats, sensor_gain=distance.sensor_gain(
-        profile, float(cam.used.sensor.white_level - cam.used.sensor.black_level)))
+    regions, noise = capture_regions(profile, geom, image, float(
+        cam.used.sensor.white_level - cam.used.sensor.black_level))
     return (profile, geom, regions if every else max(regions, key=lambda r: len(r.lenslets)),
-            distance.noise_sigma(image))
+            noise)
+
+
+def capture_regions(profile, geom, image: np.ndarray, white_value: float) -> tuple:
+    """(regions, pixel noise) of a capture on ``geom``, its noise model (which the fits'
+    gates read) registered as :func:`lfcam.distance.run_distance` registers it (``white_value``:
+    the image's white level less its black level)."""
+    stats = lenslet_stats(image, geom.lmap)
+    capture_noise(image, geom.lmap, geom.pitch_px, stats,
+                  sensor_gain=distance.sensor_gain(profile, white_value))
+    return find_regions(stats, geom.lmap, geom.pitch_px), distance.noise_sigma(image)
 
 
 def add_ab_options(ap: argparse.ArgumentParser, repeats: int, example: str) -> None:

@@ -254,20 +254,14 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict]) -> 
     holds, least ms per setting) and a summary per kind."""
     import line_regions as lr
 
-    from lfcam import distance
-    from lfcam.measure import find_regions, lenslet_stats
-    from lfcam.measure.noise import capture_noise
     from lfcam.measure.regions import nearby_regions
 
     png, cal_path, truth = prepare(name, workdir)
     prof = load_profile(png.with_name(png.stem + ".profile.toml"))
     img = load_capture(png, prof).grey()
     geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
-    stats = lenslet_stats(img, geom.lmap)
-    regions = find_regions(stats, geom.lmap, geom.pitch_px)
-    capture_noise(img, geom.lmap, geom.pitch_px, stats, sensor_gain=distance.sensor_gain(
-        prof, float(prof.sensor.white_level - prof.sensor.black_level)))
-    noise = distance.noise_sigma(img)
+    regions, noise = lr.capture_regions(prof, geom, img, float(
+        prof.sensor.white_level - prof.sensor.black_level))
     rows = {}  # kind (setting A's answer) -> [(least ms per setting, error % per setting)]
     print("| region | lenslets | " + " | ".join(
         f"{k} kind, status, error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")

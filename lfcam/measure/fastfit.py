@@ -1561,7 +1561,8 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
     def t_of(qq):
         return summary(profile, geom, mom, model.simulate(frame.source(qq)))
 
-    t = t_of(q)
+    m = model.simulate(frame.source(q))  # (the moments at q: _recentre's residual there)
+    t = summary(profile, geom, mom, m)
     if not np.isfinite(t).all():
         return q, None, math.inf
     err = float(np.linalg.norm((t - t_data) / scale))
@@ -1582,7 +1583,8 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         except np.linalg.LinAlgError:
             break
         dq[0] = float(np.clip(dq[0], -0.15, 0.15))
-        t2 = t_of(q + dq)
+        m2 = model.simulate(frame.source(q + dq))
+        t2 = summary(profile, geom, mom, m2)
         err2 = float(np.linalg.norm((t2 - t_data) / scale)) if np.isfinite(t2).all() else np.inf
         if not err2 < err:
             if fresh:
@@ -1591,15 +1593,15 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
             continue
         jac = jac + np.outer((t2 - t) - jac @ dq, dq) / float(dq @ dq)
         fresh = False
-        q, t, err = q + dq, t2, err2
+        q, t, m, err = q + dq, t2, m2, err2
         if abs(dq[0]) < 2e-3:
             break
     if jac0 is None and err > SUMMARY_RECENTRE_ABOVE:
-        q, err = _recentre(profile, geom, mom, frame, model, q, t_data, scale, err)
+        q, err = _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err)
     return q, jac, err
 
 
-def _recentre(profile, geom, mom, frame, model, q, t_data, scale, err):
+def _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err):
     """Lateral steps after a summary match that failed (:data:`SUMMARY_RECENTRE_ABOVE`): the
     model's light centroid (the summary's ``x̄, ȳ`` on the MLA) moved onto the data's at
     ``q``'s distance, by the chief ray's gain there. Near focus the blur's core is a few
@@ -1607,18 +1609,20 @@ def _recentre(profile, geom, mom, frame, model, q, t_data, scale, err):
     of 0.8 that no local step mends; the centroid, which the halo holds, is smooth in the
     lateral position. At most :data:`SUMMARY_RECENTRE_STEPS` steps; the one of least
     residual misfit is kept where its misfit² is under :data:`SUMMARY_RECENTRE_GAIN` × the
-    start's (else ``q`` itself: a line's blur moves a little and goes where it went).
+    start's (else ``q`` itself: a line's blur moves a little and goes where it went). ``m``,
+    ``t``: the model's moments and summary at ``q`` (the match's last evaluation).
 
     Returns the parameters and the summary's normalised misfit there (``err`` at ``q``)."""
-    gain = float(chief_ray_gains(profile, geom.d_in_mm, math.exp(_log_distance(q)))[0])
-    m = model.simulate(frame.source(q))
-    t = summary(profile, geom, mom, m)
+    d = math.exp(_log_distance(q))
+    gain = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
     best = (SUMMARY_RECENTRE_GAIN * _sq(model.residual_of(m)), q, err)
     for _ in range(SUMMARY_RECENTRE_STEPS):
         if gain == 0 or not np.isfinite(t).all():
             break
         along = frame.z_rim - frame.source(q)[2]
-        q = q + np.r_[0.0, (t_data[1:3] - t[1:3]) / (gain * along)]
+        # (the chief ray's lateral offset at the object for the centroids' MLA offset)
+        shift = chief_ray_offset(profile, geom.d_in_mm, d, t_data[1:3] - t[1:3], gain=gain)
+        q = q + np.r_[0.0, shift / along]
         m = model.simulate(frame.source(q))
         t = summary(profile, geom, mom, m)
         f = _sq(model.residual_of(m))
