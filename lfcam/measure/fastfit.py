@@ -194,13 +194,16 @@ LINE_RACE_HOPELESS = 100.0  # the starts race from the best placed; one whose mi
 #                             it starts is over this × the best race's end is not raced (a
 #                             380 mm line in front of a 1 m focus: 3 of its 4 starts, 0.16-0.21
 #                             against 0.0007; 0.22 -> 0.18 s, the same answer) ...
-LINE_RACE_START_RATIO = 10.0  # ... nor one whose misfit² where it starts is over this × the
-#                               best start's: over the 64 ray-sampled races of the 231 grid
-#                               lines with two starts or more, the winner started within 2.9 ×
-#                               the best start's misfit², and 35 turned axes (system 1's lines
-#                               far off axis behind focus, system 2's at 720 mm) 10-100 × it:
-#                               the same answers (docs/distance.md, "Starts that cannot win
-#                               the race (stop 50)")
+LINE_RACE_START_RATIO = 5.0  # ... nor one whose misfit² where it starts is over this × the
+#                              best start's: over the 64 ray-sampled races of the 231 grid
+#                              lines with two starts or more, the winner started within 2.9 ×
+#                              the best start's misfit², and 35 turned axes (system 1's lines
+#                              far off axis behind focus, system 2's at 720 mm) 10-100 × it
+#                              (docs/distance.md, "Starts that cannot win the race (stop
+#                              50)"); 10 until stop 61, when the scan's start on the crowded
+#                              scene's large lines in front of focus, 5.5-7.3 × and ~20 ms a
+#                              heat, and the independent renderer's 1500 mm lines, 7.9-8.2 ×,
+#                              never won either (docs/distance.md, "A tighter race (stop 61)")
 LINE_RACE_GIVE_UP = 15.0  # ... and a heat whose misfit² after an iteration is over this ×
 #                           the best earlier heat's end runs no more (ray-sampled races of the
 #                           231 grid lines: winners at most 9.1 ×; docs/distance.md, "Heats
