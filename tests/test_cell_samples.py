@@ -637,6 +637,57 @@ def test_a_point_at_the_far_bound_gives_the_line_no_start(hex_line_3400, monkeyp
         assert abs(fit.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * fit.sigma_distance_mm
 
 
+def test_a_start_far_behind_the_best_is_not_raced(monkeypatch):
+    # System 2 with a hexagonal MLA, the benchmark's 3 mm line at 1500 mm and 60°: the
+    # distance scan's start begins at 8.0 × the point fit's misfit² and, raced, ends at 8 ×
+    # the winner's end (0.053 against 0.0066). Over LINE_RACE_START_RATIO (5 since stop 61,
+    # 10 before) it is not raced, and the answer and its σ are those of the full race
+    # (the same measured on the 231 grid lines; every winner logged started within 2.81 ×)
+    import sys
+    from pathlib import Path
+
+    from lfcam.measure.lenslets import lenslet_stats
+    from lfcam.measure.regions import find_regions
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from lines_on_cells import line_capture
+
+    img, used, geom = line_capture("hex", 1500.0, 60.0)
+    reg = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
+              key=lambda r: len(r.lenslets))
+    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    point = next(ff.point_fit_stages(used, geom, img, reg, mom=mom))
+
+    def raced(ratio):
+        monkeypatch.setattr(ff, "LINE_RACE_START_RATIO", ratio)
+        heats = []  # (misfit² where a heat starts, where it ends)
+        inner = ff._levenberg_marquardt
+
+        def logged(fun, q0, *args, **kwargs):
+            out = inner(fun, q0, *args, **kwargs)
+            if "stop_above" in kwargs:  # (only the race's heats give up)
+                heats.append((ff._sq(kwargs["r0"]), out[2]))
+            return out
+
+        monkeypatch.setattr(ff, "_levenberg_marquardt", logged)
+        fit = ff.fit_lenslet_line(used, geom, img, reg, point=point, mom=mom)
+        monkeypatch.undo()
+        return heats, fit
+
+    assert ff.LINE_RACE_START_RATIO == 5.0
+    every, full = raced(10.0)
+    assert len(every) == 2
+    (f0, end0), (f1, end1) = every
+    assert 5.0 < f1 / f0 < 10.0 and end1 > 5.0 * end0  # a start that began and ended far behind
+    tight, fit = raced(5.0)
+    assert tight == every[:1]
+    assert fit.ok and full.ok
+    assert fit.source_mm[2] == full.source_mm[2]
+    assert fit.sigma_distance_mm == full.sigma_distance_mm
+    frame = ff._Frame(used)
+    assert abs(frame.z_front - fit.source_mm[2] - 1500.0) < 3.0 * fit.sigma_distance_mm
+
+
 def _deposit_pair(spot_centre, e, labels, centres_px, dense=240, s_px=1e-4, pieces=None):
     """deposit_cells of one whole cell (weight 1) and deposit_moments of ``dense``² samples
     spread evenly over the same parallelogram, each an ``s_px`` box (pixel pitch 1 mm,
