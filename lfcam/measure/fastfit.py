@@ -202,8 +202,9 @@ LINE_RACE_START_RATIO = 5.0  # ... nor one whose misfit² where it starts is ove
 #                              (docs/distance.md, "Starts that cannot win the race (stop
 #                              50)"); 10 until stop 61, when the scan's start on the crowded
 #                              scene's large lines in front of focus, 5.5-7.3 × and ~20 ms a
-#                              heat, and the independent renderer's 1500 mm lines, 7.9-8.2 ×,
-#                              never won either (docs/distance.md, "A tighter race (stop 61)")
+#                              heat, the independent renderer's 1500 mm lines, 7.9-8.2 ×, and
+#                              15 heats of the grid's lines, 5-10 ×, never won either
+#                              (docs/distance.md, "A tighter race (stop 61)")
 LINE_RACE_GIVE_UP = 15.0  # ... and a heat whose misfit² after an iteration is over this ×
 #                           the best earlier heat's end runs no more (ray-sampled races of the
 #                           231 grid lines: winners at most 9.1 ×; docs/distance.md, "Heats
