@@ -405,11 +405,10 @@ def test_gauss_newton_does_not_evaluate_a_step_under_its_floor():
         assert f == pytest.approx(float((a @ q_min - b) @ (a @ q_min - b)), rel=1e-9)
 
 
-@pytest.fixture(scope="module")
-def hex_line_3400():
-    """System 2 with a hexagonal MLA: the benchmark's 3 mm line at 3400 mm and 135°
-    (``benchmarks/lines_on_cells.py``), its region's moments, its line fit, and the fit's
-    answer as the line model's parameters ``q``: (profile, geom, mom, line, frame, q)."""
+def _hex_line(distance_mm: float, angle_deg: float) -> tuple:
+    """System 2 with a hexagonal MLA: the benchmark's 3 mm line at ``distance_mm`` and
+    ``angle_deg`` (``benchmarks/lines_on_cells.py``), its capture, profile, geometry, region
+    and the region's moments: (img, used, geom, reg, mom)."""
     import sys
     from pathlib import Path
 
@@ -419,10 +418,17 @@ def hex_line_3400():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from lines_on_cells import line_capture  # the benchmark's capture of that line
 
-    img, used, geom = line_capture("hex", 3400.0, 135.0)
+    img, used, geom = line_capture("hex", distance_mm, angle_deg)
     regions = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)
     reg = max(regions, key=lambda r: len(r.lenslets))
-    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    return img, used, geom, reg, ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+
+
+@pytest.fixture(scope="module")
+def hex_line_3400():
+    """:func:`_hex_line` at 3400 mm and 135°: its region's moments, its line fit, and the
+    fit's answer as the line model's parameters ``q``: (profile, geom, mom, line, frame, q)."""
+    img, used, geom, reg, mom = _hex_line(3400.0, 135.0)
     line = ff.fit_lenslet_line(used, geom, img, reg, mom=mom)
     frame = ff._Frame(used)
     a, b = line.ends_mm
@@ -643,19 +649,7 @@ def test_a_start_far_behind_the_best_is_not_raced(monkeypatch):
     # the winner's end (0.053 against 0.0066). Over LINE_RACE_START_RATIO (5 since stop 61,
     # 10 before) it is not raced, and the answer and its σ are those of the full race
     # (the same measured on the 231 grid lines; every winner logged started within 2.81 ×)
-    import sys
-    from pathlib import Path
-
-    from lfcam.measure.lenslets import lenslet_stats
-    from lfcam.measure.regions import find_regions
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from lines_on_cells import line_capture
-
-    img, used, geom = line_capture("hex", 1500.0, 60.0)
-    reg = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
-              key=lambda r: len(r.lenslets))
-    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    img, used, geom, reg, mom = _hex_line(1500.0, 60.0)
     point = next(ff.point_fit_stages(used, geom, img, reg, mom=mom))
 
     def raced(ratio):
