@@ -1,7 +1,8 @@
 """Many-source scenes (issue 17): the distance run of a whole frame, stage by stage.
 
 Run: ``python benchmarks/many_sources.py --scene a|b [--workdir DIR] [--methods lenslet]
-[--jobs N] [--no-cli]``, or ``… --per-region N [--ab NAME=VALUE,...]``
+[--jobs N] [--no-cli] [--seed N] [--lines-only]``, or ``… --per-region N [--ab
+NAME=VALUE,...]``
 
 * ``a``: a 1568² system-2 capture (focus 3.5 m) with 12 point sources, 600…3000 mm, spread
   over the field. Target: ``lfcam distance`` ≤ 5 s wall on the 2-core machine.
@@ -24,6 +25,11 @@ the worst single region's CPU time, and the errors against the truth (each truth
 matched to the region nearest its light centroid; ``regions_shared`` counts regions that
 several sources claim — touching blurs — and ``regions_unclaimed`` those no source claims —
 fragments).
+
+``--seed N`` renders the scene with another seed (rays and noise), ``--lines-only`` scene
+``b``'s 10 lines without its points: each draw in a ``--workdir`` of its own (a workdir that
+holds another draw is refused). Scene ``b``'s lines on other draws are in docs/distance.md,
+"The polish's rays where photons dominate (stop 62)".
 
 ``--per-region N``: instead, every spot and line region's ``lenslet`` fit in this process
 on one core (BLAS at one thread), once to warm up and then ``N`` times, least CPU, as
@@ -143,14 +149,27 @@ def lattice_calibration(prof: CameraProfile, shape: tuple[int, int]) -> Calibrat
         px[keep], image_size_px=(w, h), d_in_mm=prof.d_in_mm, source="lattice calibration")
 
 
-def prepare(name: str, workdir: Path) -> tuple[Path, Path, dict]:
-    """Render (or reuse) the scene and its calibration; (capture, calibration, truth)."""
+def prepare(name: str, workdir: Path, seed: int | None = None,
+            lines_only: bool = False) -> tuple[Path, Path, dict]:
+    """Render (or reuse) the scene and its calibration; (capture, calibration, truth).
+    ``seed``: the render's seed (rays and noise; default the scene's own); ``lines_only``:
+    scene (b)'s lines without its points. A workdir that holds another draw is refused."""
     workdir.mkdir(parents=True, exist_ok=True)
     png = workdir / f"scene_{name}.png"
     cal_path = workdir / f"scene_{name}.calib.json"
     truth_path = workdir / f"scene_{name}.truth.json"
-    if not (png.exists() and cal_path.exists() and truth_path.exists()):
-        base, scene = scene_a() if name == "a" else scene_b()
+    base, scene = scene_a() if name == "a" else scene_b()
+    if seed is not None:
+        scene["seed"] = seed
+    if lines_only:
+        scene["objects"] = [o for o in scene["objects"] if o["type"] == "line"]
+    if png.exists() and cal_path.exists() and truth_path.exists():
+        held = json.loads(truth_path.read_text(encoding="utf-8"))
+        if (held.get("seed"), len(held["sources"])) != (scene["seed"], len(scene["objects"])):
+            raise SystemExit(f"{workdir} holds scene {name} with seed {held.get('seed')} and "
+                             f"{len(held['sources'])} sources, not seed {scene['seed']} and "
+                             f"{len(scene['objects'])}: give another --workdir")
+    else:
         t = time.perf_counter()
         raw, used, truth = simulate(base, scene_from_dict(scene))
         print(f"# rendered scene {name}: {raw.shape[1]}×{raw.shape[0]} px, "
@@ -198,9 +217,11 @@ def region_budgets(regions, region_s) -> dict:
     return out
 
 
-def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> dict:
-    """One method on one scene: stage times, CLI wall time, worst region, errors."""
-    png, cal_path, truth = prepare(name, workdir)
+def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool,
+        draw: dict | None = None) -> dict:
+    """One method on one scene: stage times, CLI wall time, worst region, errors (``draw``:
+    :func:`prepare`'s ``seed`` and ``lines_only``)."""
+    png, cal_path, truth = prepare(name, workdir, **(draw or {}))
     out = workdir / f"out_{name}_{method}"
     t0 = time.perf_counter()
     prof = load_profile(png.with_name(png.stem + ".profile.toml"))
@@ -248,7 +269,8 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool) -> d
     return rec
 
 
-def per_region(name: str, workdir: Path, repeats: int, settings: list[dict]) -> None:
+def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
+               draw: dict | None = None) -> None:
     """Every spot and line region's ``lenslet`` fit in this process (module docstring): a row
     each (region, the kind the fit answers, lenslets, error against the truth source its box
     holds, least ms per setting) and a summary per kind."""
@@ -256,7 +278,7 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict]) -> 
 
     from lfcam.measure.regions import nearby_regions
 
-    png, cal_path, truth = prepare(name, workdir)
+    png, cal_path, truth = prepare(name, workdir, **(draw or {}))
     prof = load_profile(png.with_name(png.stem + ".profile.toml"))
     img = load_capture(png, prof).grey()
     geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
@@ -305,7 +327,13 @@ def main(argv=None) -> list[dict]:
                     help="each region's lenslet fit in this process, least CPU of N")
     ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
                     help="with --per-region: also fit each region with these fastfit constants")
+    ap.add_argument("--seed", type=int, default=None,
+                    help="render seed (rays and noise; default the scene's own), in a workdir "
+                         "of its own")
+    ap.add_argument("--lines-only", action="store_true",
+                    help="scene b's 10 lines without its points, in a workdir of its own")
     args = ap.parse_args(argv)
+    draw = {"seed": args.seed, "lines_only": args.lines_only}
     if args.per_region:
         import focus_grid as fg
 
@@ -316,11 +344,12 @@ def main(argv=None) -> list[dict]:
         except ValueError as exc:
             ap.error(f"--ab: {exc}")
         kernels.warm_up()
-        per_region(args.scene, args.workdir, args.per_region, [{}, other] if other else [{}])
+        per_region(args.scene, args.workdir, args.per_region, [{}, other] if other else [{}],
+                   draw)
         return []
     recs = []
     for method in args.methods.split(","):
-        rec = run(args.scene, args.workdir, method, args.jobs, not args.no_cli)
+        rec = run(args.scene, args.workdir, method, args.jobs, not args.no_cli, draw)
         recs.append(rec)
         print(json.dumps(rec, indent=1), flush=True)
     return recs

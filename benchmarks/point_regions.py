@@ -2,7 +2,7 @@
 (issue 17).
 
 Run: ``python benchmarks/point_regions.py [--repeats N] [--ab NAME=VALUE,...] [--systems S]
-[--scene12] [--cache DIR] [--render-cache DIR]``
+[--scene12 [--seeds 4|5-24|5,7]] [--cache DIR] [--render-cache DIR]``
 
 The captures are ``benchmarks/focus_grid.py``'s single points (system 1 and 2, foci 1000 mm,
 1500 mm and infinity, the grid's distances, 0, 40 and 80 % of the half-field; photon and read
@@ -18,6 +18,12 @@ cells match a basin (stop 58)").
 ``--scene12``: every region of ``focus_grid.py --scene12``'s six 12-source captures instead
 (the same captures, seed and noise), each one's error against the source its box holds: the
 crowded, far and dim blurs of a real scene, where the single points are one a capture.
+``--seeds``: the captures rendered with each of these seeds (rays and noise; 4 is
+``focus_grid.py``'s), every region of every draw a row: one draw's photon-limited answers
+scatter by their σ, so an ``--ab`` whose answers move is judged on many draws. The summary
+then adds, with ``--ab``, the ratio of B's mean squared error to A's in units of A's σ
+(``z²``) and of their mean |error|, each with a bootstrap 95 % interval over the regions
+(docs/distance.md, "The polish's rays where photons dominate (stop 62)").
 """
 
 from __future__ import annotations
@@ -52,6 +58,8 @@ def main() -> None:
     ap.add_argument("--systems", default="system1,system2")
     ap.add_argument("--scene12", action="store_true",
                     help="the regions of focus_grid.py's six 12-source captures instead")
+    ap.add_argument("--seeds", default="4", type=_seeds,
+                    help="--scene12's render seeds: N, A-B or a comma list (default 4)")
     args = ap.parse_args()
     settings = lr.ab_settings(ap, args)
     print("| point region | lenslets | " + " | ".join(
@@ -76,23 +84,36 @@ def main() -> None:
 
 def scene12_rows(args, settings: list[dict]) -> list[tuple]:
     """Each region of the six 12-source captures (``focus_grid.py --scene12``: systems 1
-    and 2, foci 1000 mm, 1500 mm and ∞), fitted as :func:`main` fits the single points; its
-    error against the source whose centroid its box holds (NaN: none or several)."""
+    and 2, foci 1000 mm, 1500 mm and ∞) of each of ``--seeds``' draws, fitted as :func:`main`
+    fits the single points; its error against the source whose centroid its box holds (NaN:
+    none or several)."""
     rows = []
-    for system in args.systems.split(","):
-        for focus in (1000.0, 1500.0, math.inf):
-            cam = fg.Camera(system, focus, None, args.cache, False)
-            objects, placed = fg.scene12_objects(cam)
-            image, truth, _ = cam.render(objects, seed=4, rays=1_000_000)
-            profile, geom, regions, noise = lr.prepare(cam, image, every=True)
-            for region, near in zip(regions, nearby_regions(regions), strict=True):
-                x0, y0, x1, y1 = region.box_px
-                held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
-                        if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
-                ad = held[0] if len(held) == 1 else math.nan
-                rows.append(fit_row(f"{_case(system, focus)}, scene12, {ad:.0f} mm", args,
-                                    settings, profile, geom, image, region, noise, ad, near))
+    for seed in args.seeds:
+        for system in args.systems.split(","):
+            for focus in (1000.0, 1500.0, math.inf):
+                cam = fg.Camera(system, focus, None, args.cache, False)
+                objects, placed = fg.scene12_objects(cam)
+                image, truth, _ = cam.render(objects, seed=seed, rays=1_000_000)
+                profile, geom, regions, noise = lr.prepare(cam, image, every=True)
+                draw = f", seed {seed}" if len(args.seeds) > 1 else ""
+                for region, near in zip(regions, nearby_regions(regions), strict=True):
+                    x0, y0, x1, y1 = region.box_px
+                    held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
+                            if x0 <= src["centroid_px"][0] < x1
+                            and y0 <= src["centroid_px"][1] < y1]
+                    ad = held[0] if len(held) == 1 else math.nan
+                    rows.append(fit_row(f"{_case(system, focus)}{draw}, scene12, {ad:.0f} mm",
+                                        args, settings, profile, geom, image, region, noise,
+                                        ad, near))
     return rows
+
+
+def _seeds(text: str) -> list[int]:
+    """``--seeds``: ``N``, ``A-B`` (inclusive) or ``A,B,…``."""
+    if "-" in text:
+        lo, hi = (int(v) for v in text.split("-", 1))
+        return list(range(lo, hi + 1))
+    return [int(v) for v in text.split(",")]
 
 
 def _case(system: str, focus: float) -> str:
@@ -100,18 +121,20 @@ def _case(system: str, focus: float) -> str:
 
 
 def fit_row(label: str, args, settings: list[dict], profile, geom, image, region, noise,
-            ad: float, others: tuple = ()) -> tuple[list[float], list[float]]:
+            ad: float, others: tuple = ()) -> tuple[list[float], list[float], list[float]]:
     """One region fitted alternately with each of ``settings`` (``line_regions.alternate``;
     ``others``: the capture's nearby regions, as ``run_distance`` passes them), its table row
-    printed: each setting's least CPU (ms) and error (%) against ``ad``."""
+    printed: each setting's least CPU (ms), error (%) against ``ad`` and σ (%)."""
     spent, answers = lr.alternate(profile, geom, image, region, noise, settings, args.repeats,
                                   others)
     errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok" else math.nan
               for m in answers]
+    sigmas = [100.0 * m.sigma_distance_mm / ad if m.status == "ok" else math.nan
+              for m in answers]
     least = [1e3 * min(t) for t in spent]
     print(f"| {label} | {len(region.lenslets)} | " + " | ".join(
         f"{e:+.4f} | {t:.1f}" for e, t in zip(errors, least, strict=True)) + " |", flush=True)
-    return least, errors
+    return least, errors, sigmas
 
 
 def summary(rows: list[tuple], settings: list[dict], ab: str) -> None:
@@ -132,6 +155,26 @@ def summary(rows: list[tuple], settings: list[dict], ab: str) -> None:
                  if r[1][0] != r[1][1] and not (math.isnan(r[1][0]) and math.isnan(r[1][1]))]
         print(f"# sum of least B/A {tb / ta:.3f}; {len(moved)} answers moved"
               + (f", by at most {max(moved):.4f} %" if moved else ""))
+        if moved:
+            print("# B/A, in A's σ: " + error_ratios(rows))
+
+
+def error_ratios(rows: list[tuple], draws: int = 2000) -> str:
+    """B's mean z² and mean |error| over A's (z: the error in units of A's σ; the regions both
+    answered), each with a bootstrap 95 % interval over the regions."""
+    e = np.array([r[1] for r in rows], dtype=float)
+    s = np.array([r[2][0] for r in rows], dtype=float)
+    both = np.isfinite(e).all(1) & (s > 0)
+    z = e[both] / s[both, None]
+    rng = np.random.default_rng(0)
+    picks = rng.integers(0, len(z), (draws, len(z)))
+    out = []
+    for name, v in (("mean z²", z * z), ("mean |error|", np.abs(z))):
+        ratio = v[:, 1].mean() / v[:, 0].mean()
+        boot = v[picks, 1].mean(1) / v[picks, 0].mean(1)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        out.append(f"{name} {ratio:.3f} [{lo:.3f}, {hi:.3f}]")
+    return f"{int(both.sum())} regions; " + ", ".join(out)
 
 
 if __name__ == "__main__":
