@@ -628,7 +628,12 @@ def test_a_photon_limited_point_is_polished_on_the_fine_models_rays(monkeypatch)
     n_fine = 12000  # the fine model's rays on this blur (RAYS_PER_LENSLET, MIN_RAYS)
     seen: list[int] = []
     rays_of = fastfit._polish_rays
-    monkeypatch.setattr(fastfit, "_polish_rays", lambda *a: seen.append(rays_of(*a)) or seen[-1])
+
+    def spy(*args):
+        seen.append(rays_of(*args))
+        return seen[-1]
+
+    monkeypatch.setattr(fastfit, "_polish_rays", spy)
     rng = np.random.default_rng(1)
     for electrons, expect_rays in ((100.0, n_fine), (1e6, POLISH_RAYS)):
         # the capture at `electrons` photo-electrons per image unit (its peak is 0.9), with

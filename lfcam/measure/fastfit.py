@@ -145,8 +145,8 @@ POLISH_NOISE_SHARE = 0.1  # the polish runs on as few rays as keep the model's o
 #                            at this share of the region's noise misfit (at least the fine
 #                            model's, at most POLISH_RAYS: _polish_rays): photon-limited points
 #                            whose valley the polish walks (20 noise draws of the 12-source
-#                            captures, 1 440 fits: mean 26.9 -> 23.2 ms, over 50 ms 57 -> 22,
-#                            mean z² 0.994 × [0.963, 1.026]; bright points unchanged;
+#                            captures, 1 440 fits: mean 26.6 -> 22.7 ms, over 50 ms 55 -> 22,
+#                            mean z² × 1.008 [0.974, 1.044]; bright points unchanged;
 #                            docs/distance.md, "The polish's rays where photons dominate (stop
 #                            62)")
 POLISH_FIRST_OR_STOP = True  # a polish the settled test asked for ends where it began when its
@@ -2010,6 +2010,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     the polishing model's minimum and :data:`SIGMA_FLOOR_REL` added in quadrature, is
     accepted; that σ is the one it reports (docs/distance.md, "A polish only where the
     tolerance needs it (stop 51)").
+
+    ``noise_misfit`` (optional): the region's noise misfit (:func:`measure_lenslet`'s), with
+    which the polish runs on fewer rays where the photons' noise dwarfs the models' own
+    (:func:`_polish_rays`); NaN: the full polish.
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
