@@ -165,6 +165,8 @@ def error_ratios(rows: list[tuple], draws: int = 2000) -> str:
     e = np.array([r[1] for r in rows], dtype=float)
     s = np.array([r[2][0] for r in rows], dtype=float)
     both = np.isfinite(e).all(1) & (s > 0)
+    if not both.any():
+        return "no region answered by both"
     z = e[both] / s[both, None]
     rng = np.random.default_rng(0)
     picks = rng.integers(0, len(z), (draws, len(z)))

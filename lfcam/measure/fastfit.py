@@ -1651,9 +1651,10 @@ def _polish_rays(n_fine: int, model_misfit: float, noise_misfit: float) -> int:
 
     ``model_misfit`` is the fine and polishing models' disagreement at the fine fit (mostly
     the fine model's ray noise, ∝ 1/√rays), ``noise_misfit`` the region's own
-    (:func:`lfcam.measure.noise.NoiseModel.moments_misfit_of`; NaN or 0: not known, the full
-    polish)."""
-    if not (POLISH_NOISE_SHARE > 0.0 and noise_misfit > 0.0 and math.isfinite(model_misfit)):
+    (:func:`lfcam.measure.noise.NoiseModel.moments_misfit_of`; NaN, 0 or ∞: not known, the
+    full polish)."""
+    if not (POLISH_NOISE_SHARE > 0.0 and 0.0 < noise_misfit < math.inf
+            and math.isfinite(model_misfit)):
         return POLISH_RAYS
     need = n_fine * (model_misfit / (POLISH_NOISE_SHARE * noise_misfit)) ** 2
     return int(min(max(need, n_fine), POLISH_RAYS))
