@@ -3,8 +3,8 @@ fit (bias, scatter, stated σ), with the capture's noise clipped at zero as the 
 raws, or unclipped (a black level under the noise).
 
 Run: ``python benchmarks/dim_sources.py [--systems system1,system2] [--foci 1000]
-[--distances 2700,3100,3500] [--seeds 5-14] [--black-level DN] [--no-pixel] [--cache DIR]
-[--render-cache DIR]``
+[--distances 2700,3100,3500] [--seeds 5-14] [--black-level DN] [--no-pixel] [--tolerance T]
+[--cache DIR] [--render-cache DIR]``
 
 The captures are ``focus_grid.py --scene12``'s (the same scene, renderer, noise and
 measuring profile), rendered with each of ``--seeds`` (rays and noise). Each region that
@@ -14,6 +14,9 @@ and (unless ``--no-pixel``) :func:`lfcam.measure.lightfield.measure_lightfield`,
 raws offset by that many DN before their noise is clipped at zero (the renderer's default is
 0: most dark pixels of the dim blurs then read exactly 0), and the fits given the raws less
 that level, as ``lfcam.io.Capture.grey`` gives a raw with a black level: noise below zero.
+``--tolerance T``: also the answer ``lfcam distance --method auto --tolerance T`` gives, the
+lenslet fit's where 3σ meets T (:func:`lfcam.models.auto.lenslet_answer_meets`), else the
+pixel fit's (the lenslet fit here without auto's ``accept``, which may spare it a polish).
 Prints a row a fit and, per source, each method's mean signed error with its standard error,
 the scatter (SD) and the mean stated σ (docs/distance.md, "The lenslet fit on dim far sources
 (stop 62)").
@@ -45,6 +48,7 @@ from point_regions import _seeds  # noqa: E402
 from lfcam.measure.fastfit import measure_lenslet  # noqa: E402
 from lfcam.measure.lightfield import measure_lightfield  # noqa: E402
 from lfcam.measure.regions import nearby_regions  # noqa: E402
+from lfcam.models.auto import lenslet_answer_meets  # noqa: E402
 from lfcam.sim.capture import apply_overrides  # noqa: E402
 
 
@@ -57,9 +61,10 @@ def camera(system: str, focus: float, black_level: int, cache: Path) -> fg.Camer
     return cam
 
 
-def fits(cam: fg.Camera, seed: int, distances: set[float], pixel: bool) -> list[dict]:
+def fits(cam: fg.Camera, seed: int, distances: set[float], pixel: bool,
+         tolerance: float | None = None) -> list[dict]:
     """Each wanted source's region of one draw, fitted by each method: {ad, method: (error %,
-    σ %, CPU s)}."""
+    σ %, CPU s)}; with ``tolerance``, also ``auto``'s choice of the two."""
     objects, placed = fg.scene12_objects(cam)
     image, truth, _ = cam.render(objects, seed=seed, rays=1_000_000)
     # (as lfcam.io.Capture.grey gives it: the black level off, the noise below it kept)
@@ -84,6 +89,10 @@ def fits(cam: fg.Camera, seed: int, distances: set[float], pixel: bool) -> list[
             ok = m.status == "ok"
             row[name] = (100.0 * (m.distance_mm / ad - 1.0) if ok else math.nan,
                          100.0 * m.sigma_distance_mm / ad if ok else math.nan, spent)
+        if tolerance is not None and pixel:
+            d_l, s_l = (1.0 + 0.01 * row["lenslet"][0]) * ad, 0.01 * row["lenslet"][1] * ad
+            kept = math.isfinite(d_l) and lenslet_answer_meets(d_l, s_l, tolerance)
+            row["auto"] = row["lenslet"] if kept else row["pixel"]
         rows.append(row)
         print(f"| {cam.system}, focus {cam.focus_mm:g}, seed {seed}, {ad:.0f} mm | "
               + " | ".join(f"{row[k][0]:+.3f} ± {row[k][1]:.3f} ({1e3 * row[k][2]:.0f} ms)"
@@ -117,6 +126,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="5-14", type=_seeds)
     ap.add_argument("--black-level", type=int, default=0, metavar="DN")
     ap.add_argument("--no-pixel", action="store_true", help="the lenslet fit alone")
+    ap.add_argument("--tolerance", type=float, default=None, metavar="T",
+                    help="also auto's answer at this tolerance (%%)")
     ap.add_argument("--cache", type=Path, default=ROOT / "benchmarks" / ".cache")
     ap.add_argument("--render-cache", type=Path, default=None)
     args = ap.parse_args()
@@ -128,15 +139,16 @@ def main() -> None:
     kernels.warm_up()
     distances = {float(v) for v in args.distances.split(",")}
     methods = ["lenslet"] + ([] if args.no_pixel else ["pixel"])
+    summarised = methods + (["auto"] if args.tolerance is not None and not args.no_pixel else [])
     print("| capture, source | " + " | ".join(f"{m} error % ± σ (CPU)" for m in methods) + " |")
     print("|---|" + "---|" * len(methods))
     for system in args.systems.split(","):
         for focus in (float(v) for v in args.foci.split(",")):
             cam = camera(system, focus, args.black_level, args.cache)
             rows = [r for seed in args.seeds for r in fits(cam, seed, distances,
-                                                           not args.no_pixel)]
+                                                           not args.no_pixel, args.tolerance)]
             summary(f"{system}, focus {focus:g}, black level {args.black_level}", rows,
-                    methods)
+                    summarised)
 
 
 if __name__ == "__main__":
