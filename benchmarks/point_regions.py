@@ -63,7 +63,7 @@ def main() -> None:
     args = ap.parse_args()
     settings = lr.ab_settings(ap, args)
     print("| point region | lenslets | " + " | ".join(
-        f"{k} error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
+        f"{k} error % ± σ | {k} least ms" for k in "AB"[:len(settings)]) + " |")
     print("|---|---|" + "---|---|" * len(settings))
     rows = scene12_rows(args, settings) if args.scene12 else []
     for system in args.systems.split(",") if not args.scene12 else ():
@@ -132,8 +132,9 @@ def fit_row(label: str, args, settings: list[dict], profile, geom, image, region
     sigmas = [100.0 * m.sigma_distance_mm / ad if m.status == "ok" else math.nan
               for m in answers]
     least = [1e3 * min(t) for t in spent]
-    print(f"| {label} | {len(region.lenslets)} | " + " | ".join(
-        f"{e:+.4f} | {t:.1f}" for e, t in zip(errors, least, strict=True)) + " |", flush=True)
+    cells = [f"{e:+.4f} ± {s:.4f} | {t:.1f}"
+             for e, s, t in zip(errors, sigmas, least, strict=True)]
+    print(f"| {label} | {len(region.lenslets)} | " + " | ".join(cells) + " |", flush=True)
     return least, errors, sigmas
 
 
