@@ -75,18 +75,20 @@ def test_auto_meets_its_tolerance_across_the_whole_field(tolerance_pct):
     assert (np.abs(off[ok]) > 50).sum() > 50  # the wide field is in the sample
 
 
-def test_lenslet_answer_meets_a_tolerance_by_three_of_its_sigma():
-    # 1000 mm ± 3 mm: 3σ = 0.9 % of the distance
-    assert auto.LENSLET_ACCEPT_SIGMAS == 3.0
-    assert auto.lenslet_answer_meets(1000.0, 3.0, 1.0)
-    assert not auto.lenslet_answer_meets(1000.0, 3.0, 0.8)
+def test_lenslet_answer_meets_a_tolerance_by_five_of_its_sigma():
+    # 1000 mm ± 1.9 mm: 5σ = 0.95 % of the distance (at 3σ, stop 61's rule, ± 3 mm met 1 %)
+    assert auto.LENSLET_ACCEPT_SIGMAS == 5.0
+    assert auto.lenslet_answer_meets(1000.0, 1.9, 1.0)
+    assert not auto.lenslet_answer_meets(1000.0, 1.9, 0.9)
+    assert not auto.lenslet_answer_meets(1000.0, 3.0, 1.0)
     assert not auto.lenslet_answer_meets(1000.0, float("nan"), 5.0)
     assert not auto.lenslet_answer_meets(float("nan"), 1.0, 5.0)
 
 
 def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(monkeypatch):
     """--method auto --tolerance: the lenslet fit first, the pixel fit only for the regions whose
-    lenslet answer's 3σ exceeds the tolerance (or that failed); a line keeps its lenslet fit."""
+    lenslet answer's 5σ (LENSLET_ACCEPT_SIGMAS) exceeds the tolerance (or that failed); a line
+    keeps its lenslet fit."""
     from dataclasses import replace
 
     import lfcam.distance as distance
@@ -101,8 +103,8 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
 
     def lenslet(profile, geom, img, reg, noise, accept=None, others=()):
         calls.append(("lenslet", reg.region_id))
-        # the line fit's refit rule is the tolerance's: 3σ within 1 % of the distance
-        assert accept(1000.0, 3.3) and not accept(1000.0, 3.4)
+        # the line fit's refit rule is the tolerance's: 5σ within 1 % of the distance
+        assert accept(1000.0, 1.99) and not accept(1000.0, 2.01)
         sigma = {0: 1.0, 1: 5.0, 2: 5.0, 3: 5.0, 4: 1.0}[reg.region_id]
         kind = "line" if reg.region_id == 2 else "spot"
         return replace(ok, sigma_distance_mm=sigma, kind=kind)
@@ -124,8 +126,8 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
                      box_px=(0, 0, 1, 1), elongation=1.0, axis_dir=(1.0, 0.0), parts=1)
         out[rid] = distance._estimate(prof, None, None, None, reg, 0.0, "exact", "auto", 1.0,
                                       False)
-    # region 0: 3σ = 0.3 % ≤ 1 %: the lenslet answer; region 1: 1.5 % > 1 %: pixels;
-    # region 2: a line, kept; region 3: a spot by the fit, 1.5 % > 1 %: pixels; region 4: 0.3 %
+    # region 0: 5σ = 0.5 % ≤ 1 %: the lenslet answer; region 1: 2.5 % > 1 %: pixels;
+    # region 2: a line, kept; region 3: a spot by the fit, 2.5 % > 1 %: pixels; region 4: 0.5 %
     assert calls == [("lenslet", 0), ("lenslet", 1), ("lightfield", 1), ("lenslet", 2),
                      ("lenslet", 3), ("lightfield", 3), ("lenslet", 4)]
     assert out[0][2] == 1000.0 and out[1][2] == 1001.0 and out[2][0] == "line"
