@@ -42,12 +42,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import focus_grid as fg  # noqa: E402
-import line_regions as lr  # noqa: E402
-from point_regions import _seeds  # noqa: E402
+from point_regions import _seeds, scene12_regions  # noqa: E402
 
 from lfcam.measure.fastfit import measure_lenslet  # noqa: E402
 from lfcam.measure.lightfield import measure_lightfield  # noqa: E402
-from lfcam.measure.regions import nearby_regions  # noqa: E402
 from lfcam.models.auto import lenslet_answer_meets  # noqa: E402
 from lfcam.sim.capture import apply_overrides  # noqa: E402
 
@@ -65,19 +63,10 @@ def fits(cam: fg.Camera, seed: int, distances: set[float], pixel: bool,
          tolerance: float | None = None) -> list[dict]:
     """Each wanted source's region of one draw, fitted by each method: {ad, method: (error %,
     σ %, CPU s)}; with ``tolerance``, also ``auto``'s choice of the two."""
-    objects, placed = fg.scene12_objects(cam)
-    image, truth, _ = cam.render(objects, seed=seed, rays=1_000_000)
-    # (as lfcam.io.Capture.grey gives it: the black level off, the noise below it kept)
-    image = image - cam.used.sensor.black_level
-    profile, geom, regions, noise = lr.prepare(cam, image, every=True)
     rows = []
-    for region, near in zip(regions, nearby_regions(regions), strict=True):
-        x0, y0, x1, y1 = region.box_px
-        held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
-                if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
-        if len(held) != 1 or held[0] not in distances:
+    for profile, geom, image, noise, region, near, ad in scene12_regions(cam, seed):
+        if ad not in distances:
             continue
-        ad = held[0]
         row = {"ad": ad}
         runs = [("lenslet", measure_lenslet, (None, near))]
         if pixel:

@@ -92,20 +92,29 @@ def scene12_rows(args, settings: list[dict]) -> list[tuple]:
         for system in args.systems.split(","):
             for focus in (1000.0, 1500.0, math.inf):
                 cam = fg.Camera(system, focus, None, args.cache, False)
-                objects, placed = fg.scene12_objects(cam)
-                image, truth, _ = cam.render(objects, seed=seed, rays=1_000_000)
-                profile, geom, regions, noise = lr.prepare(cam, image, every=True)
                 draw = f", seed {seed}" if len(args.seeds) > 1 else ""
-                for region, near in zip(regions, nearby_regions(regions), strict=True):
-                    x0, y0, x1, y1 = region.box_px
-                    held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
-                            if x0 <= src["centroid_px"][0] < x1
-                            and y0 <= src["centroid_px"][1] < y1]
-                    ad = held[0] if len(held) == 1 else math.nan
+                for profile, geom, image, noise, region, near, ad in scene12_regions(cam, seed):
                     rows.append(fit_row(f"{_case(system, focus)}{draw}, scene12, {ad:.0f} mm",
                                         args, settings, profile, geom, image, region, noise,
                                         ad, near))
     return rows
+
+
+def scene12_regions(cam, seed: int):
+    """Each region of ``focus_grid.py --scene12``'s capture on ``cam``, rendered with ``seed``
+    (less the camera's black level, as :meth:`lfcam.io.Capture.grey` gives a raw), with what
+    a fit reads and the distance of the one source whose centroid its box holds (NaN: none or
+    several): (profile, geometry, image, pixel noise, region, its nearby regions, mm)."""
+    objects, placed = fg.scene12_objects(cam)
+    image, truth, _ = cam.render(objects, seed=seed, rays=1_000_000)
+    if cam.used.sensor.black_level:
+        image = image - cam.used.sensor.black_level  # (the noise below it kept)
+    profile, geom, regions, noise = lr.prepare(cam, image, every=True)
+    for region, near in zip(regions, nearby_regions(regions), strict=True):
+        x0, y0, x1, y1 = region.box_px
+        held = [p[0] for p, src in zip(placed, truth["sources"], strict=True)
+                if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
+        yield profile, geom, image, noise, region, near, held[0] if len(held) == 1 else math.nan
 
 
 def _seeds(text: str) -> list[int]:

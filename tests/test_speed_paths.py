@@ -634,6 +634,7 @@ def test_a_photon_limited_point_is_polished_on_the_fine_models_rays(monkeypatch)
         return seen[-1]
 
     monkeypatch.setattr(fastfit, "_polish_rays", spy)
+    share = fastfit.POLISH_NOISE_SHARE
     rng = np.random.default_rng(1)
     for electrons, expect_rays in ((100.0, n_fine), (1e6, POLISH_RAYS)):
         # the capture at `electrons` photo-electrons per image unit (its peak is 0.9), with
@@ -648,7 +649,7 @@ def test_a_photon_limited_point_is_polished_on_the_fine_models_rays(monkeypatch)
         monkeypatch.setattr(fastfit, "POLISH_NOISE_SHARE", 0.0)
         seen.clear()
         full = measure_lenslet(prof, geom, dim, region, noise)
-        monkeypatch.setattr(fastfit, "POLISH_NOISE_SHARE", 0.1)
+        monkeypatch.setattr(fastfit, "POLISH_NOISE_SHARE", share)
         assert seen == [POLISH_RAYS]
         assert fast.status == full.status == "ok"
         if expect_rays == POLISH_RAYS:
