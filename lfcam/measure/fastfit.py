@@ -39,6 +39,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
@@ -50,7 +51,7 @@ from lfcam.measure.base import (
 )
 from lfcam.measure.cache import ObjectCache
 from lfcam.measure.geometry import Geometry
-from lfcam.measure.noise import capture_noise, moment_noise_sums
+from lfcam.measure.noise import NoiseModel, capture_noise, clipped_mean, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.sampling import pixel_boxes, ray_share, vogel_disc
@@ -387,6 +388,35 @@ RAY_SHARE_RICHARDSON = True  # a ray sample's share across a cell border by two 
 #                              widened each footprint by its variance, which put the fine line
 #                              model's distance −0.38 % off far behind focus (docs/distance.md,
 #                              "Ray shares without the box's variance (stop 53)")
+PIXEL_POLISH = True  # measure_lenslet refits a point whose answer is less certain than
+#                      PIXEL_POLISH_ABOVE on its lit pixels (:func:`pixel_polish`): behind
+#                      focus a dim source's 2-4 px spots carry 3-5 × the distance information
+#                      its four moments a lenslet keep (docs/distance.md, "The lit pixels of an
+#                      uncertain point (stop 63)")
+PIXEL_POLISH_ABOVE = 0.003  # ... its relative σ (the floor SIGMA_FLOOR_REL included) over this,
+#                             and, with a tolerance, not accepted
+PIXEL_RAYS = 20000  # rays of the pixel model (40 000: the same accuracy over 1 440 regions,
+#                     z² ×0.99-1.04 on two halves, 10 % more CPU; docs/distance.md, stop 63)
+PIXEL_WINDOW_RAYS = 20000  # ... of the model that finds the lit pixels at the lenslet answer
+PIXEL_WINDOW_SHARE = 0.02  # a pixel is lit where that model puts over this × its brightest
+#                            pixel's light on it ...
+PIXEL_WINDOW_GROW = 1  # ... and so are its neighbours this many pixels out (8-connected)
+PIXEL_MIN_PIXELS = 20  # fewer lit pixels: no pixel polish
+PIXEL_STRAY_Z = 5.0  # a pixel brighter than the model by over this × its noise where the steps
+#                      have come near the minimum holds light not this source's (a
+#                      neighbour's halo): left out ...
+PIXEL_MAX_STRAY = 0.1  # ... but over this share of the lit pixels stray: no pixel answer
+PIXEL_ITERATIONS = 8  # Gauss–Newton steps, at most (each halved up to PIXEL_HALVINGS times)
+PIXEL_HALVINGS = 4
+PIXEL_REJACOBIAN_LOG = 0.005  # the Jacobian is taken again after a step over this (log distance)
+PIXEL_SETTLE_LOG = 2e-5  # ... and the steps end on one under this
+PIXEL_GAIN_LIGHT = 10.0  # the pixels' own gain from those lit over this × the read σ ...
+PIXEL_GAIN_PIXELS = 30  # ... at least this many of them (else the capture's gain)
+CHI2_1_MEDIAN = 0.454936  # the median of χ² with one degree of freedom
+PIXEL_AGREE_SIGMAS = 6.0  # a pixel answer further from the lenslet one than this × its σ is
+#                           not taken (:func:`_agrees`)
+PIXEL_MAX_CHI2 = 4.0  # χ²/dof over this: the pixel model does not explain the pixels (the
+#                       lenslet answer stands)
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 OTHERS_EXCLUDED = True  # measure_lenslet leaves its ``others``' lenslets out of the box
 TRACE_DEPOSIT_FUSED = True  # the compiled ray models trace and deposit a point's rays in one
@@ -2729,6 +2759,181 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
 
 
+def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.ndarray,
+                 n_rays: int) -> tuple[LensletModel, np.ndarray, np.ndarray]:
+    """A :class:`LensletModel` whose "lenslets" are the box's pixels where ``lit`` (its first
+    moment each pixel's light: the rays binned as the sensor bins them), and those pixels'
+    rows and columns in the box."""
+    rows, cols = np.nonzero(lit)
+    labels = np.full(lit.shape, -1, dtype=np.int32)
+    labels[rows, cols] = np.arange(rows.size, dtype=np.int32)
+    x0, y0 = mom.box[:2]
+    centres = np.column_stack([cols + x0, rows + y0]).astype(np.float64)
+    pixels = _Moments(mom.box, labels, np.arange(rows.size), centres, np.zeros((rows.size, 4)),
+                      1.0)
+    return LensletModel(profile, geom, pixels, n_rays), rows, cols
+
+
+def _local_gain(e: np.ndarray, light: np.ndarray, read_sigma: float) -> float | None:
+    """The photon gain (image units per photo-electron) the pixels' own residuals ``e``
+    show about the model's ``light``: the median of ``(e² − σ_r²) / light`` over the pixels
+    whose light is over :data:`PIXEL_GAIN_LIGHT` × σ_r, over the median of χ² with one
+    degree of freedom (a neighbour's stray pixels do not move a median). None where fewer
+    than :data:`PIXEL_GAIN_PIXELS` pixels are that bright, or the estimate is not positive:
+    the capture's gain stands (an upper bound where measured, none where the capture cannot
+    measure it and the profile does not state it)."""
+    bright = light > PIXEL_GAIN_LIGHT * read_sigma
+    if int(bright.sum()) < PIXEL_GAIN_PIXELS:
+        return None
+    g = float(np.median((e[bright] ** 2 - read_sigma**2) / light[bright])) / CHI2_1_MEDIAN
+    return g if g > 0 and math.isfinite(g) else None
+
+
+def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom: _Moments,
+                 source_mm: np.ndarray, noise: NoiseModel) -> LensletFit | None:
+    """A point's lenslet answer refitted on the region's lit pixels.
+
+    The pixels the model lights at ``source_mm`` (over :data:`PIXEL_WINDOW_SHARE` of its
+    brightest, grown by :data:`PIXEL_WINDOW_GROW`; only the box's pixels that ``mom`` reads)
+    are fitted pixel by pixel with a :data:`PIXEL_RAYS` ray model: Gauss–Newton on (log
+    distance, x/L, y/L, log intensity), each pixel weighted by its noise (``noise``: read σ
+    and photon gain, at the model's light where the steps start), the mean reading of a
+    capture that clips its noise at zero modelled (:func:`lfcam.measure.noise.clipped_mean`).
+    The model is the lenslet fit's own (the same trace, lattice crossing and pixel binning),
+    its "lenslets" the lit pixels. The window stays fixed: the model and the data are compared
+    on the same pixels wherever the source moves, so a window drawn about an answer a few %
+    off costs information, not bias.
+
+    Once a step is under :data:`PIXEL_REJACOBIAN_LOG`, pixels brighter than the model by over
+    :data:`PIXEL_STRAY_Z` σ are left out and the steps go on: a neighbour's halo lands on
+    other pixels of the same micro-images than this source's spots (its light comes from
+    another direction), and the moments, which sum both, read it as this source's (χ²/dof
+    6-10 with such pixels, 0.3 without).
+
+    Returns the fit (σ from the weighted Jacobian, scaled up by χ²/dof where that is over
+    1; ``misfit`` NaN: the gates read the lenslet fit's), or None where there are fewer than
+    :data:`PIXEL_MIN_PIXELS` lit pixels, the model lights none of them, over
+    :data:`PIXEL_MAX_STRAY` of them are stray, or their χ²/dof is over
+    :data:`PIXEL_MAX_CHI2` (the lenslet answer then stands).
+    """
+    frame = _Frame(profile)
+    source_mm = np.asarray(source_mm, dtype=np.float64)
+    in_box = mom.labels >= 0
+    if not in_box.any():
+        return None
+    look, rows, cols = _pixel_model(profile, geom, mom, in_box, PIXEL_WINDOW_RAYS)
+    light = np.zeros(in_box.shape)
+    light[rows, cols] = look.simulate(source_mm)[:, 0]
+    top = float(light.max())
+    if not top > 0:
+        return None
+    lit = light > PIXEL_WINDOW_SHARE * top
+    if PIXEL_WINDOW_GROW:
+        lit = cv2.dilate(lit.astype(np.uint8), np.ones((3, 3), np.uint8),
+                         iterations=PIXEL_WINDOW_GROW).astype(bool)
+    lit &= in_box
+    if int(lit.sum()) < PIXEL_MIN_PIXELS:
+        return None
+    model, rows, cols = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS)
+    x0, y0 = mom.box[:2]
+    raw = np.asarray(image[y0 + rows, x0 + cols], dtype=np.float64)
+    floor = noise.floor_sigma  # > 0: the capture clips its noise at zero
+    level = pedestal(image)
+    data = raw if floor > 0 else raw - level
+    q = frame.params(source_mm)
+    m = model.simulate(source_mm)[:, 0]
+    mm = float(m @ m)
+    a = float(m @ (raw - level)) / mm if mm > 0 else 0.0
+    if not a > 0:
+        return None
+    gain = noise.gain
+    if not gain > 0:  # no gain known: the pixels' own at the start (the model's misplaced
+        #               spots add to it there: weights nearer uniform, a safe start)
+        gain = _local_gain(data - clipped_mean(a * m, floor)[0], a * m, noise.read_sigma) or 0.0
+    weight = 1.0 / np.sqrt(noise.read_sigma**2 + gain * np.clip(a * m, 0.0, None) + 1e-300)
+    steps = point_steps(profile, geom, lit_lenslets(mom))
+
+    def residual(p: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # the weighted residual at p (model light m there), the reading's slope in light
+        mean, slope = clipped_mean(math.exp(p[3]) * m, floor)
+        return (data - mean) * weight, slope
+
+    p = np.append(q, math.log(a))
+    r, slope = residual(p, m)
+    use = np.ones(r.size, dtype=bool)  # the pixels not stray
+    f = float(r @ r)
+    jac = np.empty((r.size, 4))
+    last = math.inf  # the last step's length (log distance)
+    fresh = False  # the Jacobian's first three columns are p's (or a step under the limit's)
+    reweighted = False  # the weights are the pixels' own photon gain's (_local_gain)
+    for _ in range(PIXEL_ITERATIONS):
+        if not fresh or last > PIXEL_REJACOBIAN_LOG:
+            sets = [frame.source(p[:3] + steps[i] * np.eye(3)[i]) for i in range(3)]
+            for i, m_i in enumerate(model.simulate_sets(sets)):
+                dp = np.zeros(4)
+                dp[i] = steps[i]
+                jac[:, i] = (residual(p + dp, m_i[:, 0])[0] - r) / steps[i]
+            fresh = True
+        jac[:, 3] = -slope * math.exp(p[3]) * m * weight
+        step = np.linalg.lstsq(jac[use], -r[use], rcond=None)[0]
+        scale, improved = 1.0, None
+        for _ in range(PIXEL_HALVINGS + 1):
+            p_new = p + scale * step
+            m_new = model.simulate(frame.source(p_new[:3]))[:, 0]
+            r_new, slope_new = residual(p_new, m_new)
+            f_new = float(r_new[use] @ r_new[use])
+            if f_new < f:
+                improved = (p_new, m_new, r_new, slope_new, f_new)
+                break
+            scale *= 0.5
+        if improved is None:
+            break
+        p, m, r, slope, f = improved
+        last = abs(scale * float(step[0]))
+        changed = False  # the weights or the pixels changed: the steps go on
+        if last <= PIXEL_REJACOBIAN_LOG and not reweighted:
+            # near the minimum: the pixels' own photon gain, and the steps go on weighted by it
+            # (without the stray pixels, below)
+            reweighted = True
+            gain = _local_gain(r / weight, math.exp(p[3]) * m, noise.read_sigma)
+            if gain is not None:
+                w_new = 1.0 / np.sqrt(noise.read_sigma**2 + gain * np.clip(
+                    math.exp(p[3]) * m, 0.0, None) + 1e-300)
+                ratio = w_new / weight
+                weight, r = w_new, r * ratio
+                jac[:, :3] *= ratio[:, None]
+                f = float(r[use] @ r[use])
+                changed = True
+        stray = use & (r > PIXEL_STRAY_Z) if reweighted else None
+        if stray is not None and stray.any():
+            use &= ~stray
+            f = float(r[use] @ r[use])
+            changed = True
+        if last < PIXEL_SETTLE_LOG and not changed:
+            break
+    jac[:, 3] = -slope * math.exp(p[3]) * m * weight
+    n_use = int(use.sum())
+    if n_use < PIXEL_MIN_PIXELS or r.size - n_use > PIXEL_MAX_STRAY * r.size:
+        return None
+    chi2 = f / max(n_use - 4, 1)
+    j_use, r_use = jac[use], r[use]
+    try:
+        inv = np.linalg.inv(j_use.T @ j_use)
+    except np.linalg.LinAlgError:
+        return None
+    # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
+    # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend)
+    sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
+    var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0]))
+    if not (chi2 <= PIXEL_MAX_CHI2 and var > 0 and math.isfinite(var)):
+        return None
+    dist = math.exp(_log_distance(p[:3]))
+    ok = not _at_far_bound(p[:3])
+    return LensletFit(frame.source(p[:3]), math.nan, dist * math.sqrt(var),
+                      look.evaluations + model.evaluations, ok,
+                      "" if ok else RegionStatus.NO_SOLUTION, polished=True)
+
+
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                     region: Region, noise: float,
                     accept: Callable[[float, float], bool] | None = None,
@@ -2852,8 +3057,43 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             return _line_answer(profile, geom, line, limit, nm)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
+    if PIXEL_POLISH and _uncertain(profile, fit, accept):
+        # the moments left this answer uncertain: its lit pixels hold more (a dim blur
+        # behind focus: docs/distance.md, "The lit pixels of an uncertain point (stop 63)")
+        better = pixel_polish(profile, geom, image, mom, fit.source_mm,
+                              capture_noise(image, geom.lmap, geom.pitch_px))
+        if better is not None and better.ok and _agrees(profile, fit, better):
+            fit = dataclasses.replace(fit, source_mm=better.source_mm,
+                                      sigma_distance_mm=better.sigma_distance_mm)
     return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
                              SIGMA_FLOOR_REL, misfit=fit.misfit, noise_misfit=nm)
+
+
+def _agrees(profile: CameraProfile, lenslet: LensletFit, pixel: LensletFit) -> bool:
+    """Whether the pixel answer lies within :data:`PIXEL_AGREE_SIGMAS` of the lenslet one's
+    σ (log distance). The pixels ask more of the calibration than the moments: a micro-image
+    model off by a fraction of a pixel moves them where it does not move the moments (at 80 %
+    of system 1's field, the white's centres put a bright point's pixel answer 3.1 % long at
+    σ 0.06 %, the renderer's centres +0.07 %, the moments' answer −0.35 %: 17 lenslet σ
+    apart); over the 12-source captures' 20 draws no pixel answer lay over 5.5 lenslet σ from
+    its lenslet answer, and every one over 3 was the nearer the truth."""
+    z = profile.main_lens.front_vertex_z_mm
+    d_l, d_p = z - float(lenslet.source_mm[2]), z - float(pixel.source_mm[2])
+    if not (d_l > 0 and d_p > 0):
+        return False
+    return abs(math.log(d_p / d_l)) <= PIXEL_AGREE_SIGMAS * lenslet.sigma_distance_mm / d_l
+
+
+def _uncertain(profile: CameraProfile, fit: LensletFit,
+               accept: Callable[[float, float], bool] | None) -> bool:
+    """Whether a point's lenslet answer is less certain than :data:`PIXEL_POLISH_ABOVE` (its
+    σ with :data:`SIGMA_FLOOR_REL` in quadrature, relative) and, with ``accept``, not
+    accepted: :func:`measure_lenslet` then refits it on its pixels (:func:`pixel_polish`)."""
+    dist = profile.main_lens.front_vertex_z_mm - float(fit.source_mm[2])
+    sigma = math.hypot(fit.sigma_distance_mm, SIGMA_FLOOR_REL * dist)
+    if not sigma > PIXEL_POLISH_ABOVE * dist:  # (a NaN σ is no answer to refit)
+        return False
+    return accept is None or not accept(dist, sigma)
 
 
 def _line_answer(profile: CameraProfile, geom: Geometry, line: LensletFit, limit: float,
