@@ -413,7 +413,7 @@ PIXEL_SETTLE_LOG = 2e-5  # ... and the steps end on one under this
 PIXEL_GAIN_LIGHT = 10.0  # the pixels' own gain from those lit over this × the read σ ...
 PIXEL_GAIN_PIXELS = 30  # ... at least this many of them (else the capture's gain)
 CHI2_1_MEDIAN = 0.454936  # the median of χ² with one degree of freedom
-PIXEL_AGREE_SIGMAS = 6.0  # a pixel answer further from the lenslet one than this × its σ is
+PIXEL_AGREE_SIGMAS = 10.0  # a pixel answer further from the lenslet one than this × its σ is
 #                           not taken (:func:`_agrees`)
 PIXEL_MAX_CHI2 = 4.0  # χ²/dof over this: the pixel model does not explain the pixels (the
 #                       lenslet answer stands)
@@ -3075,8 +3075,8 @@ def _agrees(profile: CameraProfile, lenslet: LensletFit, pixel: LensletFit) -> b
     model off by a fraction of a pixel moves them where it does not move the moments (at 80 %
     of system 1's field, the white's centres put a bright point's pixel answer 3.1 % long at
     σ 0.06 %, the renderer's centres +0.07 %, the moments' answer −0.35 %: 17 lenslet σ
-    apart); over the 12-source captures' 20 draws no pixel answer lay over 5.5 lenslet σ from
-    its lenslet answer, and every one over 3 was the nearer the truth."""
+    apart); over 30 draws of the 12-source captures no pixel answer lay over 7.1 lenslet σ
+    from its lenslet answer (776 answers), and every one over 3 was the nearer the truth."""
     z = profile.main_lens.front_vertex_z_mm
     d_l, d_p = z - float(lenslet.source_mm[2]), z - float(pixel.source_mm[2])
     if not (d_l > 0 and d_p > 0):
