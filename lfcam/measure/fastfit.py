@@ -2804,14 +2804,17 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     on the same pixels wherever the source moves, so a window drawn about an answer a few %
     off costs information, not bias.
 
-    Once a step is under :data:`PIXEL_REJACOBIAN_LOG`, pixels brighter than the model by over
-    :data:`PIXEL_STRAY_Z` σ are left out and the steps go on: a neighbour's halo lands on
-    other pixels of the same micro-images than this source's spots (its light comes from
-    another direction), and the moments, which sum both, read it as this source's (χ²/dof
-    6-10 with such pixels, 0.3 without).
+    Once a step is under :data:`PIXEL_REJACOBIAN_LOG`, the weights take the pixels' own
+    photon gain (:func:`_local_gain`; the capture's is an upper bound, or unknown), and from
+    then on pixels brighter than the model by over :data:`PIXEL_STRAY_Z` σ are left out, the
+    steps going on without them: a neighbour's halo lands on other pixels of the same
+    micro-images than this source's spots (its light comes from another direction), and the
+    moments, which sum both, read it as this source's (χ²/dof 6-10 with such pixels, 0.3
+    without).
 
     Returns the fit (σ from the weighted Jacobian, scaled up by χ²/dof where that is over
-    1; ``misfit`` NaN: the gates read the lenslet fit's), or None where there are fewer than
+    1, or the sandwich estimate where that is larger; ``misfit`` NaN: the gates read the
+    lenslet fit's), or None where there are fewer than
     :data:`PIXEL_MIN_PIXELS` lit pixels, the model lights none of them, over
     :data:`PIXEL_MAX_STRAY` of them are stray, or their χ²/dof is over
     :data:`PIXEL_MAX_CHI2` (the lenslet answer then stands).
