@@ -86,7 +86,7 @@ def test_stray_light_in_the_lit_pixels_is_left_out(dim_point):
     # a neighbour's halo lands on other pixels of the same micro-images than this source's
     # spots: light added on 4 % of the window's pixels where the model puts almost none (the
     # window's grown ring) is left out, and the answer stays where the clean draw's is; with
-    # the stray test off, those pixels fail the χ² gate (the lenslet answer would stand)
+    # the stray test off, those pixels fail the χ² gate (not ok: the lenslet answer stands)
     clean, used, geom = dim_point
     img = _noisy(clean, np.random.default_rng(3))
     region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
@@ -111,7 +111,7 @@ def test_stray_light_in_the_lit_pixels_is_left_out(dim_point):
     x0, y0 = mom.box[:2]
     hit[pick[:, 0] + y0, pick[:, 1] + x0] += 40.0 * noise.read_sigma
     got = fastfit.pixel_polish(used, geom, hit, mom, start, noise)
-    assert got is not None
+    assert got is not None and got.ok
     d_base = frame.z_front - base.source_mm[2]
     d_got = frame.z_front - got.source_mm[2]
     assert abs(d_got - d_base) < 0.5 * base.sigma_distance_mm, (d_got, d_base)
@@ -119,7 +119,8 @@ def test_stray_light_in_the_lit_pixels_is_left_out(dim_point):
     mp = pytest.MonkeyPatch()
     mp.setattr(fastfit, "PIXEL_STRAY_Z", math.inf)
     try:
-        assert fastfit.pixel_polish(used, geom, hit, mom, start, noise) is None
+        refused = fastfit.pixel_polish(used, geom, hit, mom, start, noise)
+        assert refused is not None and not refused.ok
     finally:
         mp.undo()
 
@@ -146,3 +147,35 @@ def test_a_pixel_answer_far_from_the_lenslet_one_is_not_taken(dim_point, monkeyp
             assert got.distance_mm == pytest.approx(d, rel=1e-9)
         else:
             assert got.distance_mm == lenslet.distance_mm
+
+
+def test_a_dim_short_line_that_no_point_explains_is_not_an_ok_spot(monkeypatch):
+    # a 1.5 mm line at 3.5 m behind system 2's 1 m focus, dim (peak 0.6 % of full scale): its
+    # moments' misfit as a point is within their noise, and the line fit does not beat the
+    # point; the point's pixels, though, leave a χ²/dof of ~100 at the capture's own noise
+    # (dim points 0.2-0.5): no distance, instead of a spot 38 % long
+    from lfcam.measure.pointfit import chief_ray_offset
+    from lfcam.sim.capture import apply_overrides
+
+    size = 1024
+    camera = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": size, "height_px": size}}
+    base = load_profile("system2")
+    prof = apply_overrides(base, camera)
+    u = np.array([math.cos(0.7), math.sin(0.7)])
+    ends = [chief_ray_offset(prof, prof.d_in_mm, 3500.0, s * 0.75 * u).tolist()
+            for s in (-1.0, 1.0)]
+    scene = {"seed": 3, "camera": camera, "exposure": {"peak": 0.006},
+             "sensor": {"photon_noise": True, "full_well_e": FULL_WELL_E,
+                        "read_noise_e": READ_NOISE_E},
+             "objects": [{"type": "line", "distance_mm": 3500.0, "start_mm": ends[0],
+                          "end_mm": ends[1], "rays": 400_000}]}
+    raw, used, _ = simulate(base, scene_from_dict(scene))
+    img = raw.astype(np.float64)
+    geom = truth_geometry(used, (size, size))
+    got = _measure(img, used, geom, monkeypatch, True)
+    assert got.status == "poor-fit" or (
+        got.kind == "line" and abs(got.distance_mm / 3500.0 - 1.0) < 0.05), got
+    monkeypatch.setattr(fastfit, "PIXEL_POINT_CHI2", math.inf)
+    spot = _measure(img, used, geom, monkeypatch, True)
+    assert spot.status == "ok" and spot.kind == "spot"
+    assert spot.distance_mm / 3500.0 - 1.0 > 0.2  # the failure the pixels' χ² catches

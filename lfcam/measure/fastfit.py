@@ -415,6 +415,10 @@ PIXEL_GAIN_PIXELS = 30  # ... at least this many of them (else the capture's gai
 CHI2_1_MEDIAN = 0.454936  # the median of χ² with one degree of freedom
 PIXEL_AGREE_SIGMAS = 10.0  # a pixel answer further from the lenslet one than this × its σ is
 #                           not taken (:func:`_agrees`)
+PIXEL_POINT_CHI2 = 10.0  # the pixels' χ²/dof at the capture's own (upper-bound) noise over
+#                         this: no point explains them (a line is tried, else poor-fit). Point
+#                         blurs reach 0.47 (dim, refitted), 4.8 (bright, refitted to test);
+#                         dim lines 73-106
 PIXEL_MAX_CHI2 = 4.0  # χ²/dof over this: the pixel model does not explain the pixels (the
 #                       lenslet answer stands)
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
@@ -1485,6 +1489,8 @@ class LensletFit:
     #                                 models' own ray samples, not the data
     coarse: bool = False  # a point fit's coarse stage on the cells, before the fine model's
     #                       steps (point_fit_stages' ``early`` yield)
+    pixel_chi2: float = math.nan  # pixel_polish: the lit pixels' χ²/dof under the capture's
+    #                               own noise model (its gain an upper bound; NaN: no gain)
 
 
 LOG_DISTANCE_RANGE = (0.0, 16.0)  # a fit's log-distance parameter: 1 mm … 8.9 km
@@ -2814,10 +2820,11 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
 
     Returns the fit (σ from the weighted Jacobian, scaled up by χ²/dof where that is over
     1, or the sandwich estimate where that is larger; ``misfit`` NaN: the gates read the
-    lenslet fit's), or None where there are fewer than
-    :data:`PIXEL_MIN_PIXELS` lit pixels, the model lights none of them, over
-    :data:`PIXEL_MAX_STRAY` of them are stray, or their χ²/dof is over
-    :data:`PIXEL_MAX_CHI2` (the lenslet answer then stands).
+    lenslet fit's; ``pixel_chi2`` the pixels' χ²/dof under ``noise`` as the capture states
+    it, an upper bound, NaN where it has no gain), not ``ok`` (``poor-fit``, the lenslet
+    answer then stands) where fewer than :data:`PIXEL_MIN_PIXELS` pixels are left, over
+    :data:`PIXEL_MAX_STRAY` of them are stray (``pixel_chi2`` then counts them) or their
+    χ²/dof is over :data:`PIXEL_MAX_CHI2`; None where the model lights too few pixels.
     """
     frame = _Frame(profile)
     source_mm = np.asarray(source_mm, dtype=np.float64)
@@ -2916,25 +2923,36 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
             break
     jac[:, 3] = -slope * math.exp(p[3]) * m * weight
     n_use = int(use.sum())
-    if n_use < PIXEL_MIN_PIXELS or r.size - n_use > PIXEL_MAX_STRAY * r.size:
-        return None
+    source, evaluations = frame.source(p[:3]), look.evaluations + model.evaluations
+    stray_share = 1.0 - n_use / r.size
+    # the pixels' χ²/dof at the capture's own noise (no gain known: no test), the stray pixels
+    # counted where too many are stray
+    counted = use if stray_share <= PIXEL_MAX_STRAY else np.ones_like(use)
+    mean_light = np.clip(math.exp(p[3]) * m, 0.0, None)[counted]
+    chi2_capture = (float(((r / weight)[counted] ** 2 / (noise.read_sigma**2 + noise.gain
+                                                         * mean_light)).sum())
+                    / max(int(counted.sum()) - 4, 1)) if noise.gain > 0 else math.nan
+    refused = LensletFit(source, math.nan, math.nan, evaluations, False, RegionStatus.POOR_FIT,
+                         pixel_chi2=chi2_capture)
+    if n_use < PIXEL_MIN_PIXELS or stray_share > PIXEL_MAX_STRAY:
+        return refused
     chi2 = f / max(n_use - 4, 1)
     j_use, r_use = jac[use], r[use]
     try:
         inv = np.linalg.inv(j_use.T @ j_use)
     except np.linalg.LinAlgError:
-        return None
+        return refused
     # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
     # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend)
     sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
     var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0]))
     if not (chi2 <= PIXEL_MAX_CHI2 and var > 0 and math.isfinite(var)):
-        return None
+        return refused
     dist = math.exp(_log_distance(p[:3]))
     ok = not _at_far_bound(p[:3])
-    return LensletFit(frame.source(p[:3]), math.nan, dist * math.sqrt(var),
-                      look.evaluations + model.evaluations, ok,
-                      "" if ok else RegionStatus.NO_SOLUTION, polished=True)
+    return LensletFit(source, math.nan, dist * math.sqrt(var), evaluations, ok,
+                      "" if ok else RegionStatus.NO_SOLUTION, polished=True,
+                      pixel_chi2=chi2_capture)
 
 
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
@@ -3065,6 +3083,14 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # behind focus: docs/distance.md, "The lit pixels of an uncertain point (stop 63)")
         better = pixel_polish(profile, geom, image, mom, fit.source_mm,
                               capture_noise(image, geom.lmap, geom.pitch_px))
+        if better is not None and better.pixel_chi2 > PIXEL_POINT_CHI2:
+            # no point explains these pixels, even at the capture's upper-bound noise: a
+            # line, or no distance (a dim 1.5 mm line at 3.5 m, within its moments' noise,
+            # read as a spot 38 % long: docs/distance.md, "A point the pixels refuse")
+            line = line_for(fit)
+            if line.ok and line.misfit < beats(fit.misfit):
+                return _line_answer(profile, geom, line, limit, nm)
+            return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
         if better is not None and better.ok and _agrees(profile, fit, better):
             fit = dataclasses.replace(fit, source_mm=better.source_mm,
                                       sigma_distance_mm=better.sigma_distance_mm)
