@@ -57,6 +57,7 @@ from lfcam.measure.regions import Region
 from lfcam.measure.sampling import pixel_boxes, ray_share, vogel_disc
 from lfcam.measure.verify import line_beats, line_trigger, poor_fit_limit
 from lfcam.optics.trace import trace_sources_fast
+from lfcam.robust import NORMAL_MAD_SCALE
 from lfcam.status import RegionStatus
 
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
@@ -412,7 +413,7 @@ PIXEL_REJACOBIAN_LOG = 0.005  # the Jacobian is taken again after a step over th
 PIXEL_SETTLE_LOG = 2e-5  # ... and the steps end on one under this
 PIXEL_GAIN_LIGHT = 10.0  # the pixels' own gain from those lit over this × the read σ ...
 PIXEL_GAIN_PIXELS = 30  # ... at least this many of them (else the capture's gain)
-CHI2_1_MEDIAN = 0.454936  # the median of χ² with one degree of freedom
+CHI2_1_MEDIAN = NORMAL_MAD_SCALE ** -2  # the median of χ² with one degree of freedom, Φ⁻¹(¾)²
 PIXEL_AGREE_SIGMAS = 10.0  # a pixel answer further from the lenslet one than this × its σ is
 #                           not taken (:func:`_agrees`)
 PIXEL_POINT_CHI2 = 10.0  # the pixels' χ²/dof at the capture's own (upper-bound) noise over
@@ -2856,11 +2857,16 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     a = float(m @ (raw - level)) / mm if mm > 0 else 0.0
     if not a > 0:
         return None
+
+    def variance(gain: float, light: np.ndarray) -> np.ndarray:
+        # the pixels' noise at a model light (NoiseModel's read σ² + gain·I)
+        return noise.read_sigma**2 + gain * np.clip(light, 0.0, None)
+
     gain = noise.gain
     if not gain > 0:  # no gain known: the pixels' own at the start (the model's misplaced
         #               spots add to it there: weights nearer uniform, a safe start)
         gain = _local_gain(data - clipped_mean(a * m, floor)[0], a * m, noise.read_sigma) or 0.0
-    weight = 1.0 / np.sqrt(noise.read_sigma**2 + gain * np.clip(a * m, 0.0, None) + 1e-300)
+    weight = 1.0 / np.sqrt(variance(gain, a * m) + 1e-300)
     steps = point_steps(profile, geom, lit_lenslets(mom))
 
     def residual(p: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -2868,24 +2874,26 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
         mean, slope = clipped_mean(math.exp(p[3]) * m, floor)
         return (data - mean) * weight, slope
 
+    def residuals_at(qs: list[np.ndarray]) -> list[np.ndarray]:
+        # the residuals at source parameters qs, p's intensity (one trace: _fd_jacobian)
+        return [residual(np.append(q_i, p[3]), m_i[:, 0])[0] for q_i, m_i in
+                zip(qs, model.simulate_sets([frame.source(q_i) for q_i in qs]), strict=True)]
+
+    def jacobian() -> np.ndarray:
+        # distance and lateral columns by differences (jac3), the intensity's analytic
+        return np.column_stack([jac3, -slope * math.exp(p[3]) * m * weight])
+
     p = np.append(q, math.log(a))
     r, slope = residual(p, m)
     use = np.ones(r.size, dtype=bool)  # the pixels not stray
     f = float(r @ r)
-    jac = np.empty((r.size, 4))
+    jac3 = None  # the distance and lateral columns, taken again after a long step
     last = math.inf  # the last step's length (log distance)
-    fresh = False  # the Jacobian's first three columns are p's (or a step under the limit's)
     reweighted = False  # the weights are the pixels' own photon gain's (_local_gain)
     for _ in range(PIXEL_ITERATIONS):
-        if not fresh or last > PIXEL_REJACOBIAN_LOG:
-            sets = [frame.source(p[:3] + steps[i] * np.eye(3)[i]) for i in range(3)]
-            for i, m_i in enumerate(model.simulate_sets(sets)):
-                dp = np.zeros(4)
-                dp[i] = steps[i]
-                jac[:, i] = (residual(p + dp, m_i[:, 0])[0] - r) / steps[i]
-            fresh = True
-        jac[:, 3] = -slope * math.exp(p[3]) * m * weight
-        step = np.linalg.lstsq(jac[use], -r[use], rcond=None)[0]
+        if jac3 is None or last > PIXEL_REJACOBIAN_LOG:
+            jac3 = _fd_jacobian(None, residuals_at, p[:3], r, steps)
+        step = np.linalg.lstsq(jacobian()[use], -r[use], rcond=None)[0]
         scale, improved = 1.0, None
         for _ in range(PIXEL_HALVINGS + 1):
             p_new = p + scale * step
@@ -2907,11 +2915,10 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
             reweighted = True
             gain = _local_gain(r / weight, math.exp(p[3]) * m, noise.read_sigma)
             if gain is not None:
-                w_new = 1.0 / np.sqrt(noise.read_sigma**2 + gain * np.clip(
-                    math.exp(p[3]) * m, 0.0, None) + 1e-300)
+                w_new = 1.0 / np.sqrt(variance(gain, math.exp(p[3]) * m) + 1e-300)
                 ratio = w_new / weight
                 weight, r = w_new, r * ratio
-                jac[:, :3] *= ratio[:, None]
+                jac3 = jac3 * ratio[:, None]
                 f = float(r[use] @ r[use])
                 changed = True
         stray = use & (r > PIXEL_STRAY_Z) if reweighted else None
@@ -2921,16 +2928,15 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
             changed = True
         if last < PIXEL_SETTLE_LOG and not changed:
             break
-    jac[:, 3] = -slope * math.exp(p[3]) * m * weight
+    jac = jacobian()
     n_use = int(use.sum())
     source, evaluations = frame.source(p[:3]), look.evaluations + model.evaluations
     stray_share = 1.0 - n_use / r.size
     # the pixels' χ²/dof at the capture's own noise (no gain known: no test), the stray pixels
     # counted where too many are stray
     counted = use if stray_share <= PIXEL_MAX_STRAY else np.ones_like(use)
-    mean_light = np.clip(math.exp(p[3]) * m, 0.0, None)[counted]
-    chi2_capture = (float(((r / weight)[counted] ** 2 / (noise.read_sigma**2 + noise.gain
-                                                         * mean_light)).sum())
+    chi2_capture = (float(((r / weight)[counted] ** 2
+                           / variance(noise.gain, math.exp(p[3]) * m)[counted]).sum())
                     / max(int(counted.sum()) - 4, 1)) if noise.gain > 0 else math.nan
     refused = LensletFit(source, math.nan, math.nan, evaluations, False, RegionStatus.POOR_FIT,
                          pixel_chi2=chi2_capture)
@@ -2991,8 +2997,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                else None)
     # once: the noise misfit, the point and the line fit
     mom = data_moments(geom, image, box, exclude=exclude)
-    nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
-                                                                           mom.norm)
+    noise_model = capture_noise(image, geom.lmap, geom.pitch_px)
+    nm = noise_model.moments_misfit_of(mom.noise_sums, mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
     noise_trigger = line_trigger(nm, LINE_TRIGGER, LINE_NOISE_FACTOR)
 
@@ -3081,8 +3087,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if PIXEL_POLISH and _uncertain(profile, fit, accept):
         # the moments left this answer uncertain: its lit pixels hold more (a dim blur
         # behind focus: docs/distance.md, "The lit pixels of an uncertain point (stop 63)")
-        better = pixel_polish(profile, geom, image, mom, fit.source_mm,
-                              capture_noise(image, geom.lmap, geom.pitch_px))
+        better = pixel_polish(profile, geom, image, mom, fit.source_mm, noise_model)
         if better is not None and better.pixel_chi2 > PIXEL_POINT_CHI2:
             # no point explains these pixels, even at the capture's upper-bound noise: a
             # line, or no distance (a dim 1.5 mm line at 3.5 m, within its moments' noise,
