@@ -85,16 +85,17 @@ def _powers(rho: np.ndarray, terms: int) -> np.ndarray:
 def centroid_bias(profile: CameraProfile, d_in_mm: float, calibration: Calibration,
                   shape: tuple[int, int]) -> CentroidBias | None:
     """The bias of ``calibration``'s centroids for a sensor of ``shape`` (rows, cols), or
-    None where it has none to learn: a white whose micro-images leave gaps (their centroids
-    are exact: docs/calibration.md), a calibration that does not state its disc model, or a
-    profile the renderer cannot render (its reason is then in ``calibration``'s messages
-    nowhere: the centroids are used as measured)."""
+    None where there is none to learn: a white whose neighbouring micro-images' edge ramps
+    overlap by less than a ramp's half-width (no seam is split; their centroids match the
+    white-offset table to 0.002 px: docs/calibration.md), a calibration that does not state
+    its disc model, or a profile the renderer cannot render (the centroids are then used as
+    measured)."""
     diag = calibration.diagnostics or {}
     radius, edge = diag.get("disc_radius_px"), diag.get("disc_edge_px")
     if diag.get("centroid_method") != "micro-image model" or radius is None or edge is None:
         return None
-    if float(radius) < 0.5 * float(calibration.pitch_px) - float(edge):
-        return None  # the discs' ramps do not meet: no seam is split
+    if 2.0 * (float(radius) + float(edge)) - float(calibration.pitch_px) < float(edge):
+        return None  # neighbours' edge ramps overlap by less than a half-width: no seam to split
     try:
         return _learn(profile.with_d_in(float(d_in_mm)), (int(shape[0]), int(shape[1])),
                       float(radius), float(edge), float(calibration.pitch_px),
