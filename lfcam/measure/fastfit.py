@@ -2904,10 +2904,17 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
                 improved = (p_new, m_new, r_new, slope_new, f_new)
                 break
             scale *= 0.5
-        if improved is None:
+        if improved is not None:
+            p, m, r, slope, f = improved
+            last = abs(scale * float(step[0]))
+        elif reweighted:
             break
-        p, m, r, slope, f = improved
-        last = abs(scale * float(step[0]))
+        else:
+            # at the minimum before the weights took the pixels' own gain: take it now (and
+            # the stray pixels out) rather than stop with the capture's upper-bound weights,
+            # whose χ²/dof then refuses a good fit (docs/distance.md, "A pixel fit that settles
+            # before its re-weighting (stop 64)")
+            last = 0.0
         changed = False  # the weights or the pixels changed: the steps go on
         if last <= PIXEL_REJACOBIAN_LOG and not reweighted:
             # near the minimum: the pixels' own photon gain, and the steps go on weighted by it
