@@ -37,6 +37,9 @@ if TYPE_CHECKING:
 STRIP_PITCHES = 6.0  # the model strip's height, in micro-image pitches
 BIAS_TERMS = 5  # odd powers 1 … 9 of the field radius
 MIN_LENSES = 20  # fewer measured model lenses: no bias learnt
+MAX_RMS_PX = 0.03  # the model lenses' centroids scatter about the fit by more: no bias (the
+#                    calibration's disc model does not describe the profile's white; measured
+#                    0.004-0.008 px where it does)
 
 
 @dataclass(frozen=True)
@@ -88,8 +91,9 @@ def centroid_bias(profile: CameraProfile, d_in_mm: float, calibration: Calibrati
     None where there is none to learn: a white whose neighbouring micro-images' edge ramps
     overlap by less than a ramp's half-width (no seam is split; their centroids match the
     white-offset table to 0.002 px: docs/calibration.md), a calibration that does not state
-    its disc model, or a profile the renderer cannot render (the centroids are then used as
-    measured)."""
+    its disc model, a profile the renderer cannot render, or a model white whose centroids
+    scatter about the fit by over :data:`MAX_RMS_PX` (the calibration's disc model does not
+    describe it). The centroids are then used as measured."""
     diag = calibration.diagnostics or {}
     radius, edge = diag.get("disc_radius_px"), diag.get("disc_edge_px")
     if diag.get("centroid_method") != "micro-image model" or radius is None or edge is None:
@@ -141,5 +145,7 @@ def _learn(profile: CameraProfile, shape: tuple[int, int], radius_px: float, edg
     a = _powers(np.minimum(r, reach) / reach, BIAS_TERMS)
     coef, *_ = np.linalg.lstsq(a, radial, rcond=None)
     rms = float(np.sqrt(np.mean((a @ coef - radial) ** 2)))
+    if not rms <= MAX_RMS_PX:
+        return None
     return CentroidBias(tuple(float(c) for c in coef), float(reach), (float(ax), float(ay)),
                         rms, int(len(got)))

@@ -260,8 +260,10 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
 
     Every lens whose micro-image reaches the sensor takes part (:func:`sensor_lenses`): the
     measured ones first, in the calibration's order, then those cut by the sensor edge, placed
-    by the calibration's lattice model. The MLA-plane lattice is fitted to the measured
-    lenses only.
+    by the calibration's lattice model. Where the white's micro-images touch, the centroids
+    first lose their estimator's bias, learnt on a model white of ``profile``
+    (:func:`lfcam.calibrate.bias.centroid_bias`; the lenslet map keeps them as measured). The
+    MLA-plane lattice is fitted to the measured lenses only.
 
     Parameters
     ----------
