@@ -61,6 +61,20 @@ def _measure(img, used, geom, monkeypatch, polish: bool):
     return fastfit.measure_lenslet(used, geom, img, region, noise_sigma(img))
 
 
+def _draw_3(dim_point):
+    """Noise draw 3 of the dim point and what ``pixel_polish`` is given for it: the region's
+    moments, the capture's noise model, the frame and a start 1 % short."""
+    clean, used, geom = dim_point
+    img = _noisy(clean, np.random.default_rng(3))
+    region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
+                 key=lambda r: r.energy)
+    mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
+    noise = capture_noise(img, geom.lmap, geom.pitch_px)
+    frame = fastfit._Frame(used)
+    start = frame.source(np.array([math.log(DISTANCE_MM * 0.99), 0.0, 0.0]))
+    return used, geom, img, mom, noise, frame, start
+
+
 def test_a_dim_point_behind_focus_is_refitted_on_its_pixels(dim_point, monkeypatch):
     clean, used, geom = dim_point
     rng = np.random.default_rng(5)
@@ -88,14 +102,7 @@ def test_stray_light_in_the_lit_pixels_is_left_out(dim_point):
     # spots: light added on 4 % of the window's pixels where the model puts almost none (the
     # window's grown ring) is left out, and the answer stays where the clean draw's is; with
     # the stray test off, those pixels fail the χ² gate (not ok: the lenslet answer stands)
-    clean, used, geom = dim_point
-    img = _noisy(clean, np.random.default_rng(3))
-    region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
-                 key=lambda r: r.energy)
-    mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
-    noise = capture_noise(img, geom.lmap, geom.pitch_px)
-    frame = fastfit._Frame(used)
-    start = frame.source(np.array([math.log(DISTANCE_MM * 0.99), 0.0, 0.0]))
+    used, geom, img, mom, noise, frame, start = _draw_3(dim_point)
     base = fastfit.pixel_polish(used, geom, img, mom, start, noise)
     assert base is not None
     # the window's ring: lit pixels grown, less the lit ones (as pixel_polish draws it)
@@ -191,14 +198,7 @@ def test_a_fit_that_settles_before_its_reweighting_still_takes_the_pixels_own_ga
     # χ²/dof 5.3 and its lenslet answer +7.1 % kept). Here: no step can be tried at all
     # (PIXEL_HALVINGS = -1), from the answer of a full fit, under a capture gain stated at 0.03
     # of the true one
-    clean, used, geom = dim_point
-    img = _noisy(clean, np.random.default_rng(3))
-    region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
-                 key=lambda r: r.energy)
-    mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
-    noise = capture_noise(img, geom.lmap, geom.pitch_px)
-    frame = fastfit._Frame(used)
-    start = frame.source(np.array([math.log(DISTANCE_MM * 0.99), 0.0, 0.0]))
+    used, geom, img, mom, noise, frame, start = _draw_3(dim_point)
     base = fastfit.pixel_polish(used, geom, img, mom, start, noise)
     assert base is not None and base.ok
     low = dataclasses.replace(noise, gain=0.03 * FULL_SCALE_DN / FULL_WELL_E)
