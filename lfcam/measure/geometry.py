@@ -83,8 +83,8 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
     (:func:`_aperture_rule`, :data:`CELL_NODES`) and over a grid of slopes whose cells the
     pupil's edge shares (:func:`_edge_cover`). A 3 × 3 midpoint rule on a square cell and a
     hard pupil edge had left system 1's lenslet lattice 1.4e-5 too large (0.01 px at the
-    rim), against 3e-6 for this rule (docs/calibration.md, "The white-centroid table's
-    rule").
+    rim), against 3e-6 for this rule (docs/distance.md, "How exactly the pixel polish needs
+    the lenslet lattice (stop 64)").
     """
     lens = profile.main_lens
     fx = profile.mla.focal_length_mm
@@ -291,13 +291,13 @@ def prepare_geometry(profile: CameraProfile, calibration: Calibration,
     check_profile_pitch(profile, calibration, d_in)  # a wrong profile, before any heavy work
     radius_px = 0.5 * calibration.pitch_px * 1.08
     centres, indices, n_measured = sensor_lenses(calibration, shape, radius_px)
-    # the lenslet map (a compiled loop that releases the GIL) and the lenslet centres (numpy
-    # traces) are independent: on a large frame they run side by side (Illum size: the map
-    # 1.2 s, the white-offset table 0.6 s)
     # touching or overlapping micro-images: the centroids less their estimator's bias, learnt
     # on a model white (lfcam.calibrate.bias; None where the discs leave gaps)
     bias = centroid_bias(profile, d_in, calibration, shape)
     corrected = centres if bias is None else bias.correct(centres)
+    # the lenslet map (a compiled loop that releases the GIL) and the lenslet centres (numpy
+    # traces) are independent: on a large frame they run side by side (Illum size: the map
+    # 1.2 s, the white-offset table 0.6 s)
     with ThreadPoolExecutor(1) as side:
         # measured and edge-placed lenses in one call: one white-offset table (one trace)
         lens_job = side.submit(lenslet_centres_mm, profile, d_in, corrected)
