@@ -48,7 +48,7 @@ import focus_grid as fg  # noqa: E402
 
 from lfcam.calibrate.model import load_calibration  # noqa: E402
 from lfcam.measure import fastfit  # noqa: E402
-from lfcam.measure.geometry import white_offset_table  # noqa: E402
+from lfcam.measure.geometry import white_centroids_px  # noqa: E402
 
 SIZES = {"system1": None, "system2": 1536}  # focus_grid's sensors (system 2: 1536²)
 CASES = "system1:1000,system1:1500,system1:inf,system2:1000,system2:1500,system2:inf"
@@ -76,10 +76,7 @@ def lattice_row(system: str, focus: float, white: str, cache: Path) -> str:
     # the white's centroids against the table's prediction at the true lenslets
     lens = truth.geom.lens_centres_mm
     r = np.hypot(lens[:, 0], lens[:, 1])
-    radii, r_w = white_offset_table(p, float(p.d_in_mm), float(r.max() * 1.05 + 1e-6))
-    pred = lens * (np.interp(r, radii, r_w) / np.maximum(r, 1e-12))[:, None]
-    ax, ay = p.sensor.axis_xy_px
-    pred_px = np.column_stack([pred[:, 0] / pp + ax, pred[:, 1] / pp + ay])
+    pred_px = white_centroids_px(p, float(p.d_in_mm), lens)
     cal = load_calibration(cache / _key(cam, white))
     m = np.asarray(cal.centres_px, dtype=np.float64)
     from scipy.spatial import cKDTree

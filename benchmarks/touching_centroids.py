@@ -14,7 +14,7 @@ in px:
   (chief-ray projections, ``focus_grid``'s truth geometry);
 * own-light centroids (:func:`lfcam.calibrate.microimage.own_light_centroids`' seam split,
   written out in numpy for any brightness model), with the fitted disc centres or with the
-  renderer's, minus the centroids :func:`lfcam.measure.geometry.white_offset_table` predicts
+  renderer's, minus the centroids :func:`lfcam.measure.geometry.white_centroids_px` predicts
   at the true lenslets; and the calibration's own centroids against the same prediction.
 
 Lenses within a pitch and a half of the border are left out of the means (their neighbours
@@ -44,7 +44,7 @@ import focus_grid as fg  # noqa: E402
 
 from lfcam.calibrate import calibrate_white  # noqa: E402
 from lfcam.calibrate import microimage as mi  # noqa: E402
-from lfcam.measure.geometry import white_offset_table  # noqa: E402
+from lfcam.measure.geometry import white_centroids_px  # noqa: E402
 from lfcam.sim.capture import simulate  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
 
@@ -169,13 +169,7 @@ def main() -> None:
     p = truth.used
     chief = np.asarray(truth.geom.lmap.centres_px)
     chief = chief[cKDTree(chief).query(start)[1]]
-    lens = truth.geom.lens_centres_mm
-    r_mm = np.hypot(lens[:, 0], lens[:, 1])
-    radii, r_w = white_offset_table(p, float(p.d_in_mm), float(r_mm.max() * 1.05 + 1e-6))
-    pred = lens * (np.interp(r_mm, radii, r_w) / np.maximum(r_mm, 1e-12))[:, None]
-    pp = p.sensor.pixel_pitch_mm
-    ax, ay = p.sensor.axis_xy_px
-    pred_px = np.column_stack([pred[:, 0] / pp + ax, pred[:, 1] / pp + ay])
+    pred_px = white_centroids_px(p, float(p.d_in_mm), truth.geom.lens_centres_mm)
     table = pred_px[cKDTree(pred_px).query(start)[1]]
     mid = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
     radius = np.hypot(*(chief - mid).T)

@@ -103,13 +103,13 @@ def white_offset_table(profile: CameraProfile, d_in_mm: float, max_radius_mm: fl
     ax_ = sx[None, :] - cu[:, None] / fx
     ay_ = sy[None, :] - cv[:, None] / fx
     cos4_p = 1.0 / (1.0 + ax_ * ax_ + ay_ * ay_) ** 2
+    # every (cell point, slope) pair: the backward ray must pass every clear aperture (only
+    # the lenslet's x moves with the radius)
+    px0, py = np.repeat(cu, sx.size), np.repeat(cv, sx.size)
+    tsx, tsy = np.tile(sx, cu.size), np.tile(sy, cu.size)
     out = np.empty_like(radii)
     for i, r in enumerate(radii):
-        # every (cell point, slope) pair: the backward ray must pass every clear aperture
-        px = np.repeat(r + cu, sx.size)
-        py = np.repeat(cv, sx.size)
-        tr = trace_backward_fast(lens, px, py, d_in_mm, np.tile(sx, cu.size),
-                                 np.tile(sy, cu.size), ratio=True)
+        tr = trace_backward_fast(lens, r + px0, py, d_in_mm, tsx, tsy, ratio=True)
         cover = _edge_cover(tr.rho.reshape(cu.size, SLOPE_GRID, SLOPE_GRID))
         w = cw @ (cover.reshape(cu.size, -1) * cos4_p)
         out[i] = r + fx * float((w * sx).sum() / w.sum())
@@ -130,6 +130,20 @@ def lenslet_centres_mm(
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = np.where(r_white > 0, r / r_white, 1.0 / (r_w[1] / radii[1]))
     return m * scale[:, None]
+
+
+def white_centroids_px(
+    profile: CameraProfile, d_in_mm: float, lens_centres_mm: np.ndarray
+) -> np.ndarray:
+    """White centroids (px) of lenslets at ``lens_centres_mm`` (MLA plane, from the axis): the
+    forward map :func:`lenslet_centres_mm` inverts, through the same table."""
+    c = np.asarray(lens_centres_mm, dtype=np.float64).reshape(-1, 2)
+    r = np.hypot(c[:, 0], c[:, 1])
+    radii, r_w = white_offset_table(profile, float(d_in_mm), float(r.max() * 1.05 + 1e-6))
+    m = c * (np.interp(r, radii, r_w) / np.maximum(r, 1e-12))[:, None]
+    ax, ay = profile.sensor.axis_xy_px
+    pp = profile.sensor.pixel_pitch_mm
+    return np.column_stack([m[:, 0] / pp + ax, m[:, 1] / pp + ay])
 
 
 LATTICE_MAX_RMS_PITCH = 0.02  # a regular MLA explains its centres to better than this
