@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from whites_analytic import analytic_white_truth  # noqa: E402
 
-from lfcam.calibrate.bias import STRIP_PITCHES, _learn, centroid_bias  # noqa: E402
+from lfcam.calibrate.bias import _learn, centroid_bias, model_strip  # noqa: E402
 from lfcam.calibrate.grid import _model_centroids  # noqa: E402
 from lfcam.calibrate.microimage import DiscModel  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
@@ -49,13 +49,8 @@ def test_the_bias_learnt_on_a_model_white_matches_a_white_rendered_without_lfcam
     bias = _learn(camera, SENSOR, DISC.radius_px, DISC.edge_px, PITCH_PX, "rect", 0.0)
     assert bias is not None and bias.lenses >= 150
     # the same strip, from the analytic path (noise-free)
-    h, w = SENSOR
-    reach = math.hypot(0.5 * (w - 1), 0.5 * (h - 1))
-    height = int(math.ceil(STRIP_PITCHES * PITCH_PX))
-    width = int(math.ceil(reach + 3.0 * PITCH_PX))
-    axis = (PITCH_PX, 0.5 * (height - 1))
-    strip = replace(camera, sensor=replace(camera.sensor, width_px=width, height_px=height,
-                                           axis_px=axis))
+    strip, axis, reach = model_strip(camera, SENSOR, PITCH_PX)
+    assert reach == pytest.approx(math.hypot(511.5, 511.5))  # the corner, from the centre
     white, truth = analytic_white_truth(strip, samples=16, noise=False)
     cand = np.rint(truth["centroid_px"][truth["complete"]])
     centres, _, conv, at_edge = _model_centroids(white, cand, DISC, PITCH_PX, "rect", 0.0,

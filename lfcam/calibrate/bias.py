@@ -108,6 +108,23 @@ def centroid_bias(profile: CameraProfile, d_in_mm: float, calibration: Calibrati
         return None
 
 
+def model_strip(profile: CameraProfile, shape: tuple[int, int],
+                pitch_px: float) -> tuple[CameraProfile, tuple[float, float], float]:
+    """The model white's sensor for a sensor of ``shape`` (rows, cols): ``profile`` on a strip
+    :data:`STRIP_PITCHES` micro-image pitches high, the optical axis one pitch in from its left
+    end, reaching along +x past the distance of ``shape``'s farthest corner from its axis.
+    Returns the strip's profile, its axis (px) and that distance (px)."""
+    h, w = shape
+    ax, ay = profile.sensor.axis_xy_px
+    reach = max(math.hypot(x - ax, y - ay) for x in (0.0, w - 1.0) for y in (0.0, h - 1.0))
+    height = int(math.ceil(STRIP_PITCHES * pitch_px))
+    width = int(math.ceil(reach + 3.0 * pitch_px))
+    axis = (pitch_px, 0.5 * (height - 1))
+    strip = replace(profile, sensor=replace(profile.sensor, width_px=width, height_px=height,
+                                            axis_px=axis))
+    return strip, axis, reach
+
+
 @lru_cache(maxsize=8)
 def _learn(profile: CameraProfile, shape: tuple[int, int], radius_px: float, edge_px: float,
            pitch_px: float, grid: str, rotation_rad: float) -> CentroidBias | None:
@@ -115,20 +132,12 @@ def _learn(profile: CameraProfile, shape: tuple[int, int], radius_px: float, edg
     from lfcam.sim.render import Renderer
     from lfcam.sim.scene import Scene, WhiteScene
 
-    h, w = shape
-    ax, ay = profile.sensor.axis_xy_px
-    reach = max(math.hypot(x - ax, y - ay) for x in (0.0, w - 1.0) for y in (0.0, h - 1.0))
-    # the strip: the axis one pitch in from its left end, along +x to past the reach
-    height = int(math.ceil(STRIP_PITCHES * pitch_px))
-    width = int(math.ceil(reach + 3.0 * pitch_px))
-    axis = (pitch_px, 0.5 * (height - 1))
-    strip = replace(profile, sensor=replace(profile.sensor, width_px=width, height_px=height,
-                                            axis_px=axis))
+    strip, axis, reach = model_strip(profile, shape, pitch_px)
     rend = Renderer(strip)
     res = rend.render(Scene(objects=(WhiteScene(),), seed=0))
     cand = np.rint(rend.predicted_centres_px())
-    on = ((cand[:, 0] >= 0) & (cand[:, 0] < width) & (cand[:, 1] >= 0)
-          & (cand[:, 1] < height))
+    on = ((cand[:, 0] >= 0) & (cand[:, 0] < strip.sensor.width_px) & (cand[:, 1] >= 0)
+          & (cand[:, 1] < strip.sensor.height_px))
     centres, _, conv, at_edge = _model_centroids(
         res.signal, cand[on], DiscModel(radius_px, edge_px, 0.0), pitch_px, grid, rotation_rad,
         lambda *a: None)
@@ -147,5 +156,5 @@ def _learn(profile: CameraProfile, shape: tuple[int, int], radius_px: float, edg
     rms = float(np.sqrt(np.mean((a @ coef - radial) ** 2)))
     if not rms <= MAX_RMS_PX:
         return None
-    return CentroidBias(tuple(float(c) for c in coef), float(reach), (float(ax), float(ay)),
-                        rms, int(len(got)))
+    return CentroidBias(tuple(float(c) for c in coef), float(reach),
+                        tuple(float(v) for v in profile.sensor.axis_xy_px), rms, int(len(got)))
