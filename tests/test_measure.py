@@ -138,17 +138,23 @@ def test_line_moments_give_length_and_direction():
     assert abs(abs(np.dot(direction, (np.cos(ang), np.sin(ang)))) - 1.0) < 1e-3
 
 
+def _white_lenses(name: str):
+    """A committed white's truth and profile, and its fully visible lenslets' renderer
+    centroids (px), centres (mm) and lattice indices."""
+    truth = json.loads((DATA / f"{name}.truth.json").read_text(encoding="utf-8"))
+    profile = load_profile(DATA / f"{name}.profile.toml")
+    lenses = truth["lenses"]
+    ok = np.asarray(lenses["complete"], bool)
+    return (truth, profile, np.asarray(lenses["centroid_px"], float)[ok],
+            np.asarray(lenses["centre_mm"], float)[ok], np.asarray(lenses["index_ij"])[ok])
+
+
 @pytest.mark.parametrize("name", ["white_system1_rect", "white_system2_rect"])
 def test_white_centroids_of_the_true_lenslets_match_the_renderer(name):
     # the forward map (benchmarks' prediction at the renderer's lenslets): the renderer's own
     # ray-derived centroids within 0.002 pitch RMS (measured 0.00086 and 0.00053), and
     # lenslet_centres_mm takes it back to the lenslets within 0.1 µm (measured 0.018, 0.003)
-    truth = json.loads((DATA / f"{name}.truth.json").read_text(encoding="utf-8"))
-    profile = load_profile(DATA / f"{name}.profile.toml")
-    lenses = truth["lenses"]
-    ok = np.asarray(lenses["complete"], bool)
-    centroids = np.asarray(lenses["centroid_px"], float)[ok]
-    lens_mm = np.asarray(lenses["centre_mm"], float)[ok]
+    truth, profile, centroids, lens_mm, _ = _white_lenses(name)
     got = white_centroids_px(profile, truth["d_in_mm"], lens_mm)
     err_mm = np.hypot(*(got - centroids).T) * profile.sensor.pixel_pitch_mm
     assert np.sqrt(np.mean(err_mm**2)) < 0.002 * profile.mla.pitch_mm
@@ -158,18 +164,12 @@ def test_white_centroids_of_the_true_lenslets_match_the_renderer(name):
 
 @pytest.mark.parametrize("name", ["white_system1_rect", "white_system2_rect"])
 def test_lenslet_centres_from_white_centroids_match_the_renderer(name):
-    truth = json.loads((DATA / f"{name}.truth.json").read_text(encoding="utf-8"))
-    profile = load_profile(DATA / f"{name}.profile.toml")
-    lenses = truth["lenses"]
-    ok = np.asarray(lenses["complete"], bool)
-    centroids = np.asarray(lenses["centroid_px"], float)[ok]
-    want = np.asarray(lenses["centre_mm"], float)[ok]
+    truth, profile, centroids, want, index_ij = _white_lenses(name)
     got = lenslet_centres_mm(profile, truth["d_in_mm"], centroids)
     err_um = 1e3 * np.hypot(*(got - want).T)
     pitch_um = 1e3 * profile.mla.pitch_mm
     assert np.sqrt(np.mean(err_um**2)) < 0.002 * pitch_um  # sub-µm on a 1.34 mm / 250 µm pitch
-    reg, rms = regularise_to_lattice(got, np.asarray(lenses["index_ij"])[ok],
-                                     profile.mla.pitch_mm)
+    reg, rms = regularise_to_lattice(got, index_ij, profile.mla.pitch_mm)
     assert rms < 0.002
     assert np.sqrt(np.mean(np.hypot(*(reg - want).T) ** 2)) <= np.sqrt(
         np.mean((got - want) ** 2) * 2) + 1e-12
