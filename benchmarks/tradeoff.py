@@ -341,7 +341,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
     _save(fig, img_dir / "error_vs_distance.png")
     plt.close(fig)
 
-    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5.8))
     markers = {"lightfield": "o", "lightfield-fast": "s", "lenslet": "D", "diameter": "^"}
     colours = dict(zip(MODELS, ("C0", "C1", "C2", "C3", "C4"), strict=True))
     panels = [(system, "point") for system in SYSTEMS] + [("system1", "line")]
@@ -365,8 +365,10 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
         ax.set_ylabel("mean ERROR (%)")
         ax.set_title(f"{system}: {'point sources' if source == 'point' else '10 mm lines'}")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=6, ncol=2)
-    fig.tight_layout()
+    # one legend below the panels (inside them it hid the full fit's points)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=7, fontsize=7)
+    fig.tight_layout(rect=(0, 0.17, 1, 1))
     _save(fig, img_dir / "pareto.png")
     plt.close(fig)
 
