@@ -211,3 +211,42 @@ def test_a_fit_that_settles_before_its_reweighting_still_takes_the_pixels_own_ga
     assert got.sigma_distance_mm == pytest.approx(base.sigma_distance_mm, rel=0.25)
     # the capture's (understated) gain alone would refuse it
     assert got.pixel_chi2 > fastfit.PIXEL_MAX_CHI2
+
+
+def test_a_dim_point_within_its_noise_tries_no_line(monkeypatch):
+    # system 2's point 3 500 mm behind its 1 m focus at 1.2 % of full scale: the moments'
+    # point misfit (0.11-0.14) is over the line trigger's cap (0.1) and under the region's
+    # noise misfit (0.23-0.29), where a line's two more parameters cannot win; stop 64 tried
+    # one anyway (50-80 ms a region on the 12-source captures' dim 3 500 mm source)
+    from lfcam.measure.verify import LINE_TRIGGER_CAP
+
+    size, distance = 768, 3500.0
+    camera = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": size, "height_px": size}}
+    scene = {"seed": 11, "camera": camera, "exposure": {"peak": 0.012},
+             "sensor": {"photon_noise": False, "read_noise_e": 0.0},
+             "objects": [{"type": "point", "distance_mm": distance, "position_mm": [0.0, 0.0],
+                          "rays": 1_000_000}]}
+    raw, used, _ = simulate(load_profile("system2"), scene_from_dict(scene))
+    geom = truth_geometry(used, (size, size))
+    tried: list[float] = []
+    line_fit = fastfit.fit_lenslet_line
+
+    def spy(*args, **kwargs):
+        tried.append(args[4].misfit)
+        return line_fit(*args, **kwargs)
+
+    monkeypatch.setattr(fastfit, "fit_lenslet_line", spy)
+    for seed in (1, 2, 3):
+        img = _noisy(raw.astype(np.float64), np.random.default_rng(seed))
+        tried.clear()
+        got = _measure(img, used, geom, monkeypatch, True)
+        assert got.status == "ok" and got.kind == "spot"
+        assert LINE_TRIGGER_CAP < got.misfit <= got.noise_misfit  # the case this rule is for
+        assert not tried
+        # the truth within 3σ (σ ~0.3 %)
+        assert abs(got.distance_mm - distance) < 3.0 * got.sigma_distance_mm, got
+        # without the rule the line is tried, and loses: the same answer
+        monkeypatch.setattr(fastfit, "LINE_WITHIN_NOISE", 0.0)
+        old = _measure(img, used, geom, monkeypatch, True)
+        monkeypatch.setattr(fastfit, "LINE_WITHIN_NOISE", 1.0)
+        assert tried and old.kind == "spot" and old.distance_mm == got.distance_mm

@@ -319,6 +319,10 @@ LINE_MODEL_FACTOR = 2.0  # ... and over this × the point models' own disagreeme
 LINE_NOISE_FACTOR = 1.3  # ... and over this × its noise misfit (verify.line_trigger; 2.0 left
 #                          lines 2 pitches long 2200-2900 mm behind a 1 m focus as points at
 #                          1.6-1.7 ×, 0.4-1.4 % off; real points leave 0.3-1.5 ×)
+LINE_WITHIN_NOISE = 1.0  # ... but not for a point whose misfit is within this × its noise misfit
+#                          (over the trigger only where that is capped: dim blurs; no line
+#                          can win against noise, and the 168 grid lines leave ≥ 1.57 × as
+#                          points; docs/distance.md, "No line try inside the noise (stop 65)")
 LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this × (two more
 #                  parameters cannot halve a misfit that is noise; a coma-stretched point's
 #                  line fit does not lower it at all)
@@ -3016,6 +3020,12 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # "A line trigger over the point models' own noise")
         return max(noise_trigger, LINE_MODEL_FACTOR * model_misfit)
 
+    def worth_a_line(point_misfit: float, trigger: float) -> bool:
+        # over the trigger, and not within the region's noise: a point that leaves no more
+        # than its noise misfit leaves a line's two more parameters nothing to win by
+        # LINE_GAIN (the trigger's cap lets such dim points try lines that cannot win)
+        return point_misfit > trigger and not point_misfit <= LINE_WITHIN_NOISE * nm
+
     def gates(model_misfit: float) -> tuple[float, float]:  # polish_above, bound_above
         trigger = trigger_of(model_misfit)
         return POLISH_NEAR_GATE * min(limit, trigger), trigger
@@ -3043,7 +3053,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # any polish could take back needs no fine point fit (docs/distance.md, "A line tried
         # at the point's coarse stage (stop 47)"). One that does not is kept (line_for) for
         # the tests below, which compare its misfit with the fine fit's.
-        if fit.ok and fit.polish_floor > trigger_of(fit.model_misfit):
+        if fit.ok and worth_a_line(fit.polish_floor, trigger_of(fit.model_misfit)):
             line = line_for(fit)
             if line.ok and line.misfit < beats(fit.polish_floor):
                 stages.close()
@@ -3060,7 +3070,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if line.ok and line.misfit < beats(fit.misfit):
             return _line_answer(profile, geom, line, limit, nm)
         return Measurement.failed(fit.reason, geom.d_in_mm)
-    if fit.ok and fit.polish_floor > trigger:
+    if fit.ok and worth_a_line(fit.polish_floor, trigger):
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
         # tried before the point is finished, and when it wins by more than any polish could
         # take back (fit.polish_floor), the point's polish and σ profile are not needed
@@ -3084,7 +3094,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # trigger; the 126 rectangular grid lines logged leave 1.2 × it or more as a point, and
     # all 231 grid lines read the same without the shape rule (docs/distance.md,
     # "Line-shaped point regions (stop 49)")
-    if fit.misfit > trigger:
+    if worth_a_line(fit.misfit, trigger):
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         line = line_for(fit)
         if line.ok and line.misfit < beats(fit.misfit):
