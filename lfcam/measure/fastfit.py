@@ -402,6 +402,9 @@ PIXEL_POLISH_ABOVE = 0.003  # ... its relative σ (the floor SIGMA_FLOOR_REL inc
 #                             and, with a tolerance, not accepted
 PIXEL_RAYS = 20000  # rays of the pixel model (40 000: the same accuracy over 1 440 regions,
 #                     z² ×0.99-1.04 on two halves, 10 % more CPU; docs/distance.md, stop 63)
+PIXEL_TURNS = 1  # ... and the minima of this many turned samples averaged with its own (3: the
+#                  same accuracy over 720 regions, 2.5 × the cost; docs/distance.md, stop 65)
+PIXEL_PHASE = 0.0  # ... the turn of the fit's own pupil sample (rad; the others turn from it)
 PIXEL_WINDOW_RAYS = 20000  # ... of the model that finds the lit pixels at the lenslet answer
 PIXEL_WINDOW_SHARE = 0.02  # a pixel is lit where that model puts over this × its brightest
 #                            pixel's light on it ...
@@ -2771,7 +2774,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 
 def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.ndarray,
-                 n_rays: int) -> tuple[LensletModel, np.ndarray, np.ndarray]:
+                 n_rays: int, phase: float = 0.0) -> tuple[LensletModel, np.ndarray, np.ndarray]:
     """A :class:`LensletModel` whose "lenslets" are the box's pixels where ``lit`` (its first
     moment each pixel's light: the rays binned as the sensor bins them), and those pixels'
     rows and columns in the box."""
@@ -2782,7 +2785,7 @@ def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.
     centres = np.column_stack([cols + x0, rows + y0]).astype(np.float64)
     pixels = _Moments(mom.box, labels, np.arange(rows.size), centres, np.zeros((rows.size, 4)),
                       1.0)
-    return LensletModel(profile, geom, pixels, n_rays), rows, cols
+    return LensletModel(profile, geom, pixels, n_rays, phase=phase), rows, cols
 
 
 def _local_gain(e: np.ndarray, light: np.ndarray, read_sigma: float) -> float | None:
@@ -2823,6 +2826,12 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     moments, which sum both, read it as this source's (χ²/dof 6-10 with such pixels, 0.3
     without).
 
+    The answer is the mean of the minimum with the model's own pupil sample and of
+    :data:`PIXEL_TURNS` turned samples' minima, each a linear step from it with its
+    Jacobian; their standard error joins σ. Every fit draws the same sample, so on a given
+    source its error is a bias, which the turned samples halve on average (not exactly: a
+    turned sample's own full fit takes other re-weighting and stray-pixel paths).
+
     Returns the fit (σ from the weighted Jacobian, scaled up by χ²/dof where that is over
     1, or the sandwich estimate where that is larger; ``misfit`` NaN: the gates read the
     lenslet fit's; ``pixel_chi2`` the pixels' χ²/dof under ``noise`` as the capture states
@@ -2849,7 +2858,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     lit &= in_box
     if int(lit.sum()) < PIXEL_MIN_PIXELS:
         return None
-    model, rows, cols = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS)
+    model, rows, cols = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS, PIXEL_PHASE)
     x0, y0 = mom.box[:2]
     raw = np.asarray(image[y0 + rows, x0 + cols], dtype=np.float64)
     floor = noise.floor_sigma  # > 0: the capture clips its noise at zero
@@ -2941,6 +2950,22 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
             break
     jac = jacobian()
     n_use = int(use.sum())
+    # The pupil sample's own error: every fit draws the same sample, so on a given source its
+    # error is a bias (+0.18 % on system 1's 3 100 mm source at 49 % of the field behind a
+    # 1 m focus, over 20 draws; none at 4 × the rays). The minima of PIXEL_TURNS turned
+    # samples (one linear step each from this one's, with its Jacobian) and this one's: their
+    # mean is the answer, their standard error joins σ (docs/distance.md, "The pixel fit's
+    # pupil sample, turned (stop 65)").
+    turns = [np.zeros(4)]
+    for k in range(1, PIXEL_TURNS + 1):
+        turned = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS,
+                              PIXEL_PHASE + 2.0 * math.pi * k / (PIXEL_TURNS + 1))[0]
+        r_t = residual(p, turned.simulate(frame.source(p[:3]))[:, 0])[0]
+        turns.append(np.linalg.lstsq(jac[use], -r_t[use], rcond=None)[0])
+        model.evaluations += turned.evaluations
+    turns_arr = np.array(turns)
+    p = p + turns_arr.mean(axis=0)
+    turn_var = (float(np.var(turns_arr[:, 0], ddof=1)) / len(turns)) if PIXEL_TURNS else 0.0
     source, evaluations = frame.source(p[:3]), look.evaluations + model.evaluations
     stray_share = 1.0 - n_use / r.size
     # the pixels' χ²/dof at the capture's own noise (no gain known: no test), the stray pixels
@@ -2962,7 +2987,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
     # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend)
     sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
-    var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0]))
+    var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0])) + turn_var
     if not (chi2 <= PIXEL_MAX_CHI2 and var > 0 and math.isfinite(var)):
         return refused
     dist = math.exp(_log_distance(p[:3]))
