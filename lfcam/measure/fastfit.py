@@ -2950,22 +2950,6 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
             break
     jac = jacobian()
     n_use = int(use.sum())
-    # The pupil sample's own error: every fit draws the same sample, so on a given source its
-    # error is a bias (+0.18 % on system 1's 3 100 mm source at 49 % of the field behind a
-    # 1 m focus, over 20 draws; none at 4 × the rays). The minima of PIXEL_TURNS turned
-    # samples (one linear step each from this one's, with its Jacobian) and this one's: their
-    # mean is the answer, their standard error joins σ (docs/distance.md, "The pixel fit's
-    # pupil sample, turned (stop 65)").
-    turns = [np.zeros(4)]
-    for k in range(1, PIXEL_TURNS + 1):
-        turned = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS,
-                              PIXEL_PHASE + 2.0 * math.pi * k / (PIXEL_TURNS + 1))[0]
-        r_t = residual(p, turned.simulate(frame.source(p[:3]))[:, 0])[0]
-        turns.append(np.linalg.lstsq(jac[use], -r_t[use], rcond=None)[0])
-        model.evaluations += turned.evaluations
-    turns_arr = np.array(turns)
-    p = p + turns_arr.mean(axis=0)
-    turn_var = (float(np.var(turns_arr[:, 0], ddof=1)) / len(turns)) if PIXEL_TURNS else 0.0
     source, evaluations = frame.source(p[:3]), look.evaluations + model.evaluations
     stray_share = 1.0 - n_use / r.size
     # the pixels' χ²/dof at the capture's own noise (no gain known: no test), the stray pixels
@@ -2987,12 +2971,28 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
     # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend)
     sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
-    var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0])) + turn_var
+    var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0]))
     if not (chi2 <= PIXEL_MAX_CHI2 and var > 0 and math.isfinite(var)):
         return refused
-    dist = math.exp(_log_distance(p[:3]))
-    ok = not _at_far_bound(p[:3])
-    return LensletFit(source, math.nan, dist * math.sqrt(var), evaluations, ok,
+    # The pupil sample's own error: every fit draws the same sample, so on a given source its
+    # error is a bias (+0.18 % on system 1's 3 100 mm source at 49 % of the field behind a
+    # 1 m focus, over 20 draws; none at 4 × the rays). The minima of PIXEL_TURNS turned
+    # samples (one linear step each from this one's, with its Jacobian) and this one's: their
+    # mean is the answer, their standard error joins σ (docs/distance.md, "The pixel fit's
+    # pupil sample, turned (stop 65)").
+    turns = [np.zeros(4)]
+    for k in range(1, PIXEL_TURNS + 1):
+        turned = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS,
+                              PIXEL_PHASE + 2.0 * math.pi * k / (PIXEL_TURNS + 1))[0]
+        r_t = residual(p, turned.simulate(frame.source(p[:3]))[:, 0])[0]
+        turns.append(np.linalg.lstsq(j_use, -r_t[use], rcond=None)[0])
+        evaluations += turned.evaluations
+    q_answer = p[:3] + np.mean(turns, axis=0)[:3]
+    if PIXEL_TURNS:
+        var += float(np.var([t[0] for t in turns], ddof=1)) / len(turns)
+    dist = math.exp(_log_distance(q_answer))
+    ok = not _at_far_bound(q_answer)
+    return LensletFit(frame.source(q_answer), math.nan, dist * math.sqrt(var), evaluations, ok,
                       "" if ok else RegionStatus.NO_SOLUTION, polished=True,
                       pixel_chi2=chi2_capture)
 
