@@ -404,7 +404,6 @@ PIXEL_RAYS = 20000  # rays of the pixel model (40 000: the same accuracy over 1 
 #                     z² ×0.99-1.04 on two halves, 10 % more CPU; docs/distance.md, stop 63)
 PIXEL_TURNS = 1  # ... and the minima of this many turned samples averaged with its own (3: the
 #                  same accuracy over 720 regions, 2.5 × the cost; docs/distance.md, stop 65)
-PIXEL_PHASE = 0.0  # ... the turn of the fit's own pupil sample (rad; the others turn from it)
 PIXEL_WINDOW_RAYS = 20000  # ... of the model that finds the lit pixels at the lenslet answer
 PIXEL_WINDOW_SHARE = 0.02  # a pixel is lit where that model puts over this × its brightest
 #                            pixel's light on it ...
@@ -2774,7 +2773,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 
 def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.ndarray,
-                 n_rays: int, phase: float = 0.0) -> tuple[LensletModel, np.ndarray, np.ndarray]:
+                 n_rays: int) -> tuple[LensletModel, np.ndarray, np.ndarray]:
     """A :class:`LensletModel` whose "lenslets" are the box's pixels where ``lit`` (its first
     moment each pixel's light: the rays binned as the sensor bins them), and those pixels'
     rows and columns in the box."""
@@ -2785,7 +2784,7 @@ def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.
     centres = np.column_stack([cols + x0, rows + y0]).astype(np.float64)
     pixels = _Moments(mom.box, labels, np.arange(rows.size), centres, np.zeros((rows.size, 4)),
                       1.0)
-    return LensletModel(profile, geom, pixels, n_rays, phase=phase), rows, cols
+    return LensletModel(profile, geom, pixels, n_rays), rows, cols
 
 
 def _local_gain(e: np.ndarray, light: np.ndarray, read_sigma: float) -> float | None:
@@ -2858,7 +2857,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     lit &= in_box
     if int(lit.sum()) < PIXEL_MIN_PIXELS:
         return None
-    model, rows, cols = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS, PIXEL_PHASE)
+    model, rows, cols = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS)
     x0, y0 = mom.box[:2]
     raw = np.asarray(image[y0 + rows, x0 + cols], dtype=np.float64)
     floor = noise.floor_sigma  # > 0: the capture clips its noise at zero
@@ -2982,8 +2981,9 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     # pupil sample, turned (stop 65)").
     turns = [np.zeros(4)]
     for k in range(1, PIXEL_TURNS + 1):
-        turned = _pixel_model(profile, geom, mom, lit, PIXEL_RAYS,
-                              PIXEL_PHASE + 2.0 * math.pi * k / (PIXEL_TURNS + 1))[0]
+        # (the same pixels: the fit model's own "lenslets")
+        turned = LensletModel(profile, geom, model.mom, PIXEL_RAYS,
+                              phase=2.0 * math.pi * k / (PIXEL_TURNS + 1))
         r_t = residual(p, turned.simulate(frame.source(p[:3]))[:, 0])[0]
         turns.append(np.linalg.lstsq(j_use, -r_t[use], rcond=None)[0])
         evaluations += turned.evaluations
