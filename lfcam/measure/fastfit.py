@@ -417,6 +417,9 @@ PIXEL_ITERATIONS = 8  # Gauss–Newton steps, at most (each halved up to PIXEL_H
 PIXEL_HALVINGS = 4
 PIXEL_REJACOBIAN_LOG = 0.005  # the Jacobian is taken again after a step over this (log distance)
 PIXEL_SETTLE_LOG = 2e-5  # ... and the steps end on one under this
+PIXEL_MIN_TRIAL_SIGMA = 0.1  # ... and no step (nor halving of a failed one) is tried whose
+#                              distance moves under this × the fit's σ there: at the minimum
+#                              of the fixed ray sample such steps fail, five traces each
 PIXEL_GAIN_LIGHT = 10.0  # the pixels' own gain from those lit over this × the read σ ...
 PIXEL_GAIN_PIXELS = 30  # ... at least this many of them (else the capture's gain)
 CHI2_1_MEDIAN = NORMAL_MAD_SCALE ** -2  # the median of χ² with one degree of freedom, Φ⁻¹(¾)²
@@ -2802,6 +2805,17 @@ def _local_gain(e: np.ndarray, light: np.ndarray, read_sigma: float) -> float | 
     return g if g > 0 and math.isfinite(g) else None
 
 
+def _log_sigma(jac: np.ndarray, f: float, n: int) -> float:
+    """The first parameter's σ from a weighted Jacobian ``jac`` and misfit² ``f`` of ``n``
+    residuals (scaled up by χ²/dof where that is over 1); 0 where ``jac`` is singular."""
+    try:
+        var = float(np.linalg.inv(jac.T @ jac)[0, 0])
+    except np.linalg.LinAlgError:
+        return 0.0
+    chi2 = f / max(n - jac.shape[1], 1)
+    return math.sqrt(var * max(1.0, chi2)) if var > 0 and math.isfinite(var) else 0.0
+
+
 def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom: _Moments,
                  source_mm: np.ndarray, noise: NoiseModel) -> LensletFit | None:
     """A point's lenslet answer refitted on the region's lit pixels.
@@ -2905,9 +2919,14 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     for _ in range(PIXEL_ITERATIONS):
         if jac3 is None or last > PIXEL_REJACOBIAN_LOG:
             jac3 = _fd_jacobian(None, residuals_at, p[:3], r, steps)
-        step = np.linalg.lstsq(jacobian()[use], -r[use], rcond=None)[0]
+        j_use = jacobian()[use]
+        step = np.linalg.lstsq(j_use, -r[use], rcond=None)[0]
+        # the least distance step worth a trace: a share of the fit's σ (log distance) there
+        min_trial = PIXEL_MIN_TRIAL_SIGMA * _log_sigma(j_use, f, int(use.sum()))
         scale, improved = 1.0, None
         for _ in range(PIXEL_HALVINGS + 1):
+            if abs(scale * float(step[0])) < min_trial:
+                break
             p_new = p + scale * step
             m_new = model.simulate(frame.source(p_new[:3]))[:, 0]
             r_new, slope_new = residual(p_new, m_new)
