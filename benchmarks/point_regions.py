@@ -2,7 +2,8 @@
 (issue 17).
 
 Run: ``python benchmarks/point_regions.py [--repeats N] [--ab NAME=VALUE,...] [--systems S]
-[--scene12 [--seeds 4|5-24|5,7]] [--cache DIR] [--render-cache DIR]``
+[--scene12 [--seeds 4|5-24|5,7]] [--foci 1000,1500,inf] [--renderer independent --white
+analytic] [--cache DIR] [--render-cache DIR]``
 
 The captures are ``benchmarks/focus_grid.py``'s single points (system 1 and 2, foci 1000 mm,
 1500 mm and infinity, the grid's distances, 0, 40 and 80 % of the half-field; photon and read
@@ -18,6 +19,9 @@ cells match a basin (stop 58)").
 ``--scene12``: every region of ``focus_grid.py --scene12``'s six 12-source captures instead
 (the same captures, seed and noise), each one's error against the source its box holds: the
 crowded, far and dim blurs of a real scene, where the single points are one a capture.
+``--foci`` keeps some of the foci; ``--renderer independent --white analytic`` renders the
+12-source captures with ``benchmarks/render_independent.py`` and calibrates on the analytic
+white, as ``focus_grid.py`` does: the second rendering path, over as many draws.
 ``--seeds``: the captures rendered with each of these seeds (rays and noise; 4 is
 ``focus_grid.py``'s), every region of every draw a row: one draw's photon-limited answers
 scatter by their σ, so an ``--ab`` whose answers move is judged on many draws. The summary
@@ -60,14 +64,24 @@ def main() -> None:
                     help="the regions of focus_grid.py's six 12-source captures instead")
     ap.add_argument("--seeds", default="4", type=_seeds,
                     help="--scene12's render seeds: N, A-B or a comma list (default 4)")
+    ap.add_argument("--foci", default="1000,1500,inf",
+                    help="the captures' foci, mm or inf (default 1000,1500,inf)")
+    ap.add_argument("--renderer", choices=("sim", "independent"), default="sim",
+                    help="focus_grid.py's --renderer (independent: --scene12 only, with "
+                         "--white analytic as focus_grid.py pairs them)")
+    ap.add_argument("--white", choices=("sim", "analytic"), default="sim",
+                    help="focus_grid.py's --white: the white the lattice is calibrated on")
     args = ap.parse_args()
+    args.foci = [fg.parse_focus(v) for v in args.foci.split(",")]
+    if args.renderer == "independent" and not args.scene12:
+        ap.error("--renderer independent: with --scene12 only")
     settings = lr.ab_settings(ap, args)
     print("| point region | lenslets | " + " | ".join(
         f"{k} error % ± σ | {k} least ms" for k in "AB"[:len(settings)]) + " |")
     print("|---|---|" + "---|---|" * len(settings))
     rows = scene12_rows(args, settings) if args.scene12 else []
     for system in args.systems.split(",") if not args.scene12 else ():
-        for focus in (1000.0, 1500.0, math.inf):
+        for focus in args.foci:
             cam = fg.Camera(system, focus, None, args.cache, False)
             dists = fg.DEFAULT_DISTANCES.get(focus, fg.DEFAULT_DISTANCES[1000.0])
             for ad in (float(v) for v in dists.split(",")):
@@ -90,8 +104,9 @@ def scene12_rows(args, settings: list[dict]) -> list[tuple]:
     rows = []
     for seed in args.seeds:
         for system in args.systems.split(","):
-            for focus in (1000.0, 1500.0, math.inf):
-                cam = fg.Camera(system, focus, None, args.cache, False)
+            for focus in args.foci:
+                cam = fg.Camera(system, focus, None, args.cache, False,
+                                renderer=args.renderer, white=args.white)
                 draw = f", seed {seed}" if len(args.seeds) > 1 else ""
                 for profile, geom, image, noise, region, near, ad in scene12_regions(cam, seed):
                     rows.append(fit_row(f"{_case(system, focus)}{draw}, scene12, {ad:.0f} mm",
