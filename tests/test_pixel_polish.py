@@ -326,35 +326,3 @@ def test_steps_under_a_tenth_of_sigma_are_not_traced(dim_point, monkeypatch):
         assert fewer.sigma_distance_mm == pytest.approx(every.sigma_distance_mm, rel=0.1)
     assert max(moved) < 0.3, moved
     assert traces[max(traces)] < 0.8 * traces[0.0], traces
-
-
-def test_a_point_bound_for_its_pixels_skips_the_lenslet_polish(dim_point, monkeypatch):
-    # a point whose σ before its lenslet polish is over PIXEL_BEFORE_POLISH × the pixel
-    # polish's threshold is refitted on its pixels from the fine fit: the lenslet polish's
-    # steps (80 000-ray Levenberg–Marquardt) would only move the pixel fit's start
-    clean, used, geom = dim_point
-    polishes = []
-    lm = fastfit._levenberg_marquardt
-
-    def spy(*args, **kwargs):
-        if kwargs.get("settle_log") == fastfit.POLISH_SETTLE_LOG:
-            polishes.append(1)
-        return lm(*args, **kwargs)
-
-    monkeypatch.setattr(fastfit, "_levenberg_marquardt", spy)
-    for seed in (7, 8, 9):
-        img = _noisy(clean, np.random.default_rng(seed))
-        got = {}
-        for before in (0.0, fastfit.PIXEL_BEFORE_POLISH):
-            monkeypatch.setattr(fastfit, "PIXEL_BEFORE_POLISH", before)
-            polishes.clear()
-            got[before] = (_measure(img, used, geom, monkeypatch, True), len(polishes))
-        (old, old_polishes), (new, new_polishes) = got[0.0], got[fastfit.PIXEL_BEFORE_POLISH]
-        assert old_polishes == 1 and new_polishes == 0
-        assert old.status == new.status == "ok"
-        # the pixel answers from the two starts: each within 3σ of the rendered distance,
-        # and within half a σ of each other (the pixel fit's minimum, not its start)
-        for m in (old, new):
-            assert abs(m.distance_mm - DISTANCE_MM) < 3.0 * m.sigma_distance_mm
-        assert abs(new.distance_mm - old.distance_mm) < 0.5 * old.sigma_distance_mm
-        assert new.sigma_distance_mm == pytest.approx(old.sigma_distance_mm, rel=0.1)

@@ -400,13 +400,6 @@ PIXEL_POLISH = True  # measure_lenslet refits a point whose answer is less certa
 #                      uncertain point (stop 63)")
 PIXEL_POLISH_ABOVE = 0.003  # ... its relative σ (the floor SIGMA_FLOOR_REL included) over this,
 #                             and, with a tolerance, not accepted
-PIXEL_BEFORE_POLISH = 2.0  # a point whose σ before its lenslet polish is over this ×
-#                             PIXEL_POLISH_ABOVE is not polished on the lenslets: its pixel
-#                             polish starts from the fine fit (0: off)
-PIXEL_BEFORE_GAIN = 0.1  # ... and whose polish's linear step would remove under this share
-#                          of its misfit² (a fit far from its minimum: its σ there is no
-#                          guide; system 2's 1 200 mm source at 1.5 m, 0.75 % before its
-#                          polish, 0.05 % after)
 PIXEL_RAYS = 20000  # rays of the pixel model (40 000: the same accuracy over 1 440 regions,
 #                     z² ×0.99-1.04 on two halves, 10 % more CPU; docs/distance.md, stop 63)
 PIXEL_TURNS = 1  # ... and the minima of this many turned samples averaged with its own (3: the
@@ -2018,8 +2011,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      gates: Callable[[float], tuple[float, float]] | None = None,
                      early: bool = False,
                      accept: Callable[[float, float], bool] | None = None,
-                     noise_misfit: float = math.nan,
-                     pixel_above: float = math.inf) -> Iterator[LensletFit]:
+                     noise_misfit: float = math.nan) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -2069,13 +2061,6 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``noise_misfit`` (optional): the region's noise misfit (:func:`measure_lenslet`'s), with
     which the polish runs on fewer rays where the photons' noise dwarfs the models' own
     (:func:`_polish_rays`); NaN: the full polish.
-
-    ``pixel_above`` (optional): the relative σ (log distance) over which the caller refits the
-    answer on its pixels (:func:`pixel_polish`) from where this fit ends. A fit that would be
-    polished and whose σ before its polish (the fine model's Jacobian, the polishing model's
-    residual) is over it, and whose polish's linear step would remove under
-    :data:`PIXEL_BEFORE_GAIN` of its misfit², is not polished: the linear step still to go
-    joins its σ, as a tolerance's does (:data:`PIXEL_BEFORE_POLISH`).
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -2222,18 +2207,6 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             s_log, step_log = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
             if (math.isfinite(s_log) and math.isfinite(step_log)
                     and _accepted(accept, q, s_log, step_log, SIGMA_FLOOR_REL)):
-                polished, to_go = False, step_log
-    if polished and math.isfinite(pixel_above):
-        # the caller refits an answer this uncertain on its pixels, from here: the polish's
-        # steps would only move its start (docs/distance.md, "No lenslet polish before a
-        # pixel polish (stop 66)"); the linear step still to go is kept in σ
-        if jac_q is None:
-            jac_q = _fd_jacobian(fun, many_of(fine), q, r, steps)
-        linear = _linear_step(jac_q, r_p)
-        if linear is not None:
-            s_log, step_log = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
-            if (math.isfinite(step_log) and s_log > pixel_above
-                    and linear[1] < PIXEL_BEFORE_GAIN * _sq(r_p)):
                 polished, to_go = False, step_log
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its
         #               own noise)
@@ -3116,10 +3089,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return tried[0]
 
     stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates,
-                              early=LINE_AT_COARSE, accept=accept, noise_misfit=nm,
-                              pixel_above=(PIXEL_BEFORE_POLISH * PIXEL_POLISH_ABOVE
-                                           if PIXEL_POLISH and PIXEL_BEFORE_POLISH > 0
-                                           else math.inf))
+                              early=LINE_AT_COARSE, accept=accept, noise_misfit=nm)
     fit = next(stages)  # the fine fit, before its polish and σ profile (or the coarse one)
     if fit.coarse:
         # On the cells the point's coarse stage is read first. A line's blur leaves a point's
