@@ -64,7 +64,7 @@ def main() -> None:
                     help="the regions of focus_grid.py's six 12-source captures instead")
     ap.add_argument("--seeds", default="4", type=_seeds,
                     help="--scene12's render seeds: N, A-B or a comma list (default 4)")
-    ap.add_argument("--foci", default="1000,1500,inf",
+    ap.add_argument("--foci", default="1000,1500,inf", type=_foci,
                     help="the captures' foci, mm or inf (default 1000,1500,inf)")
     ap.add_argument("--renderer", choices=("sim", "independent"), default="sim",
                     help="focus_grid.py's --renderer (independent: --scene12 only, with "
@@ -72,7 +72,6 @@ def main() -> None:
     ap.add_argument("--white", choices=("sim", "analytic"), default="sim",
                     help="focus_grid.py's --white: the white the lattice is calibrated on")
     args = ap.parse_args()
-    args.foci = [fg.parse_focus(v) for v in args.foci.split(",")]
     if args.renderer == "independent" and not args.scene12:
         ap.error("--renderer independent: with --scene12 only")
     settings = lr.ab_settings(ap, args)
@@ -138,6 +137,11 @@ def _seeds(text: str) -> list[int]:
         lo, hi = (int(v) for v in text.split("-", 1))
         return list(range(lo, hi + 1))
     return [int(v) for v in text.split(",")]
+
+
+def _foci(text: str) -> list[float]:
+    """``--foci``: a comma list of foci, mm or ``inf``."""
+    return [fg.parse_focus(v) for v in text.split(",")]
 
 
 def _case(system: str, focus: float) -> str:

@@ -16,34 +16,16 @@ import math
 
 import numpy as np
 import pytest
+from crops import crop_camera, source_at
 
 from lfcam.camera import load_profile
 from lfcam.distance import run_distance
-from lfcam.measure.pointfit import chief_ray_offset
-from lfcam.sim.capture import apply_overrides, simulate
+from lfcam.sim.capture import simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
 
 CROP_PX = 320
 HALF_FIELD_MM = 0.5 * 1024 * 0.08375  # system 1's full sensor
-
-
-def _camera(focus_mm: float, centre_mm: np.ndarray, size: int = CROP_PX,
-            system: str = "system1") -> tuple[dict, object]:
-    """Scene overrides for a ``size``² crop centred at ``centre_mm`` (sensor, from the axis)."""
-    pitch = load_profile(system).sensor.pixel_pitch_mm
-    axis = (0.5 * (size - 1) - centre_mm[0] / pitch, 0.5 * (size - 1) - centre_mm[1] / pitch)
-    cam = {"mla": {"focus_mm": "inf" if math.isinf(focus_mm) else focus_mm},
-           "sensor": {"width_px": size, "height_px": size, "axis_px": list(axis)}}
-    used = apply_overrides(load_profile(system), cam)
-    return cam, used.with_d_in(used.d_in_mm)
-
-
-def _source_at(prof, distance_mm: float, sensor_mm: np.ndarray) -> list[float]:
-    """Lateral position whose chief ray lands at ``sensor_mm`` on the sensor."""
-    mag = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
-    xy = chief_ray_offset(prof, prof.d_in_mm, distance_mm, sensor_mm / mag)
-    return [float(xy[0]), float(xy[1])]
 
 
 def _measure(cam, prof, objects, seed=3, method="lenslet"):
@@ -80,9 +62,9 @@ def test_off_axis_point_at_80_percent_is_a_point(focus, distance, shape, monkeyp
                         lambda *a, **k: tries.append(1) or line_fit(*a, **k))
     az = math.radians(30.0)
     at = 0.8 * HALF_FIELD_MM * np.array([math.cos(az), math.sin(az)])
-    cam, prof = _camera(focus, at)
+    cam, prof = crop_camera(focus, at, CROP_PX)
     run = _measure(cam, prof, [{"type": "point", "distance_mm": distance,
-                                "position_mm": _source_at(prof, distance, at)}])
+                                "position_mm": source_at(prof, distance, at)}])
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
     assert best.kind == "spot" and best.status == "ok"
     assert abs(best.distance_mm / distance - 1.0) < 0.003
@@ -92,11 +74,11 @@ def test_off_axis_point_at_80_percent_is_a_point(focus, distance, shape, monkeyp
 
 def test_line_behind_focus_is_a_line():
     """A line 3 mm long on the MLA, 2200 mm behind a 1 m focus, at the field centre."""
-    cam, prof = _camera(1000.0, np.zeros(2), size=384)
+    cam, prof = crop_camera(1000.0, np.zeros(2), 384)
     mag = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
     u = np.array([math.cos(math.radians(60.0)), math.sin(math.radians(60.0))])
-    a = _source_at(prof, 2200.0, -1.5 * mag * u)
-    b = _source_at(prof, 2200.0, 1.5 * mag * u)
+    a = source_at(prof, 2200.0, -1.5 * mag * u)
+    b = source_at(prof, 2200.0, 1.5 * mag * u)
     run = _measure(cam, prof, [{"type": "line", "distance_mm": 2200.0, "start_mm": a,
                                 "end_mm": b}])
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
@@ -113,9 +95,9 @@ def test_image_fit_behind_focus_and_at_the_edge(system, focus, distance, field, 
     half = 0.5 * load_profile(system).sensor.width_px * load_profile(system).sensor.pixel_pitch_mm
     az = math.radians(30.0)
     at = field * half * np.array([math.cos(az), math.sin(az)])
-    cam, prof = _camera(focus, at, size=CROP_PX, system=system)
+    cam, prof = crop_camera(focus, at, CROP_PX, system)
     run = _measure(cam, prof, [{"type": "point", "distance_mm": distance,
-                                "position_mm": _source_at(prof, distance, at)}],
+                                "position_mm": source_at(prof, distance, at)}],
                    method="lightfield")
     best = max(run.regions, key=lambda r: r.diameter_mm if r.status == "ok" else -1.0)
     assert best.kind == "spot" and best.status == "ok"

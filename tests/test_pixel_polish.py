@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from crops import crop_camera, source_at
 
 from lfcam.camera import load_profile
 from lfcam.measure import fastfit, noise_sigma
@@ -61,11 +62,11 @@ def _measure(img, used, geom, monkeypatch, polish: bool):
     return fastfit.measure_lenslet(used, geom, img, region, noise_sigma(img))
 
 
-def _draw_3(dim_point):
-    """Noise draw 3 of the dim point and what ``pixel_polish`` is given for it: the region's
-    moments, the capture's noise model, the frame and a start 1 % short."""
+def _draw(dim_point, seed: int = 3):
+    """Noise draw ``seed`` of the dim point and what ``pixel_polish`` is given for it: the
+    region's moments, the capture's noise model, the frame and a start 1 % short."""
     clean, used, geom = dim_point
-    img = _noisy(clean, np.random.default_rng(3))
+    img = _noisy(clean, np.random.default_rng(seed))
     region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
                  key=lambda r: r.energy)
     mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
@@ -102,7 +103,7 @@ def test_stray_light_in_the_lit_pixels_is_left_out(dim_point):
     # spots: light added on 4 % of the window's pixels where the model puts almost none (the
     # window's grown ring) is left out, and the answer stays where the clean draw's is; with
     # the stray test off, those pixels fail the χ² gate (not ok: the lenslet answer stands)
-    used, geom, img, mom, noise, frame, start = _draw_3(dim_point)
+    used, geom, img, mom, noise, frame, start = _draw(dim_point)
     base = fastfit.pixel_polish(used, geom, img, mom, start, noise)
     assert base is not None
     # the window's ring: lit pixels grown, less the lit ones (as pixel_polish draws it)
@@ -199,7 +200,7 @@ def test_a_fit_that_settles_before_its_reweighting_still_takes_the_pixels_own_ga
     # (PIXEL_HALVINGS = -1), from the answer of a full fit, under a capture gain stated at 0.03
     # of the true one (the turned pupil sample off: it would move the answer from the start)
     monkeypatch.setattr(fastfit, "PIXEL_TURNS", 0)
-    used, geom, img, mom, noise, frame, start = _draw_3(dim_point)
+    used, geom, img, mom, noise, frame, start = _draw(dim_point)
     base = fastfit.pixel_polish(used, geom, img, mom, start, noise)
     assert base is not None and base.ok
     low = dataclasses.replace(noise, gain=0.03 * FULL_SCALE_DN / FULL_WELL_E)
@@ -259,24 +260,14 @@ def test_the_turned_pupil_sample_takes_out_half_the_samples_bias(monkeypatch):
     # 0.05 % more than with 4 × the rays (a high-sample reference), over ten noise draws of
     # one render (the 12-source captures: 0.19 %). With the turned sample's minimum averaged
     # in (PIXEL_TURNS = 1) most of that goes (measured 0.013 % against 0.050 %).
-    from lfcam.measure.pointfit import chief_ray_offset
-    from lfcam.sim.capture import apply_overrides
-
     size, distance = 384, 3100.0
-    base = load_profile("system1")
-    pitch = base.sensor.pixel_pitch_mm
     at = 21.116 * np.array([math.cos(math.radians(114.0)), math.sin(math.radians(114.0))])
-    axis = [0.5 * (size - 1) - at[0] / pitch, 0.5 * (size - 1) - at[1] / pitch]
-    camera = {"mla": {"focus_mm": 1000.0},
-              "sensor": {"width_px": size, "height_px": size, "axis_px": axis}}
-    prof = apply_overrides(base, camera)
-    mag = 1 + prof.mla.focal_length_mm / (prof.d_in_mm - prof.main_lens.exit_pupil_z_mm)
-    xy = chief_ray_offset(prof, prof.d_in_mm, distance, at / mag)
+    camera, prof = crop_camera(1000.0, at, size)
     scene = {"seed": 11, "camera": camera, "exposure": {"peak": 0.022},
              "sensor": {"photon_noise": False, "read_noise_e": 0.0},
              "objects": [{"type": "point", "distance_mm": distance,
-                          "position_mm": [float(xy[0]), float(xy[1])], "rays": 4_000_000}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
+                          "position_mm": source_at(prof, distance, at), "rays": 4_000_000}]}
+    raw, used, _ = simulate(load_profile("system1"), scene_from_dict(scene))
     geom = truth_geometry(used, (size, size))
     monkeypatch.setattr(fastfit, "PIXEL_POLISH_ABOVE", 0.0)  # (every draw polished)
     errors = {"turned": [], "own": [], "reference": []}
@@ -300,16 +291,9 @@ def test_steps_under_a_tenth_of_sigma_are_not_traced(dim_point, monkeypatch):
     # fails, with its four halvings five traces (system 1's dim sources: 19-22 traces a fit,
     # 9-13 of them such trials). Without them the answer moves by a small share of σ and the
     # traces fall by over a quarter (the 12-source captures: 2 160 regions, z² ×1.004)
-    clean, used, geom = dim_point
-    frame = fastfit._Frame(used)
     moved, traces = [], {0.0: 0, fastfit.PIXEL_MIN_TRIAL_SIGMA: 0}
     for seed in (3, 4, 5, 6):
-        img = _noisy(clean, np.random.default_rng(seed))
-        region = max(find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px),
-                     key=lambda r: r.energy)
-        mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
-        noise = capture_noise(img, geom.lmap, geom.pitch_px)
-        start = frame.source(np.array([math.log(DISTANCE_MM * 0.99), 0.0, 0.0]))
+        used, geom, img, mom, noise, frame, start = _draw(dim_point, seed)
         got = {}
         for share in traces:
             monkeypatch.setattr(fastfit, "PIXEL_MIN_TRIAL_SIGMA", share)
