@@ -37,7 +37,6 @@ import io  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -50,6 +49,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from models import SEED_AD, SEED_DH, seed_errors  # noqa: E402
 
+from lfcam.atomic import atomic_write, atomic_write_text  # noqa: E402
 from lfcam.calibrate import load_calibration  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
 from lfcam.distance import _apply_model  # noqa: E402
@@ -213,15 +213,11 @@ def summarise(rows: list[Row]) -> list[dict]:
 
 def write_csv_atomic(path: Path, columns, records) -> None:
     """Write dict records as CSV through a temporary file in the same folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
     w.writeheader()
     w.writerows(records)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-        fh.write(buf.getvalue())
-    os.replace(tmp, path)
+    atomic_write_text(path, buf.getvalue())
 
 
 def read_seed_tables(path: Path = ROOT / "docs" / "results" / "seed_tables.csv") -> list[dict]:
@@ -374,11 +370,7 @@ def figures(rows: list[Row], table: list[dict], img_dir: Path) -> None:
 
 
 def _save(fig, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    fig.savefig(tmp, dpi=110)
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
 
 
 def print_table(table: list[dict]) -> None:

@@ -22,16 +22,30 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
     os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
     try:
-        os.chmod(tmp, 0o666 & ~umask)
+        ordinary_permissions(tmp)
         write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def ordinary_permissions(path: str | Path) -> None:
+    """Give a file or folder the permissions an ordinary ``open`` or ``mkdir`` would have
+    (0o666 or 0o777 less the umask): :mod:`tempfile` makes them 0o600 and 0o700, which a
+    rename onto the output name would keep."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~umask)
+
+
+def atomic_copy(src: str | Path, dst: str | Path) -> Path:
+    """Copy the file ``src`` to ``dst`` atomically (bytes only; ordinary permissions)."""
+    import shutil
+
+    return atomic_write(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
 def atomic_write_bytes(path: str | Path, data: bytes | Iterable[bytes]) -> Path:

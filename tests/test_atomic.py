@@ -7,7 +7,7 @@ import stat
 
 import pytest
 
-from lfcam.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from lfcam.atomic import atomic_copy, atomic_write, atomic_write_bytes, atomic_write_text
 
 
 def test_replaces_whole_file_and_leaves_no_temp(tmp_path):
@@ -42,3 +42,16 @@ def test_chunks_suffix_and_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask
+
+
+def test_copy_has_ordinary_permissions_and_leaves_the_source(tmp_path):
+    src = tmp_path / "a.csv"
+    src.write_bytes(b"x,y\n1,2\n")
+    os.chmod(src, 0o600)  # (a copy's mode is the umask's, not the source's)
+    out = atomic_copy(src, tmp_path / "sub" / "b.csv")
+    assert out.read_bytes() == src.read_bytes() == b"x,y\n1,2\n"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask
+    assert stat.S_IMODE(src.stat().st_mode) == 0o600
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["b.csv"]

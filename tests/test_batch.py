@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -126,6 +127,14 @@ def test_local_batch_summary_failures_duplicates(folder, local_run):
     assert res.duplicates == {f"{GOOD[0]}.png": "day2/same_as_2000.png"}
     assert by_capture[f"{GOOD[0]}.png"]["duplicate_of"] == "day2/same_as_2000.png"
     assert by_capture["day2/same_as_2000.png"]["duplicate_of"] == ""
+    # its copies are the computed files, with an ordinary file's permissions (not 0o600)
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("regions.csv", "distance.tiff", "distance.png"):
+        copy = out / "captures" / f"{GOOD[0]}.png" / name
+        assert copy.read_bytes() == (out / "captures" / "day2/same_as_2000.png" / name
+                                     ).read_bytes()
+        assert stat.S_IMODE(copy.stat().st_mode) == 0o666 & ~umask
     assert sorted(res.computed) == sorted(set(expected) - {f"{GOOD[0]}.png"})
     # the bad files are in failures.csv with their error class; nothing else is
     fails = {f["capture"]: f for f in _read_csv(out / "failures.csv")}

@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -329,6 +330,10 @@ def test_decode_writes_through_a_temporary_folder(tmp_path, capture, monkeypatch
                  "-o", str(out), "-q", "--no-png"]) == 0
     assert (out / "lightfield.json").is_file() and (out / "lightfield.npy").is_file()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".lf")] == []
+    # the new folder has a mkdir's permissions, not its temporary folder's 0o700
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o777 & ~umask
     # an existing output folder keeps unrelated files; the light field is replaced
     (out / "notes.txt").write_text("mine")
     assert main(["decode", str(capture), "--calibration", str(DATA / "calib_system2.json"),

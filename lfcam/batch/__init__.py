@@ -28,9 +28,7 @@ import contextlib
 import csv
 import hashlib
 import os
-import shutil
 import signal
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -38,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lfcam.atomic import sha256_file
+from lfcam.atomic import atomic_copy, sha256_file
 from lfcam.batch.worker import (
     DONE_FILE,
     OUTPUT_FILES,
@@ -165,14 +163,7 @@ def _copy_outputs(src: Job, dst: Job) -> None:
     ddir.mkdir(parents=True, exist_ok=True)
     (ddir / DONE_FILE).unlink(missing_ok=True)
     for name in OUTPUT_FILES:
-        fd, tmp = tempfile.mkstemp(dir=ddir, prefix=f".{name}.", suffix=".tmp")
-        os.close(fd)
-        try:
-            shutil.copyfile(sdir / name, tmp)
-            os.replace(tmp, ddir / name)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_copy(sdir / name, ddir / name)
     write_done(ddir, dst, duplicate_of=src.rel)
 
 

@@ -10,7 +10,10 @@ import cv2
 import numpy as np
 import tifffile
 
-from lfcam.atomic import atomic_write_bytes  # noqa: F401 - part of this module's API
+from lfcam.atomic import (
+    atomic_write_bytes,  # noqa: F401 - part of this module's API
+    ordinary_permissions,
+)
 from lfcam.decode.lightfield import LightField
 from lfcam.errors import InputFileError
 
@@ -83,6 +86,7 @@ def write_lightfield(folder: str | Path, lf: LightField, png_views: bool = True)
         written = _write_lightfield_files(tmp, lf, png_views)
         rel = [w.relative_to(tmp) for w in written]
         if not folder.exists():
+            ordinary_permissions(tmp)  # (mkdtemp's folder is 0o700)
             os.rename(tmp, folder)
         else:
             order = sorted(rel, key=lambda r: r.name == "lightfield.json")
