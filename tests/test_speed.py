@@ -23,6 +23,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from lfcam.measure import find_regions, lenslet_stats, lenslets
+from lfcam.measure import regions as regions_module
 from lfcam.measure.lenslets import build_lenslet_map
 from lfcam.models.auto import METHOD_COST_ORDER, METHOD_MAX_ERROR_PCT, choose_method
 
@@ -149,12 +150,28 @@ def test_auto_method_table_never_understates_a_measured_worst_error():
             assert choose_method(tol, "spot") == want
 
 
-def test_touching_blurs_are_flagged_multiple_and_a_line_blur_is_not():
-    """Two overlapping discs (two sources whose blurs touch) have a waist; the stadium a line
-    source makes does not."""
-    twins = {**_disc(10, 12, 6.0, 1.0), **_disc(22, 12, 6.0, 1.0)}  # touching
+def test_touching_blurs_are_cut_at_their_waist_and_a_line_blur_is_not(monkeypatch):
+    """Two discs that touch (two sources whose blurs touch) have a waist: each disc is a region
+    of its own, and the lenslet both light is in neither, left out of both fits' data
+    (``Region.shared``); the stadium a line source makes has no waist. Without the cut
+    (``SPLIT_TOUCHING`` off) the pair is one ``multiple`` region, which no method measures."""
+    disc_a, disc_b = _disc(10, 12, 6.0, 1.0), _disc(22, 12, 6.0, 1.0)  # (16, 12) in both
     stadium = {(i, j): 1.0 for i in range(8, 40) for j in range(28, 45)
                if (j - 36) ** 2 + max(0, 14 - i, i - 33) ** 2 <= 16}
-    stats, lmap = _lenslet_image({**twins, **stadium})
+    stats, lmap = _lenslet_image({**disc_a, **disc_b, **stadium})
+    regions = find_regions(stats, lmap, 10.0)
+
+    def cells(ids):  # lattice (i, j) of lenslet indices (_lenslet_image's row-major order)
+        return {(int(k) % 48, int(k) // 48) for k in ids}
+
+    assert sorted(r.kind for r in regions) == ["line", "spot", "spot"]
+    line = next(r for r in regions if r.kind == "line")
+    assert cells(line.lenslets) == set(stadium) and not line.touching
+    a, b = sorted((r for r in regions if r.kind == "spot"), key=lambda r: r.centroid_px[0])
+    both = set(disc_a) & set(disc_b)
+    assert a.touching and b.touching and cells(a.shared) == cells(b.shared) == both
+    assert cells(a.lenslets) == set(disc_a) - both
+    assert cells(b.lenslets) == set(disc_b) - both
+    monkeypatch.setattr(regions_module, "SPLIT_TOUCHING", False)
     kinds = sorted((r.kind, len(r.lenslets)) for r in find_regions(stats, lmap, 10.0))
-    assert kinds == [("line", len(stadium)), ("multiple", len(twins))]
+    assert kinds == [("line", len(stadium)), ("multiple", len({**disc_a, **disc_b}))]

@@ -3048,8 +3048,9 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
-    exclude = (np.concatenate([o.lenslets for o in others]) if others and OTHERS_EXCLUDED
-               else None)
+    # (and the lenslets its blur shares with a touching one: regions.Region.shared)
+    exclude = (np.concatenate([region.shared] + [o.lenslets for o in others])
+               if others and OTHERS_EXCLUDED else None)
     # once: the noise misfit, the point and the line fit
     mom = data_moments(geom, image, box, exclude=exclude)
     noise_model = capture_noise(image, geom.lmap, geom.pitch_px)

@@ -9,11 +9,15 @@ each cluster by the energy-weighted second moments of its lenslet centres:
 * ``line`` — elongated footprint;
 * ``extended`` — too large a share of the array to be a point or line (textured regions):
   reported, never forced into a point or line model;
-* ``multiple`` — an elongated footprint with a waist: the lit width across its long axis
-  drops below ``WAIST_RATIO`` of its maxima on both sides, each side holding at least
-  ``WAIST_SIDE_SHARE`` of the lenslets. Two blurs that touch look like this (a line's blur is
-  a stadium, without a waist); reported without a distance rather than measured as one
-  source.
+* two blurs that touch — an elongated footprint with a waist: the lit width across its long
+  axis drops below ``WAIST_RATIO`` of its maxima on both sides, each side holding at least
+  ``WAIST_SIDE_SHARE`` of the lenslets (a line's blur is a stadium, without a waist). The
+  cluster is cut there into two regions (each cut again where it has a waist of its own), and
+  the lenslets about the cut that both blurs may light (``Region.shared``: the band two discs
+  of the narrower side's radius, meeting in the measured chord, share) belong to neither and
+  are left out of both fits' data; each region is measured with the other as its neighbour
+  (docs/distance.md, "Touching blurs cut at their waist (stop 67)"). With ``SPLIT_TOUCHING``
+  off such a cluster is one region of kind ``multiple``, reported without a distance.
 
 Far from focus a blur has a faint halo (the singlet's spherical aberration throws light outside
 the rim rays) in which a few lenslets pass the threshold apart from the main disc. Such a
@@ -22,8 +26,8 @@ bigger cluster, no lenslet brighter than that cluster's 90th percentile (a small
 focus concentrates its light: it stays apart), lying within ``HALO_REACH`` times that
 cluster's radius of its centroid — is merged into it: one region per source. Two clusters of
 comparable size are never merged, so two sources whose blurs do not touch stay two regions.
-Blurs that touch form one connected cluster: ``multiple`` when a waist shows it, otherwise
-one region. ``parts`` counts the clusters merged into a region.
+Blurs that touch form one connected cluster: two regions when a waist shows it, otherwise
+one. ``parts`` counts the clusters merged into a region.
 
 A dim source far from focus spreads little light over hundreds of lenslets, each below the
 threshold (the exposure is set by the scene's brightest source). :func:`faint_lit` finds such
@@ -41,6 +45,8 @@ source whose blur touches a brighter source's halo).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,9 +63,13 @@ EXTENDED_SHARE = 0.25
 NOISE_SIGMAS = 8.0
 MIN_LENSLETS = 3
 FRAGMENT_SHARE = 0.2
-WAIST_RATIO = 0.6
+WAIST_RATIO = 0.7  # (0.6 until stop 67: scene (b)'s touching lines read 0.63 there, their
+#                    slices smoothed, and passed as one line on 5 of 8 draws)
 WAIST_SIDE_SHARE = 0.25
 WAIST_MIN_LENSLETS = 40
+_NONE = np.zeros(0, dtype=np.int64)
+SPLIT_TOUCHING = True  # a cluster with a waist is cut there into two regions (False: one region
+#                        of kind ``multiple``, no distance)
 HALO_REACH = 1.6
 FAINT_RADII_PITCH = (2.0, 4.0, 8.0, 12.0)  # scales of the faint-blur search (lenslet pitches)
 FAINT_MIN_LENSLETS = 12  # a faint blur found by smoothing covers at least this many lenslets
@@ -78,6 +88,14 @@ class Region:
     elongation: float
     axis_dir: tuple[float, float]  # unit vector of the footprint's long axis (sensor x, y)
     parts: int = 1  # connected clusters merged into this region (halo fragments included)
+    # lenslets lit by this blur and by a touching one (cut from one cluster at its waist): in
+    # neither region, and left out of both fits' data
+    shared: np.ndarray = dataclasses.field(default_factory=lambda: _NONE)
+
+    @property
+    def touching(self) -> bool:
+        """Whether this region was cut from a cluster of touching blurs."""
+        return self.shared.size > 0
 
 
 def nearby_regions(regions: list[Region]) -> list[tuple[Region, ...]]:
@@ -129,7 +147,8 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     Returns
     -------
     list of Region
-        ``spot``, ``line`` or ``extended`` clusters of at least ``MIN_LENSLETS`` lenslets.
+        ``spot``, ``line`` or ``extended`` clusters of at least ``MIN_LENSLETS`` lenslets
+        (``multiple`` only with ``SPLIT_TOUCHING`` off).
     """
     energy = stats.energy
     thr = lit_threshold(energy)
@@ -144,7 +163,9 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     h, w = lmap.labels.shape
     r = lmap.radius_px
     regions = []
-    for members, n_parts in zip(groups, parts, strict=True):
+    todo = list(zip(groups, parts, [_NONE] * len(groups), strict=True))
+    while todo:
+        members, n_parts, shared = todo.pop(0)
         if members.size < MIN_LENSLETS:
             continue
         e = energy[members]
@@ -158,9 +179,23 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
         cov = (d.T * e) @ d / e.sum() + np.eye(2) * (pitch_px**2 / 12.0)
         evals, evecs = np.linalg.eigh(cov)
         elong = float(np.sqrt(evals[1] / evals[0]))
+        waist = (_waist(pos, evecs[:, 1], pitch_px)
+                 if elong >= LINE_ELONGATION and members.size <= EXTENDED_SHARE * len(centres)
+                 else None)
+        if waist is not None and SPLIT_TOUCHING:
+            # two blurs that touch: each side of the waist a region of its own, fitted with
+            # the other as its neighbour (its lenslets left out of the box), and the lenslets
+            # both blurs may light left out of both (_overlap)
+            t = (pos - pos.mean(axis=0)) @ evecs[:, 1]
+            u = (pos - pos.mean(axis=0)) @ evecs[:, 0]
+            half = _overlap(t, u, waist[0], waist[1], pitch_px)
+            both = members[np.abs(t - waist[0]) < half]
+            todo[:0] = [(members[t <= waist[0] - half], n_parts, np.union1d(both, shared)),
+                        (members[t >= waist[0] + half], 1, np.union1d(both, shared))]
+            continue
         if members.size > EXTENDED_SHARE * len(centres):
             kind = "extended"
-        elif elong >= LINE_ELONGATION and _has_waist(pos, evecs[:, 1], pitch_px):
+        elif waist is not None:
             kind = "multiple"
         elif elong >= LINE_ELONGATION:
             kind = "line"
@@ -174,7 +209,7 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
             region_id=len(regions), kind=kind, lenslets=members, energy=float(e.sum()),
             centroid_px=(float(centroid[0]), float(centroid[1])), box_px=(x0, y0, x1, y1),
             elongation=elong, axis_dir=(float(evecs[0, 1]), float(evecs[1, 1])),
-            parts=n_parts,
+            parts=n_parts, shared=shared,
         ))
     return regions
 
@@ -476,27 +511,55 @@ def _merge_fragments(lit: np.ndarray, comp: np.ndarray, n: int, energy: np.ndarr
     return groups, parts
 
 
-def _has_waist(pos: np.ndarray, axis: np.ndarray, pitch_px: float) -> bool:
-    """Whether a footprint (lenslet centres ``pos``, long axis ``axis``) narrows between two
-    wide parts: the count of lenslets per slice across the axis (a pitch or 1/24 of the
-    length, whichever is wider; smoothed 1-2-1) dips below ``WAIST_RATIO`` of the widest slice
-    on each side, with ``WAIST_SIDE_SHARE`` of the lenslets or more on each side of the dip."""
+def _overlap(t: np.ndarray, u: np.ndarray, waist: float, ratio: float, pitch_px: float
+             ) -> float:
+    """Half the width, along the axis (``t``; ``u`` across it), of the band about a waist at
+    ``waist`` where two touching discs both lie: discs of the narrower side's radius (half its
+    extent across the axis) whose chord at the waist is ``ratio`` × their diameter reach
+    ``R (1 − √(1 − ratio²))`` past it; half a pitch more for the lenslets' own size."""
+    side = t < waist
+    radii = [0.5 * float(np.ptp(u[m])) for m in (side, ~side) if m.sum() > 1]
+    r = min(radii) if radii else 0.0
+    return r * (1.0 - math.sqrt(max(1.0 - ratio * ratio, 0.0))) + 0.5 * pitch_px
+
+
+def _waist(pos: np.ndarray, axis: np.ndarray, pitch_px: float) -> tuple[float, float] | None:
+    """Where a footprint (lenslet centres ``pos``, long axis ``axis``) narrows between two
+    wide parts, or None: the count of lenslets per slice across the axis (a pitch or 1/24 of
+    the length, whichever is wider; smoothed 1-2-1) dips below ``WAIST_RATIO`` of the widest
+    slice on each side, with ``WAIST_SIDE_SHARE`` of the lenslets or more on each side of the
+    dip. Returns where about the narrowest such slice a slice as wide holds the fewest
+    lenslets (along ``axis``, from the centres' mean), and that count over the most such a
+    slice holds on the narrower side."""
     if len(pos) < WAIST_MIN_LENSLETS:
-        return False
+        return None
     t = (pos - pos.mean(axis=0)) @ np.asarray(axis, dtype=np.float64)
     step = max(pitch_px, float(np.ptp(t)) / 24.0)
     edges = np.arange(t.min(), t.max() + step, step)
     width, _ = np.histogram(t, edges)
     if width.size < 5:
-        return False
+        return None
     width = np.convolve(np.pad(width.astype(np.float64), 1, mode="edge"), [0.25, 0.5, 0.25],
                         mode="valid")
     total = float(width.sum())
+    best, where = math.inf, None
     for i in range(1, width.size - 1):
-        left, right = width[:i].max(), width[i + 1 :].max()
+        side = min(width[:i].max(), width[i + 1 :].max())
         share_l = width[:i].sum() / total
         share_r = width[i + 1 :].sum() / total
-        if (width[i] < WAIST_RATIO * min(left, right) and share_l >= WAIST_SIDE_SHARE
-                and share_r >= WAIST_SIDE_SHARE):
-            return True
-    return False
+        if (width[i] < WAIST_RATIO * side and share_l >= WAIST_SIDE_SHARE
+                and share_r >= WAIST_SIDE_SHARE and width[i] / side < best):
+            best, where = width[i] / side, i
+    if where is None:
+        return None
+    # the cut: where a slice as wide, slid over the lenslets within a slice of it, holds the
+    # fewest of them (the slices' edges fall anywhere on the lattice's rows)
+    # (and the chord there over the narrower side's widest, as slices that wide read them)
+    ts = np.sort(t)
+    held = (np.searchsorted(ts, ts + 0.5 * step, side="left")
+            - np.searchsorted(ts, ts - 0.5 * step, side="right"))
+    mid = 0.5 * (edges[where] + edges[where + 1])
+    near = np.abs(ts - mid) <= step
+    at = float(ts[near][held[near] == held[near].min()].mean())
+    side = min(held[ts < at].max(initial=0), held[ts > at].max(initial=0))
+    return at, float(held[near].min() / side) if side > 0 else best
