@@ -34,7 +34,8 @@ holds another draw is refused). Scene ``b``'s lines on other draws are in docs/d
 ``--per-region N``: instead, every spot and line region's ``lenslet`` fit in this process
 on one core (BLAS at one thread), once to warm up and then ``N`` times, least CPU, as
 ``line_regions.py`` times its regions (with ``--ab``, alternately as the code is and with
-those fastfit constants), each with its error against the one truth source its box holds; a
+those fastfit constants), each with its error against the one truth source its box holds (a
+region cut from touching blurs: the one nearest its light's centroid); a
 summary per kind: regions over issue 17's budgets (50 ms a point region, 100 ms a line
 region), the slowest, the errors. A region's time inside ``lfcam distance`` also carries
 the process's first calls and, with ``--jobs``, two workers sharing the caches.
@@ -273,7 +274,8 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
                draw: dict | None = None) -> None:
     """Every spot and line region's ``lenslet`` fit in this process (module docstring): a row
     each (region, the kind the fit answers, lenslets, error against the truth source its box
-    holds, least ms per setting) and a summary per kind."""
+    holds, or for a region cut from touching blurs the nearest, least ms per setting) and a
+    summary per kind."""
     import line_regions as lr
 
     from lfcam.measure.regions import nearby_regions
@@ -292,9 +294,15 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
             continue
         spent, answers = lr.alternate(prof, geom, img, reg, noise, settings, repeats, near)
         x0, y0, x1, y1 = reg.box_px
-        held = [src["distance_mm"] for src in truth["sources"]
+        held = [src for src in truth["sources"]
                 if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
-        errs = [100.0 * (m.distance_mm / held[0] - 1.0)
+        if reg.touching and held:
+            # a region cut from touching blurs: its box may hold both sources' centroids; the
+            # nearer its own light's is its source
+            held = [min(held, key=lambda src: math.hypot(
+                src["centroid_px"][0] - reg.centroid_px[0],
+                src["centroid_px"][1] - reg.centroid_px[1]))]
+        errs = [100.0 * (m.distance_mm / held[0]["distance_mm"] - 1.0)
                 if len(held) == 1 and m.status == "ok" else math.nan for m in answers]
         least = [1e3 * min(t) for t in spent]
         rows.setdefault(answers[0].kind, []).append((least, errs))
