@@ -711,6 +711,42 @@ def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
     assert np.array_equal(q, free[0]) and len(seen) >= 2
 
 
+def test_lm_reads_a_stale_secants_verdict_again_by_differences():
+    # fastfit._levenberg_marquardt's ``confirm_settled`` (the point polish's secant steps:
+    # POLISH_CONFIRM_NOISE). r(q) = A (q − q*) + e, a linear residual whose least-squares
+    # minimum is known; the fit starts from a Jacobian whose first (distance) column is 100 ×
+    # too large, as a secant's stale column can be, so its steps in q[0] are ~1/100 of the
+    # needed ones and the secant updates call the fit settled at 2 % of the way. Read again
+    # by differences (or by the caller's Jacobian) the fit reaches the minimum; not where its
+    # misfit is under confirm_above or its σ over confirm_below (the verdict stands)
+    import lfcam.measure.fastfit as ff
+
+    a = np.array([[1.0, 0.5], [0.2, 1.0], [1.0, -1.0], [0.5, 0.3], [0.1, 2.0], [1.0, 1.0]])
+    e = np.array([0.01, -0.02, 0.015, 0.0, -0.01, 0.005])
+    q_star = np.array([0.05, -0.02])
+
+    def fun(q):
+        return a @ (q - q_star) + e
+
+    best = q_star - np.linalg.lstsq(a, e, rcond=None)[0]
+    stale = a.copy()
+    stale[:, 0] *= 100.0
+    q0, steps = np.zeros(2), np.array([1e-3, 1e-3])
+
+    def fit(**kw):
+        return ff._levenberg_marquardt(fun, q0, steps, 6, 1e-3, r0=fun(q0), jac0=stale,
+                                       broyden=True, settle_log=2e-5, **kw)[0]
+
+    plain = fit()
+    assert abs(plain[0] - best[0]) > 0.5 * abs(best[0])  # stopped short by the stale column
+    np.testing.assert_allclose(fit(confirm_settled=True), best, atol=1e-6)
+    np.testing.assert_allclose(fit(confirm_settled=True, confirm_jac=lambda q: a), best,
+                               atol=1e-6)
+    misfit = float(np.sqrt(np.sum(fun(plain) ** 2)))
+    assert np.array_equal(fit(confirm_settled=True, confirm_above=1.01 * misfit), plain)
+    assert np.array_equal(fit(confirm_settled=True, confirm_below=1e-9), plain)
+
+
 def test_lm_tries_no_step_under_its_least_with_a_lateral_share():
     # fastfit._levenberg_marquardt's ``trial_lateral`` (a ray-sampled line's fine fit:
     # LINE_FINE_TRIAL_LATERAL). r(q) = A (q − q*), a linear residual whose minimum q* lies

@@ -158,6 +158,15 @@ POLISH_FIRST_OR_STOP = True  # a polish the settled test asked for ends where it
 #                              moved the answer by at most 0.03 % in ~6 evaluations of 80 000
 #                              rays (docs/distance.md, "A polish whose first step fails (stop
 #                              57)")
+POLISH_CONFIRM_NOISE = 1.0  # a polish that its secant (Broyden) Jacobian calls settled while
+#                             its misfit is over this × the region's noise misfit goes on with
+#                             the fine model's Jacobian by differences (0: never): the secant's
+#                             distance column can be stale. Scene (b)'s 906.7 mm point stopped
+#                             +0.26 % off at σ 0.037 % (misfit 0.120 against 0.027 at the
+#                             truth) and tried a line for 142 ms (docs/distance.md, "A polish
+#                             that a stale secant stopped (stop 67)")
+POLISH_CONFIRM_BELOW = 1e-3  # ... where its σ (log distance) is under this: a dim point's
+#                              polish confirmed moves within its σ and its pixel polish's start
 POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
 #                             answer does not meet it (point_fit_stages' ``accept``; the 108
 #                             points at 1 %: 26.6 -> 23.0 ms a region, docs/distance.md, "A
@@ -1360,7 +1369,9 @@ LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the d
 def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
                          ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
-                         first_or_stop=False, pause=None, trial_lateral=0.0):
+                         first_or_stop=False, pause=None, trial_lateral=0.0,
+                         confirm_settled=False, confirm_jac=None, confirm_below=math.inf,
+                         confirm_above=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1393,6 +1404,13 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     ``stop_above``: the fit ends after an iteration that leaves the cost over this.
     ``first_or_stop``: with ``jac0``, the fit ends where it began when the first step
     evaluated (``jac0``'s own) does not lower the cost.
+    ``confirm_settled``: with ``broyden``, a fit that a secant Jacobian's step calls
+    settled (``settle_log``, or a step under ``tol``) goes on with one taken by differences
+    (the secant's distance column can be stale: the step it calls short may be long);
+    ``confirm_jac`` (optional): ``confirm_jac(q)``, that Jacobian by the caller's rule;
+    ``confirm_below``: only where the fit's σ of the log distance (the last Jacobian taken by
+    differences, the residual where it stands) is under this, and its misfit (√cost) over
+    ``confirm_above``.
     ``pause`` (optional): ``pause(it, q, r, jac)``, called after iteration ``it`` (from 0)
     when another would follow (``jac``: the Jacobian that iteration stepped with); the fit
     ends there when it returns true.
@@ -1404,6 +1422,10 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     jac = None if jac0 is None else np.array(jac0, dtype=np.float64)
     last = jac
     fresh = jac is None
+
+    def stale() -> bool:  # a secant's verdict that confirm_settled reads again
+        return bool(confirm_settled and not fresh and math.sqrt(f) > confirm_above
+                    and _log_distance_sigma(last, r) < confirm_below)
     for it in range(max_iter):
         if jac is None:
             jac = jac_of(q, r) if jac_of is not None else _fd_jacobian(fun, fun_many, q, r,
@@ -1411,7 +1433,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
             last, fresh = jac, True
         jtj = _gram(jac)
         g = _jt(jac, r)
-        improved = settled = False
+        improved = settled = confirm = False
         dq = np.zeros_like(q)
         failed = None  # the last step tried that did not lower the cost (in units of steps)
         for trial in range(5):
@@ -1422,7 +1444,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 lam *= 10
                 continue
             if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
-                settled = True
+                confirm = stale()
+                settled = not confirm
                 break
             small = (abs(dq[0]) < min_trial
                      and float(np.max(np.abs(dq[1:] / steps[1:]))) < trial_lateral
@@ -1452,12 +1475,21 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                 break
             failed = dq / steps
             lam *= 10
+        short = improved and bool(np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12)
+                                         / steps[0]))
+        if confirm or (short and stale()):
+            # a secant's verdict (settled, or a step too short to go on) read again with a
+            # Jacobian by differences (confirm_settled)
+            jac = None if confirm_jac is None else confirm_jac(q)
+            if jac is not None:
+                last, fresh = jac, True
+            continue
         if settled or f > stop_above:  # (a secant Jacobian is not taken again by
-            break  #                           differences to confirm it)
+            break  #                           differences to confirm it, but as above)
         if not improved and not fresh:
             jac = None  # the updated Jacobian found no descent: take it by differences
             continue
-        if not improved or np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12) / steps[0]):
+        if not improved or short:
             break
         if pause is not None and it + 1 < max_iter and pause(it, q, r, last):
             break
@@ -2223,6 +2255,13 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             lm_model = LensletModel(profile, geom, mom, n_polish)
             counted.append(lm_model)
             r_lm = fun_of(lm_model)(q)
+        # a secant's "settled" over the noise read again with the fine model's Jacobian
+        # (POLISH_CONFIRM_NOISE; no noise misfit known: never)
+        confirm = ({"confirm_settled": True, "confirm_below": POLISH_CONFIRM_BELOW,
+                    "confirm_above": POLISH_CONFIRM_NOISE * noise_misfit,
+                    "confirm_jac": lambda qq: _fd_jacobian(fun, many_of(fine), qq, fun(qq),
+                                                           steps)}
+                   if POLISH_CONFIRM_NOISE > 0 and noise_misfit > 0 else {})
         q, r, f, jac_fine = _levenberg_marquardt(fun_of(lm_model), q, steps, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(lm_model), r0=r_lm,
                                                  jac0=jac_q, broyden=True,
@@ -2230,7 +2269,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                  min_trial=0.0 if near_gate
                                                  else POLISH_MIN_TRIAL_LOG,
                                                  trial_gain=SETTLED_GAIN,
-                                                 first_or_stop=POLISH_FIRST_OR_STOP)
+                                                 first_or_stop=POLISH_FIRST_OR_STOP,
+                                                 **confirm)
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
