@@ -560,6 +560,8 @@ def _waist(pos: np.ndarray, axis: np.ndarray, pitch_px: float) -> tuple[float, f
             - np.searchsorted(ts, ts - 0.5 * step, side="right"))
     mid = 0.5 * (edges[where] + edges[where + 1])
     near = np.abs(ts - mid) <= step
+    if not near.any():
+        return mid, best
     at = float(ts[near][held[near] == held[near].min()].mean())
     side = min(held[ts < at].max(initial=0), held[ts > at].max(initial=0))
     return at, float(held[near].min() / side) if side > 0 else best
