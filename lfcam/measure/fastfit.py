@@ -158,13 +158,15 @@ POLISH_FIRST_OR_STOP = True  # a polish the settled test asked for ends where it
 #                              moved the answer by at most 0.03 % in ~6 evaluations of 80 000
 #                              rays (docs/distance.md, "A polish whose first step fails (stop
 #                              57)")
-POLISH_CONFIRM_NOISE = 1.0  # a polish that its secant (Broyden) Jacobian calls settled while
+POLISH_CONFIRM_NOISE = 1.5  # a polish that its secant (Broyden) Jacobian calls settled while
 #                             its misfit is over this × the region's noise misfit goes on with
 #                             the fine model's Jacobian by differences (0: never): the secant's
 #                             distance column can be stale. Scene (b)'s 906.7 mm point stopped
 #                             +0.26 % off at σ 0.037 % (misfit 0.120 against 0.027 at the
-#                             truth) and tried a line for 142 ms (docs/distance.md, "A polish
-#                             that a stale secant stopped (stop 67)")
+#                             truth) and tried a line for 142 ms. (The noise misfit is an
+#                             upper bound: at 1 × it four more of scene (b)'s points went on,
+#                             15-26 ms each, to move within a third of their σ; docs/
+#                             distance.md, "A polish that a stale secant stopped (stop 67)")
 POLISH_CONFIRM_BELOW = 1e-3  # ... where its σ (log distance) is under this: a dim point's
 #                              polish confirmed moves within its σ and its pixel polish's start
 POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
