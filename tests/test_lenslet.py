@@ -712,7 +712,7 @@ def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
 
 
 def test_lm_reads_a_stale_secants_verdict_again_by_differences():
-    # fastfit._levenberg_marquardt's ``confirm_settled`` (the point polish's secant steps:
+    # fastfit._levenberg_marquardt's ``confirm_above`` (the point polish's secant steps:
     # POLISH_CONFIRM_NOISE). r(q) = A (q − q*) + e, a linear residual whose least-squares
     # minimum is known; the fit starts from a Jacobian whose first (distance) column is 100 ×
     # too large, as a secant's stale column can be, so its steps in q[0] are ~1/100 of the
@@ -739,12 +739,12 @@ def test_lm_reads_a_stale_secants_verdict_again_by_differences():
 
     plain = fit()
     assert abs(plain[0] - best[0]) > 0.5 * abs(best[0])  # stopped short by the stale column
-    np.testing.assert_allclose(fit(confirm_settled=True), best, atol=1e-6)
-    np.testing.assert_allclose(fit(confirm_settled=True, confirm_jac=lambda q: a), best,
+    np.testing.assert_allclose(fit(confirm_above=0.0), best, atol=1e-6)
+    np.testing.assert_allclose(fit(confirm_above=0.0, confirm_jac=lambda q: a), best,
                                atol=1e-6)
     misfit = float(np.sqrt(np.sum(fun(plain) ** 2)))
-    assert np.array_equal(fit(confirm_settled=True, confirm_above=1.01 * misfit), plain)
-    assert np.array_equal(fit(confirm_settled=True, confirm_below=1e-9), plain)
+    assert np.array_equal(fit(confirm_above=1.01 * misfit), plain)
+    assert np.array_equal(fit(confirm_above=0.0, confirm_below=1e-9), plain)
 
 
 def test_lm_tries_no_step_under_its_least_with_a_lateral_share():

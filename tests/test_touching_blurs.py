@@ -29,7 +29,7 @@ def _capture(apart: float) -> tuple:
     """System 2 focused at 1 m, two points behind focus (1 400 and 1 500 mm, blurs ~290 and
     ~305 px across) placed ``apart`` × 1/1000 of their distance off the axis on either side:
     18 puts their light centroids 259 px apart, 16.5 237 px (the blurs overlap by ~40 and
-    ~60 px). (profile, geometry, image, pixel noise, truth)."""
+    ~60 px). (profile, geometry, image, its lenslet statistics, pixel noise, truth)."""
     base = load_profile("system2")
     prof = apply_overrides(base, CAMERA)
     prof = prof.with_d_in(prof.d_in_mm)
@@ -41,15 +41,15 @@ def _capture(apart: float) -> tuple:
     image = raw.astype(np.float64) - used.sensor.black_level
     geom = truth_geometry(prof, (SIZE, SIZE))
     white = float(used.sensor.white_level - used.sensor.black_level)
-    capture_noise(image, geom.lmap, geom.pitch_px, lenslet_stats(image, geom.lmap),
+    stats = lenslet_stats(image, geom.lmap)
+    capture_noise(image, geom.lmap, geom.pitch_px, stats,
                   sensor_gain=distance.sensor_gain(prof, white))
-    return prof, geom, image, distance.noise_sigma(image), truth
+    return prof, geom, image, stats, distance.noise_sigma(image), truth
 
 
 @pytest.mark.parametrize("apart", [18.0, 16.5])
 def test_touching_points_each_measured(apart, monkeypatch):
-    prof, geom, image, noise, truth = _capture(apart)
-    stats = lenslet_stats(image, geom.lmap)
+    prof, geom, image, stats, noise, truth = _capture(apart)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
     assert len(regions) == 2 and all(r.touching for r in regions)
     assert np.array_equal(regions[0].shared, regions[1].shared)

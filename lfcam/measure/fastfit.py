@@ -1372,8 +1372,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                          r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
                          ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
                          first_or_stop=False, pause=None, trial_lateral=0.0,
-                         confirm_settled=False, confirm_jac=None, confirm_below=math.inf,
-                         confirm_above=0.0):
+                         confirm_above=math.inf, confirm_below=math.inf, confirm_jac=None):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -1406,13 +1405,13 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     ``stop_above``: the fit ends after an iteration that leaves the cost over this.
     ``first_or_stop``: with ``jac0``, the fit ends where it began when the first step
     evaluated (``jac0``'s own) does not lower the cost.
-    ``confirm_settled``: with ``broyden``, a fit that a secant Jacobian's step calls
-    settled (``settle_log``, or a step under ``tol``) goes on with one taken by differences
-    (the secant's distance column can be stale: the step it calls short may be long);
-    ``confirm_jac`` (optional): ``confirm_jac(q)``, that Jacobian by the caller's rule;
-    ``confirm_below``: only where the fit's σ of the log distance (the last Jacobian taken by
-    differences, the residual where it stands) is under this, and its misfit (√cost) over
-    ``confirm_above``.
+    ``confirm_above``: with ``broyden``, a fit that a secant Jacobian's step calls settled
+    (``settle_log``, or a step under ``tol``) while its misfit (√cost) is over this goes on
+    with a Jacobian taken by differences (the secant's distance column can be stale: the step
+    it calls short may be long); ``inf``: never. ``confirm_below``: only where the fit's σ of
+    the log distance (the last Jacobian taken by differences, the residual where it stands)
+    is under this. ``confirm_jac`` (optional): ``confirm_jac(q)``, that Jacobian by the
+    caller's rule.
     ``pause`` (optional): ``pause(it, q, r, jac)``, called after iteration ``it`` (from 0)
     when another would follow (``jac``: the Jacobian that iteration stepped with); the fit
     ends there when it returns true.
@@ -1425,8 +1424,8 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
     last = jac
     fresh = jac is None
 
-    def stale() -> bool:  # a secant's verdict that confirm_settled reads again
-        return bool(confirm_settled and not fresh and math.sqrt(f) > confirm_above
+    def stale() -> bool:  # a secant's verdict read again (confirm_above)
+        return bool(not fresh and math.sqrt(f) > confirm_above
                     and _log_distance_sigma(last, r) < confirm_below)
     for it in range(max_iter):
         if jac is None:
@@ -1481,7 +1480,7 @@ def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_
                                          / steps[0]))
         if confirm or (short and stale()):
             # a secant's verdict (settled, or a step too short to go on) read again with a
-            # Jacobian by differences (confirm_settled)
+            # Jacobian by differences (confirm_above)
             jac = None if confirm_jac is None else confirm_jac(q)
             if jac is not None:
                 last, fresh = jac, True
@@ -2259,11 +2258,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             r_lm = fun_of(lm_model)(q)
         # a secant's "settled" over the noise read again with the fine model's Jacobian
         # (POLISH_CONFIRM_NOISE; no noise misfit known: never)
-        confirm = ({"confirm_settled": True, "confirm_below": POLISH_CONFIRM_BELOW,
-                    "confirm_above": POLISH_CONFIRM_NOISE * noise_misfit,
-                    "confirm_jac": lambda qq: _fd_jacobian(fun, many_of(fine), qq, fun(qq),
-                                                           steps)}
-                   if POLISH_CONFIRM_NOISE > 0 and noise_misfit > 0 else {})
+        confirm_above = (POLISH_CONFIRM_NOISE * noise_misfit
+                         if POLISH_CONFIRM_NOISE > 0 and noise_misfit > 0 else math.inf)
         q, r, f, jac_fine = _levenberg_marquardt(fun_of(lm_model), q, steps, FINE_LM_ITERATIONS,
                                                  1e-3, many_of(lm_model), r0=r_lm,
                                                  jac0=jac_q, broyden=True,
@@ -2272,7 +2268,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                  else POLISH_MIN_TRIAL_LOG,
                                                  trial_gain=SETTLED_GAIN,
                                                  first_or_stop=POLISH_FIRST_OR_STOP,
-                                                 **confirm)
+                                                 confirm_above=confirm_above,
+                                                 confirm_below=POLISH_CONFIRM_BELOW,
+                                                 confirm_jac=lambda qq: _fd_jacobian(
+                                                     fun, many_of(fine), qq, fun(qq), steps))
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
@@ -3091,8 +3090,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     box = _region_box(geom, region, image.shape)
     # (and the lenslets its blur shares with a touching one: regions.Region.shared)
-    exclude = (np.concatenate([region.shared] + [o.lenslets for o in others])
-               if others and OTHERS_EXCLUDED else None)
+    exclude = np.concatenate([region.shared]
+                             + ([o.lenslets for o in others] if OTHERS_EXCLUDED else []))
     # once: the noise misfit, the point and the line fit
     mom = data_moments(geom, image, box, exclude=exclude)
     noise_model = capture_noise(image, geom.lmap, geom.pitch_px)
