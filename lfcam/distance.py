@@ -26,6 +26,7 @@ regions and the outputs go on.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -313,6 +314,12 @@ def run_distance(
     finally:
         if pool is not None:
             pool.close()
+    # (the parts are for the lenslet fit, which placed them: the light-field fit leaves
+    # both poor-fit, ~20 s each, docs/distance.md, "Blurs that overlap without a waist")
+    if SPLIT_OVERLAPS and model != "refocus" and (
+            method == "lenslet" or (method == "auto" and tolerance_pct is not None)):
+        regions, estimates = _split_overlaps(profile, geom, img, stats, regions, near,
+                                             estimates, noise, args)
     results = []
     dmap = np.full(img.shape, np.nan, dtype=np.float32)
     nan = float("nan")
@@ -346,6 +353,65 @@ def run_distance(
     return DistanceRun(results, dmap, {"geometry": t1 - t0, "regions": t2 - t1,
                                        "measure": t3 - t2, "jobs": jobs,
                                        "region_s": [t for _, t in estimates]}, checks)
+
+
+SPLIT_OVERLAPS = True  # a failed region of two overlapping blurs is cut in two (overlap.py)
+_FAILED_FITS = (RegionStatus.POOR_FIT, RegionStatus.NO_SOLUTION)
+
+
+def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, args
+                    ) -> tuple[list, list]:
+    """Regions and estimates with each failed spot or line region that two overlapping blurs
+    explain cut into those two, both measured again (:func:`lfcam.measure.overlap.
+    split_overlap`). A failed region cut from touching blurs is tried together with the
+    other side of its cut (the region sharing its band), whose answer the new cut replaces:
+    a cut misplaced at a waist that two overlapping discs only seem to have leaves one side
+    ``poor-fit`` and the other fitted to both blurs' light. The first part keeps the failed
+    region's id, and its time counts the failed fit's and the two-point fit's; the second
+    takes the other side's id, or a new one at the end."""
+    from lfcam.measure.overlap import merged_region, split_overlap
+
+    regions, estimates = list(regions), list(estimates)
+    near = list(near)
+    next_id = max((r.region_id for r in regions), default=-1) + 1
+    done: set[int] = set()
+    for i in range(len(regions)):
+        reg = regions[i]
+        if (i in done or reg.kind not in ("spot", "line")
+                or estimates[i][0][6] not in _FAILED_FITS):
+            continue
+        t = time.process_time()
+        sides = [j for j, o in enumerate(regions)
+                 if j != i and reg.touching and o.shared.size == reg.shared.size
+                 and np.array_equal(o.shared, reg.shared)]
+        if len(sides) > 1:
+            continue
+        whole = (reg if not sides else
+                 merged_region(reg, regions[sides[0]], stats, geom.lmap, geom.pitch_px))
+        others = tuple(o for o in near[i] if not any(o is regions[j] for j in sides))
+        pair = split_overlap(profile, geom, img, stats, whole, float("nan"), next_id, others)
+        if pair is None:  # (the two-point fit's time is the failed region's too)
+            estimates[i] = (estimates[i][0], estimates[i][1] + time.process_time() - t)
+            continue
+        if sides:
+            pair = (pair[0], dataclasses.replace(pair[1], region_id=regions[sides[0]].region_id))
+        else:
+            next_id += 1
+        spent = time.process_time() - t + estimates[i][1]  # (the failed fit's time too)
+        for k, (part, other) in enumerate(((pair[0], pair[1]), (pair[1], pair[0]))):
+            est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
+                                        (other,) + others)
+            if k == 0:
+                regions[i], estimates[i], near[i] = part, (est, secs + spent), (other,) + others
+            elif sides:
+                j = sides[0]
+                regions[j], estimates[j], near[j] = part, (est, secs), (other,) + others
+            else:
+                regions.append(part)
+                estimates.append((est, secs))
+                near.append((other,) + others)
+        done.update([i, *sides])
+    return regions, estimates
 
 
 def _timed_estimate(profile, geom, img, stats, reg, noise, args, nearby=()) -> tuple:

@@ -160,25 +160,14 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     groups, parts = _merge_fragments(lit, comp, n, energy, centres)
     groups, parts = _add_faint(groups, parts, faint_lit(energy, lit, centres, pitch_px),
                                centres, pitch_px)
-    h, w = lmap.labels.shape
-    r = lmap.radius_px
     regions = []
     todo = list(zip(groups, parts, [_NONE] * len(groups), strict=True))
     while todo:
         members, n_parts, shared = todo.pop(0)
         if members.size < MIN_LENSLETS:
             continue
-        e = energy[members]
-        cen = stats.centroid_px[members]
-        good = np.isfinite(cen).all(axis=1)
-        wsum = e[good].sum()
-        centroid = (cen[good] * e[good, None]).sum(0) / wsum
-        pos = centres[members]
-        mean = (pos * e[:, None]).sum(0) / e.sum()
-        d = pos - mean
-        cov = (d.T * e) @ d / e.sum() + np.eye(2) * (pitch_px**2 / 12.0)
-        evals, evecs = np.linalg.eigh(cov)
-        elong = float(np.sqrt(evals[1] / evals[0]))
+        shape = _footprint_shape(energy[members], centres[members], pitch_px)
+        pos, evecs, elong = centres[members], shape[1], shape[2]
         waist = (_waist(pos, evecs[:, 1], pitch_px)
                  if elong >= LINE_ELONGATION and members.size <= EXTENDED_SHARE * len(centres)
                  else None)
@@ -201,17 +190,46 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
             kind = "line"
         else:
             kind = "spot"
-        x0 = int(max(0, np.floor(pos[:, 0].min() - r - 1)))
-        y0 = int(max(0, np.floor(pos[:, 1].min() - r - 1)))
-        x1 = int(min(w, np.ceil(pos[:, 0].max() + r + 2)))
-        y1 = int(min(h, np.ceil(pos[:, 1].max() + r + 2)))
-        regions.append(Region(
-            region_id=len(regions), kind=kind, lenslets=members, energy=float(e.sum()),
-            centroid_px=(float(centroid[0]), float(centroid[1])), box_px=(x0, y0, x1, y1),
-            elongation=elong, axis_dir=(float(evecs[0, 1]), float(evecs[1, 1])),
-            parts=n_parts, shared=shared,
-        ))
+        regions.append(make_region(len(regions), kind, members, stats, lmap, pitch_px,
+                                   n_parts, shared))
     return regions
+
+
+def _footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A footprint's energy-weighted centre (px), the eigenvectors of its second moments
+    (columns, the long axis last; each lenslet a pitch-wide square) and its elongation
+    √(λ₁/λ₂), from its lenslets' energies ``e`` and centres ``pos``."""
+    mean = (pos * e[:, None]).sum(0) / e.sum()
+    d = pos - mean
+    cov = (d.T * e) @ d / e.sum() + np.eye(2) * (pitch_px**2 / 12.0)
+    evals, evecs = np.linalg.eigh(cov)
+    return mean, evecs, float(np.sqrt(evals[1] / evals[0]))
+
+
+def make_region(region_id: int, kind: str, members: np.ndarray, stats: LensletStats,
+                lmap: LensletMap, pitch_px: float, parts: int = 1,
+                shared: np.ndarray = _NONE) -> Region:
+    """The :class:`Region` of the lenslets ``members`` (indices into ``lmap``'s list): its
+    energy, light centroid, box, elongation and axis from ``stats``."""
+    e = stats.energy[members]
+    cen = stats.centroid_px[members]
+    good = np.isfinite(cen).all(axis=1)
+    centroid = (cen[good] * e[good, None]).sum(0) / e[good].sum()
+    pos = lmap.centres_px[members]
+    _, evecs, elong = _footprint_shape(e, pos, pitch_px)
+    h, w = lmap.labels.shape
+    r = lmap.radius_px
+    x0 = int(max(0, np.floor(pos[:, 0].min() - r - 1)))
+    y0 = int(max(0, np.floor(pos[:, 1].min() - r - 1)))
+    x1 = int(min(w, np.ceil(pos[:, 0].max() + r + 2)))
+    y1 = int(min(h, np.ceil(pos[:, 1].max() + r + 2)))
+    return Region(
+        region_id=region_id, kind=kind, lenslets=members, energy=float(e.sum()),
+        centroid_px=(float(centroid[0]), float(centroid[1])), box_px=(x0, y0, x1, y1),
+        elongation=elong, axis_dir=(float(evecs[0, 1]), float(evecs[1, 1])),
+        parts=parts, shared=shared,
+    )
 
 
 def faint_lit(energy: np.ndarray, lit: np.ndarray, centres_px: np.ndarray,

@@ -1,0 +1,214 @@
+"""Two sources whose blurs overlap too far to show a waist: fitted as two points, then cut.
+
+Two blurs that touch narrow where they meet, and :func:`lfcam.measure.regions.find_regions`
+cuts them there (``WAIST_RATIO``). Blurs that overlap by more than about a quarter of their
+width leave no such waist (two uniform discs 0.65 diameters apart already narrow only to
+0.76 of their width), so they form one region, which no single point or line explains: the
+lenslet fit ends ``poor-fit`` and neither source gets a distance.
+
+Such a region is fitted here as two point sources (six parameters) on its lenslet moments,
+the two models' brightnesses solved linearly at every step (:func:`two_points`). Where two
+points explain the region (their misfit under the region's poor-fit limit and under
+:data:`TWO_GAIN` × the one it had), the fit only places the two blurs: the region is cut, as
+touching blurs are, into the lenslets each blur lights alone, and a band that both light
+(``Region.shared``, left out of both fits' data) (:func:`split_overlap`). Each part is then
+measured as any touching region is, with the other as its neighbour, so that its answer,
+σ and status come from the same fits as every other region's (docs/distance.md, "Blurs that
+overlap without a waist (stop 68)").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from lfcam.camera import CameraProfile
+from lfcam.measure import fastfit as ff
+from lfcam.measure.geometry import Geometry
+from lfcam.measure.lenslets import LensletMap, LensletStats
+from lfcam.measure.noise import capture_noise
+from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
+from lfcam.measure.regions import Region, make_region
+from lfcam.measure.verify import poor_fit_limit
+
+TWO_MIN_LENSLETS = 40  # a region of fewer lenslets is not tried as two blurs
+TWO_RAYS = 3000  # rays a point of the two-point model (it places the blurs; it does not measure)
+TWO_FINE_RAYS = 12000  # ... and of its last steps
+TWO_ITERATIONS = 8  # Levenberg–Marquardt iterations on the coarse model ...
+TWO_FINE_ITERATIONS = 3  # ... and on the fine one
+TWO_SCAN = (0.7, 0.85, 1.0, 1.18, 1.4)  # each blur's distance about the common scan's best
+TWO_GAIN = 0.5  # two points must leave under this × the misfit the region's own fit left
+TWO_NOISE = 1.5  # ... and under this × the region's noise misfit (they explain all there is),
+TWO_FLOOR = 0.02  # ... or this, where the noise misfit is less (the model's own ray noise)
+TWO_LIT_SHARE = 0.05  # a blur lights the lenslets over this share of its brightest
+TWO_BAND_SHARE = 0.005  # a lenslet is in the band where both blurs put over this share of
+#                        their brightest lenslet's light on it
+TWO_MIN_PART = 12  # each part keeps at least this many lenslets
+
+
+class TwoPoints(NamedTuple):
+    """Two point sources fitted to one region's lenslet moments."""
+
+    sources_mm: np.ndarray  # (2, 3) lens frame
+    misfit: float  # the normalised misfit of the two together
+    light: np.ndarray  # (2, K) each source's light on the box's lenslets (its fitted share)
+    ids: np.ndarray  # (K,) the box's lenslets (indices into the lenslet list)
+    noise_misfit: float  # the region's noise misfit
+
+
+def _amplitudes(data: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    """The non-negative brightnesses of two models that fit ``data`` best (least squares)."""
+    a = np.array([[float((m1 * m1).sum()), float((m1 * m2).sum())],
+                  [float((m1 * m2).sum()), float((m2 * m2).sum())]])
+    b = np.array([float((m1 * data).sum()), float((m2 * data).sum())])
+    try:
+        x = np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        x = np.full(2, -1.0)
+    if (x >= 0).all():
+        return x
+    # one of them at zero: the other alone
+    one = [b[k] / a[k, k] if a[k, k] > 0 else 0.0 for k in (0, 1)]
+    cost = [float(((data - max(one[k], 0.0) * m) ** 2).sum()) for k, m in ((0, m1), (1, m2))]
+    k = int(np.argmin(cost))
+    x = np.zeros(2)
+    x[k] = max(one[k], 0.0)
+    return x
+
+
+def _lobes(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The energy centroids (2, 2) of a footprint's two halves along its long axis: two
+    means of the lenslets' positions ``pos`` (weights ``w``) on that axis."""
+    mean = (pos * w[:, None]).sum(0) / w.sum()
+    d = pos - mean
+    _, vecs = np.linalg.eigh((d.T * w) @ d / w.sum())
+    t = d @ vecs[:, 1]
+    order = np.argsort(t)
+    cum = np.cumsum(w[order]) / w.sum()
+    c = np.array([t[order][np.searchsorted(cum, 0.25)], t[order][np.searchsorted(cum, 0.75)]])
+    for _ in range(20):
+        near = np.abs(t - c[0]) <= np.abs(t - c[1])
+        if near.all() or not near.any():
+            break
+        new = np.array([(t[near] * w[near]).sum() / w[near].sum(),
+                        (t[~near] * w[~near]).sum() / w[~near].sum()])
+        if np.allclose(new, c):
+            break
+        c = new
+    near = np.abs(t - c[0]) <= np.abs(t - c[1])
+    return np.array([(pos[m] * w[m, None]).sum(0) / w[m].sum() for m in (near, ~near)])
+
+
+def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: Region,
+               others: tuple[Region, ...] = ()) -> TwoPoints | None:
+    """Fit ``region``'s lenslet moments as two point sources (module docstring).
+
+    Starts: the footprint's two halves along its long axis (their light centroids through the
+    chief ray at each trial distance), both at each distance of the point fit's scan, then each
+    at :data:`TWO_SCAN` × the best; then Levenberg–Marquardt on (log distance, x/L, y/L) of
+    both, the two brightnesses solved at every evaluation. ``others``' lenslets and the
+    region's ``shared`` band are left out of the data, as in :func:`fastfit.measure_lenslet`.
+    Returns None for a region of fewer than :data:`TWO_MIN_LENSLETS` lenslets or where the
+    two points do not both take light.
+    """
+    if region.lenslets.size < TWO_MIN_LENSLETS:
+        return None
+    box = ff._region_box(geom, region, image.shape)
+    exclude = np.concatenate([region.shared] + [o.lenslets for o in others])
+    mom = ff.data_moments(geom, image, box, exclude=exclude)
+    energy = mom.data[:, 0]
+    lit = energy > TWO_LIT_SHARE * energy.max()
+    if lit.sum() < TWO_MIN_LENSLETS // 2:
+        return None
+    nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
+                                                                          mom.norm)
+    frame = ff._Frame(profile)
+    lobes = _lobes(geom.lens_centres_mm[mom.ids[lit]], energy[lit])
+
+    def residual(model: ff.LensletModel, m: np.ndarray) -> np.ndarray:
+        a = _amplitudes(mom.data, m[0], m[1])
+        return ((mom.data - a[0] * m[0] - a[1] * m[1]) / mom.norm).ravel()
+
+    def pairs_of(model: ff.LensletModel, qs: list[np.ndarray]) -> list[np.ndarray]:
+        pts = np.concatenate([[frame.source(q[:3]), frame.source(q[3:])] for q in qs])
+        m = model.simulate_groups(pts, np.arange(len(pts), dtype=np.int64), len(pts),
+                                  len(qs))
+        return [residual(model, m[2 * k:2 * k + 2]) for k in range(len(qs))]
+
+    def at(d1: float, d2: float, g1: float, g2: float) -> np.ndarray:
+        q = []
+        for d, g, c in ((d1, g1, lobes[0]), (d2, g2, lobes[1])):
+            xy = chief_ray_offset(profile, geom.d_in_mm, d, c, gain=g)
+            q.append(frame.params(np.array([xy[0], xy[1], frame.z_front - d])))
+        return np.concatenate(q)
+
+    coarse = ff.LensletModel(profile, geom, mom, TWO_RAYS)
+    f_mm = profile.main_lens.focal_length_mm
+    distances = np.geomspace(1.1 * f_mm, 3e4, ff.SCAN_DISTANCES)
+    gains = chief_ray_gains(profile, geom.d_in_mm, distances)
+    scan = [at(d, d, g, g) for d, g in zip(distances, gains, strict=True)]
+    costs = [ff._sq(r) for r in pairs_of(coarse, scan)]
+    best = float(distances[int(np.argmin(costs))])
+    trial = np.array(TWO_SCAN) * best
+    g_trial = chief_ray_gains(profile, geom.d_in_mm, trial)
+    grid = [at(d1, d2, g1, g2) for d1, g1 in zip(trial, g_trial, strict=True)
+            for d2, g2 in zip(trial, g_trial, strict=True)]
+    costs = [ff._sq(r) for r in pairs_of(coarse, grid)]
+    q = grid[int(np.argmin(costs))]
+    n_lit = ff.lit_lenslets(mom)
+    steps = np.tile(ff.point_steps(profile, geom, n_lit), 2)
+    for model, iterations in ((coarse, TWO_ITERATIONS),
+                              (ff.LensletModel(profile, geom, mom, TWO_FINE_RAYS),
+                               TWO_FINE_ITERATIONS)):
+        fun = (lambda qq, model=model: pairs_of(model, [qq])[0])  # noqa: E731
+        many = (lambda qs, model=model: pairs_of(model, qs))  # noqa: E731
+        q, r, f, _ = ff._levenberg_marquardt(fun, q, steps, iterations, 1e-4, many)
+    sources = np.array([frame.source(q[:3]), frame.source(q[3:])])
+    m = model.simulate_groups(sources, np.arange(2, dtype=np.int64), 2, 1)
+    a = _amplitudes(mom.data, m[0], m[1])
+    if not (a > 0).all():
+        return None
+    light = np.array([a[0] * m[0][:, 0], a[1] * m[1][:, 0]])
+    return TwoPoints(sources, math.sqrt(f), light, mom.ids, nm)
+
+
+def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
+                  stats: LensletStats, region: Region, misfit: float, new_id: int,
+                  others: tuple[Region, ...] = ()) -> tuple[Region, Region] | None:
+    """``region`` (whose own fit left ``misfit``) cut into the two blurs a two-point fit finds
+    in it (:func:`two_points`), or None where two points do not explain it: their misfit over
+    the region's poor-fit limit or over :data:`TWO_GAIN` × ``misfit``, or a part of fewer
+    than :data:`TWO_MIN_PART` lenslets.
+
+    The parts: the region's lenslets where one blur puts over :data:`TWO_BAND_SHARE` of its
+    brightest lenslet's light and the other does not, each to the blur that puts more light
+    on it; the band where both do is ``shared`` by both and in neither. The first part keeps
+    ``region``'s id, the second takes ``new_id``; both are ``spot`` regions."""
+    two = two_points(profile, geom, image, region, others)
+    if two is None:
+        return None
+    limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
+                max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
+    if not (two.misfit < limit and (not math.isfinite(misfit) or two.misfit < TWO_GAIN * misfit)):
+        return None
+    share = two.light / two.light.max(axis=1, keepdims=True)
+    mine = np.isin(two.ids, region.lenslets)
+    band = mine & (share > TWO_BAND_SHARE).all(axis=0)
+    first = mine & ~band & (two.light[0] >= two.light[1])
+    second = mine & ~band & ~first
+    if min(first.sum(), second.sum()) < TWO_MIN_PART:
+        return None
+    shared = np.union1d(two.ids[band], region.shared)
+    parts = [make_region(rid, "spot", two.ids[m], stats, geom.lmap, geom.pitch_px, 1, shared)
+             for rid, m in ((region.region_id, first), (new_id, second))]
+    return parts[0], parts[1]
+
+
+def merged_region(a: Region, b: Region, stats: LensletStats, lmap: LensletMap,
+                  pitch_px: float) -> Region:
+    """The region two touching regions ``a`` and ``b`` were cut from (both sides and the band
+    they share), with ``a``'s id."""
+    members = np.union1d(np.union1d(a.lenslets, b.lenslets), a.shared)
+    return make_region(a.region_id, "spot", members, stats, lmap, pitch_px, a.parts + b.parts)

@@ -1,0 +1,138 @@
+"""Two sources whose blurs overlap without a waist: one region, fitted as two points, cut in
+two and both measured (lfcam.measure.overlap, lfcam.distance._split_overlaps).
+
+Truth: the renderer's distances (``lfcam.sim``, photon and read noise), the region finder's and
+the lenslet fit's answers for the same capture without the cut (one region, ``poor-fit``), and
+least squares on a linear problem whose solution is known (docs/distance.md, "Blurs that
+overlap without a waist (stop 68)").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcam import distance
+from lfcam.camera import load_profile
+from lfcam.measure import fastfit, lenslet_stats, overlap
+from lfcam.measure.noise import capture_noise
+from lfcam.measure.regions import find_regions, nearby_regions
+from lfcam.sim.capture import apply_overrides, simulate
+from lfcam.sim.geometry import truth_geometry
+from lfcam.sim.scene import scene_from_dict
+from lfcam.status import RegionStatus
+
+SIZE = 1024
+CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
+_CAPTURES: dict = {}
+
+
+def _capture(apart: float) -> tuple:
+    """System 2 focused at 1 m, points at 1 400 and 1 500 mm behind focus (blurs ~290 and ~305
+    px across) ``apart`` × 1/1000 of their distance off the axis on either side: 13 puts
+    their light centroids 187 px apart (no waist: one region), 14 201 px (a waist the lit
+    lenslets' noise shows in the wrong place: two regions, one of them poor-fit). (profile,
+    geometry, image, lenslet statistics, pixel noise, truth)."""
+    if apart not in _CAPTURES:
+        base = load_profile("system2")
+        prof = apply_overrides(base, CAMERA)
+        prof = prof.with_d_in(prof.d_in_mm)
+        objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d / 1000]}
+                   for d, s in ((1400.0, -1.0), (1500.0, 1.0))]
+        scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,
+                 "exposure": {"peak": 0.5}, "objects": objects}
+        raw, used, truth = simulate(base, scene_from_dict(scene))
+        image = raw.astype(np.float64) - used.sensor.black_level
+        geom = truth_geometry(prof, (SIZE, SIZE))
+        white = float(used.sensor.white_level - used.sensor.black_level)
+        stats = lenslet_stats(image, geom.lmap)
+        capture_noise(image, geom.lmap, geom.pitch_px, stats,
+                      sensor_gain=distance.sensor_gain(prof, white))
+        _CAPTURES[apart] = (prof, geom, image, stats, distance.noise_sigma(image), truth, white)
+    return _CAPTURES[apart]
+
+
+def test_amplitudes_are_the_least_squares_brightnesses():
+    # data = 2·m1 + 3·m2 exactly: (2, 3); data = 2·m1 − 0.5·m2 (a negative share): the
+    # better of the two alone, m1's own least-squares brightness, the other at zero
+    rng = np.random.default_rng(0)
+    m1, m2 = rng.random((50, 4)), rng.random((50, 4))
+    np.testing.assert_allclose(overlap._amplitudes(2 * m1 + 3 * m2, m1, m2), [2.0, 3.0])
+    data = 2 * m1 - 0.5 * m2
+    got = overlap._amplitudes(data, m1, m2)
+    assert got[1] == 0.0
+    assert got[0] == pytest.approx(float((m1 * data).sum() / (m1 * m1).sum()))
+
+
+def _run(apart: float, monkeypatch, split: bool):
+    prof, geom, image, stats, noise, truth, white = _capture(apart)
+    monkeypatch.setattr(distance, "SPLIT_OVERLAPS", split)
+    return distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                 geometry=geom, jobs=1, white_value=white), truth
+
+
+def _check_both(run, truth):
+    got = {}
+    for r in run.regions:
+        assert r.status == RegionStatus.OK, r
+        k = int(np.argmin([np.hypot(r.x_px - s["centroid_px"][0], r.y_px - s["centroid_px"][1])
+                           for s in truth["sources"]]))
+        d = truth["sources"][k]["distance_mm"]
+        # measured: +0.010 / +0.022 % (13, σ 0.032-0.035 %), −0.016 / +0.019 % (14)
+        assert abs(r.distance_mm / d - 1) < min(3 * r.uncertainty_mm / d, 1e-3), (k, r)
+        got[k] = r
+    assert set(got) == {0, 1}
+
+
+def test_two_overlapping_blurs_are_cut_and_both_measured(monkeypatch):
+    # one region without a waist, which the lenslet fit leaves poor-fit (as point and line)
+    prof, geom, image, stats, noise, truth, white = _capture(13.0)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    assert len(regions) == 1 and not regions[0].touching
+    before, _ = _run(13.0, monkeypatch, split=False)
+    assert [r.status for r in before.regions] == [RegionStatus.POOR_FIT]
+    # the two-point fit places both blurs (measured: 1 401.7 and 1 502.1 mm, misfit 0.007
+    # against a noise misfit of 0.026), the cut leaves a band both light out of both parts
+    two = overlap.two_points(prof, geom, image, regions[0])
+    d = sorted(prof.main_lens.front_vertex_z_mm - two.sources_mm[:, 2])
+    np.testing.assert_allclose(d, [1400.0, 1500.0], rtol=5e-3)
+    assert two.misfit < two.noise_misfit
+    parts = overlap.split_overlap(prof, geom, image, stats, regions[0], float("nan"), 1)
+    assert parts[0].region_id == 0 and parts[1].region_id == 1
+    assert np.array_equal(parts[0].shared, parts[1].shared) and parts[0].shared.size > 0
+    assert not np.intersect1d(parts[0].lenslets, parts[1].lenslets).size
+    assert not np.intersect1d(parts[0].lenslets, parts[0].shared).size
+    after, truth = _run(13.0, monkeypatch, split=True)
+    _check_both(after, truth)
+    assert len(after.timings_s["region_s"]) == 2
+
+
+def test_a_waist_in_the_wrong_place_is_cut_again(monkeypatch):
+    prof, geom, image, stats, noise, truth, white = _capture(14.0)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    assert len(regions) == 2 and all(r.touching for r in regions)
+    before, _ = _run(14.0, monkeypatch, split=False)
+    assert RegionStatus.POOR_FIT in [r.status for r in before.regions]
+    after, truth = _run(14.0, monkeypatch, split=True)
+    assert sorted(r.region_id for r in after.regions) == [0, 1]
+    _check_both(after, truth)
+
+
+def test_one_source_is_not_cut():
+    # a single point's region: two points cannot explain it better than one (the second
+    # takes no light, or both light the same lenslets and no part is left): no cut
+    prof, geom, image, stats, noise, truth, white = _capture(13.0)
+    base = load_profile("system2")
+    one = apply_overrides(base, CAMERA)
+    scene = {"seed": 3, "rays_per_source": 1_000_000, "camera": CAMERA,
+             "exposure": {"peak": 0.5},
+             "objects": [{"type": "point", "distance_mm": 1500.0, "position_mm": [0.0, 5.0]}]}
+    raw, used, _ = simulate(base, scene_from_dict(scene))
+    img = raw.astype(np.float64) - used.sensor.black_level
+    st = lenslet_stats(img, geom.lmap)
+    capture_noise(img, geom.lmap, geom.pitch_px, st,
+                  sensor_gain=distance.sensor_gain(one, white))
+    (region,) = find_regions(st, geom.lmap, geom.pitch_px)
+    assert fastfit.measure_lenslet(prof, geom, img, region, distance.noise_sigma(img),
+                                   others=nearby_regions([region])[0]).status == "ok"
+    assert overlap.split_overlap(prof, geom, img, st, region, float("nan"), 1) is None
