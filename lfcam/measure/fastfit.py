@@ -2850,7 +2850,8 @@ def _log_sigma(jac: np.ndarray, f: float, n: int) -> float:
     """The first parameter's σ from a weighted Jacobian ``jac`` and misfit² ``f`` of ``n``
     residuals (scaled up by χ²/dof where that is over 1); 0 where ``jac`` is singular."""
     try:
-        var = float(np.linalg.inv(jac.T @ jac)[0, 0])
+        with np.errstate(over="ignore", invalid="ignore"):  # (a wild column: not finite)
+            var = float(np.linalg.inv(jac.T @ jac)[0, 0])
     except np.linalg.LinAlgError:
         return 0.0
     chi2 = f / max(n - jac.shape[1], 1)
@@ -3023,13 +3024,15 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
         return refused
     chi2 = f / max(n_use - 4, 1)
     j_use, r_use = jac[use], r[use]
+    # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
+    # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend); a
+    # Jacobian with a wild column gives no finite σ: refused
     try:
-        inv = np.linalg.inv(j_use.T @ j_use)
+        with np.errstate(over="ignore", invalid="ignore"):
+            inv = np.linalg.inv(j_use.T @ j_use)
+            sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
     except np.linalg.LinAlgError:
         return refused
-    # σ: the weighted Jacobian's, scaled by χ²/dof where that is over 1, or the sandwich
-    # (JᵀJ)⁻¹ Jᵀ diag(r²) J (JᵀJ)⁻¹ where more (weights that misjudge the noise's trend)
-    sandwich = inv @ ((j_use * (r_use * r_use)[:, None]).T @ j_use) @ inv
     var = max(float(inv[0, 0]) * max(1.0, chi2), float(sandwich[0, 0]))
     if not (chi2 <= PIXEL_MAX_CHI2 and var > 0 and math.isfinite(var)):
         return refused

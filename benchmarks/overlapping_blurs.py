@@ -1,0 +1,122 @@
+"""Two point sources whose blurs overlap, from touching to nearly coincident: the distance run
+with and without the cut of overlapping blurs (issue 17; docs/distance.md, "Blurs that
+overlap without a waist (stop 68)").
+
+Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
+[--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]``
+
+Each capture is rendered with :mod:`lfcam.sim` (photon and read noise, 10⁶ rays a source):
+the two points ``apart`` × 1/1000 of their distance off the axis on either side, on the
+renderer's own lenslet lattice (truth geometry). :func:`lfcam.distance.run_distance` measures
+it twice on one core, ``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status,
+the error and its z (error / σ), and the region's CPU time. A summary counts the sources
+measured within 3σ and the answers off by more than 3σ, each way.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lfcam import distance  # noqa: E402
+from lfcam.camera import load_profile  # noqa: E402
+from lfcam.measure import lenslet_stats  # noqa: E402
+from lfcam.measure.noise import capture_noise  # noqa: E402
+from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
+from lfcam.sim.geometry import truth_geometry  # noqa: E402
+from lfcam.sim.scene import scene_from_dict  # noqa: E402
+
+
+def _floats(text: str) -> list[float]:
+    return [float(v) for v in text.split(",") if v]
+
+
+def measure(image, prof, geom, white, truth, method: str, split: bool) -> list[tuple]:
+    """(source index, status, error %, z, CPU ms) of each region of one run."""
+    distance.SPLIT_OVERLAPS = split
+    run = distance.run_distance(image, prof, None, model="exact", method=method,
+                                geometry=geom, jobs=1, white_value=white)
+    cs = np.array([s["centroid_px"] for s in truth["sources"]])
+    out = []
+    for r, t in zip(run.regions, run.timings_s["region_s"], strict=True):
+        k = int(np.argmin(np.hypot(*(cs - np.array([r.x_px, r.y_px])).T)))
+        d = truth["sources"][k]["distance_mm"]
+        ok = r.status == "ok"
+        err = 100.0 * (r.distance_mm / d - 1.0) if ok else float("nan")
+        z = (r.distance_mm - d) / r.uncertainty_mm if ok else float("nan")
+        out.append((k, str(r.status), err, z, 1e3 * t))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--system", default="system2")
+    ap.add_argument("--distances", default="1400,1500", help="the two sources' distances, mm")
+    ap.add_argument("--focus", type=float, default=1000.0, help="focused distance, mm")
+    ap.add_argument("--aparts", default="5,6,7,8,9,10,11,12,13,14,15,16,17,18",
+                    help="offsets off the axis, 1/1000 of the distance, each side")
+    ap.add_argument("--seeds", default="7,8", help="render seeds (rays and noise)")
+    ap.add_argument("--size", type=int, default=1024, help="sensor side, px")
+    ap.add_argument("--method", default="lenslet", choices=("lenslet", "auto"))
+    args = ap.parse_args()
+    d1, d2 = _floats(args.distances)
+    camera = {"mla": {"focus_mm": args.focus},
+              "sensor": {"width_px": args.size, "height_px": args.size}}
+    base = load_profile(args.system)
+    prof = apply_overrides(base, camera)
+    prof = prof.with_d_in(prof.d_in_mm)
+    geom = truth_geometry(prof, (args.size, args.size))
+    print(f"# {args.system}, focus {args.focus:.0f} mm, {args.size}² px, sources at {d1:.0f} "
+          f"and {d2:.0f} mm, --method {args.method}; each region: source, status, error, "
+          "z = error/σ, CPU ms")
+    print("| apart | seed | centroids apart px | blurs px | cut off | cut on |")
+    print("|---|---|---|---|---|---|")
+    tally = {False: [0, 0, 0], True: [0, 0, 0]}  # within 3σ, over 3σ, sources unmeasured
+    for apart in _floats(args.aparts):
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d
+                                                                           / 1000]}
+                       for d, s in ((d1, -1.0), (d2, 1.0))]
+            scene = {"seed": seed, "rays_per_source": 1_000_000, "camera": camera,
+                     "exposure": {"peak": 0.5}, "objects": objects}
+            raw, used, truth = simulate(base, scene_from_dict(scene))
+            image = raw.astype(np.float64) - used.sensor.black_level
+            white = float(used.sensor.white_level - used.sensor.black_level)
+            stats = lenslet_stats(image, geom.lmap)
+            capture_noise(image, geom.lmap, geom.pitch_px, stats,
+                          sensor_gain=distance.sensor_gain(prof, white))
+            cs = [s["centroid_px"] for s in truth["sources"]]
+            blurs = [round(s["diameter_mm"] / used.sensor.pixel_pitch_mm)
+                     for s in truth["sources"]]
+            cells = []
+            for split in (False, True):
+                res = measure(image, prof, geom, white, truth, args.method, split)
+                measured = set()
+                for k, status, _, z, _ in res:
+                    if status == "ok":
+                        tally[split][0 if abs(z) <= 3 else 1] += 1
+                        measured.add(k)
+                tally[split][2] += 2 - len(measured)
+                cells.append("; ".join(
+                    f"{k}: {status}" + (f" {err:+.3f} % ({z:+.1f}σ)" if status == "ok" else "")
+                    + f", {ms:.0f} ms" for k, status, err, z, ms in res))
+            print(f"| {apart:g} | {seed} | {np.hypot(*np.subtract(*cs)):.0f} | {blurs[0]}, "
+                  f"{blurs[1]} | {cells[0]} | {cells[1]} |", flush=True)
+    for split in (False, True):
+        within, over, missing = tally[split]
+        print(f"# cut {'on' if split else 'off'}: {within} answers within 3σ, {over} over 3σ, "
+              f"{missing} sources unmeasured")
+
+
+if __name__ == "__main__":
+    main()
