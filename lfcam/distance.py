@@ -21,7 +21,9 @@ error (model error table ⊕ measurement uncertainty) meets ``tolerance_pct`` (d
 available, i.e. ``exact``); ``refocus`` is Hahne et al.'s depth from refocus.
 
 A region whose measurement fails numerically gets the status ``failed: <reason>``; the other
-regions and the outputs go on.
+regions and the outputs go on. A failed spot or line region that two overlapping blurs explain
+is cut in two and both are measured again (``SPLIT_OVERLAPS``, lenslet fit:
+:mod:`lfcam.measure.overlap`).
 """
 
 from __future__ import annotations

@@ -17,7 +17,9 @@ each cluster by the energy-weighted second moments of its lenslet centres:
   of the narrower side's radius, meeting in the measured chord, share) belong to neither and
   are left out of both fits' data; each region is measured with the other as its neighbour
   (docs/distance.md, "Touching blurs cut at their waist (stop 67)"). With ``SPLIT_TOUCHING``
-  off such a cluster is one region of kind ``multiple``, reported without a distance.
+  off such a cluster is one region of kind ``multiple``, reported without a distance. Blurs
+  that overlap without a waist stay one region here; where no point or line explains it, the
+  distance run cuts it along two fitted points (:mod:`lfcam.measure.overlap`).
 
 Far from focus a blur has a faint halo (the singlet's spherical aberration throws light outside
 the rim rays) in which a few lenslets pass the threshold apart from the main disc. Such a
