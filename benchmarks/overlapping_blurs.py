@@ -3,14 +3,19 @@ with and without the cut of overlapping blurs (issue 17; docs/distance.md, "Blur
 overlap without a waist (stop 68)").
 
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
-[--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]``
+[--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
+[--renderer sim|independent]``
 
-Each capture is rendered with :mod:`lfcam.sim` (photon and read noise, 10⁶ rays a source):
-the two points ``apart`` × 1/1000 of their distance off the axis on either side, on the
-renderer's own lenslet lattice (truth geometry). :func:`lfcam.distance.run_distance` measures
-it twice on one core, ``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status,
-the error and its z (error / σ), and the region's CPU time. A summary counts the sources
-measured within 3σ and the answers off by more than 3σ, each way.
+Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
+either side, rendered by :mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer
+independent``, by ``benchmarks/render_independent.py`` (per-pixel irradiance of the exact ray
+map: no ray binning, no :mod:`lfcam.sim`), both with the focus grid's sensor noise (photon
+noise at a full well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full scale),
+on the profile's own lenslet lattice (truth geometry), the fits told the full well.
+:func:`lfcam.distance.run_distance` measures each capture twice on one core,
+``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status, the error and its
+z (error / σ), and the region's CPU time. A summary counts the answers within and over 3σ and
+the sources left unmeasured, each way.
 """
 
 from __future__ import annotations
@@ -22,11 +27,14 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
+from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))  # render_independent
 
 from lfcam import distance  # noqa: E402
 from lfcam.camera import load_profile  # noqa: E402
@@ -35,6 +43,9 @@ from lfcam.measure.noise import capture_noise  # noqa: E402
 from lfcam.sim.capture import apply_overrides, simulate  # noqa: E402
 from lfcam.sim.geometry import truth_geometry  # noqa: E402
 from lfcam.sim.scene import scene_from_dict  # noqa: E402
+
+NOISE = {"photon_noise": True, "full_well_e": 20000.0, "read_noise_e": 3.0}  # focus_grid's
+PEAK = 0.5  # brightest pixel, share of full scale
 
 
 def _floats(text: str) -> list[float]:
@@ -58,6 +69,26 @@ def measure(image, prof, geom, white, truth, method: str, split: bool) -> list[t
     return out
 
 
+def render(base, prof, camera: dict, objects: list[dict], seed: int, renderer: str,
+           top: int) -> tuple[np.ndarray, dict]:
+    """One capture (digital units, black level off) and its truth: the sources' distances and
+    light centroids."""
+    if renderer == "independent":
+        from render_independent import render_capture
+
+        sources = [{"distance_mm": o["distance_mm"], "position_mm": o["position_mm"]}
+                   for o in objects]
+        img, truth = render_capture(prof, sources, seed=seed, peak=PEAK,
+                                    full_well_e=NOISE["full_well_e"],
+                                    read_noise_e=NOISE["read_noise_e"],
+                                    bit_depth=prof.sensor.bit_depth)
+        return img * top - prof.sensor.black_level, truth
+    scene = {"seed": seed, "rays_per_source": 1_000_000, "camera": camera, "sensor": NOISE,
+             "exposure": {"peak": PEAK}, "objects": objects}
+    raw, used, truth = simulate(base, scene_from_dict(scene))
+    return raw.astype(np.float64) - used.sensor.black_level, truth
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--system", default="system2")
@@ -68,6 +99,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="7,8", help="render seeds (rays and noise)")
     ap.add_argument("--size", type=int, default=1024, help="sensor side, px")
     ap.add_argument("--method", default="lenslet", choices=("lenslet", "auto"))
+    ap.add_argument("--renderer", default="sim", choices=("sim", "independent"))
     args = ap.parse_args()
     d1, d2 = _floats(args.distances)
     camera = {"mla": {"focus_mm": args.focus},
@@ -76,31 +108,29 @@ def main() -> None:
     prof = apply_overrides(base, camera)
     prof = prof.with_d_in(prof.d_in_mm)
     geom = truth_geometry(prof, (args.size, args.size))
+    # the fits read the renders' full well (the gain a capture of two blurs cannot measure)
+    measuring = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
+    top = min(2 ** prof.sensor.bit_depth - 1, prof.sensor.white_level)
+    white = float(prof.sensor.white_level - prof.sensor.black_level)
     print(f"# {args.system}, focus {args.focus:.0f} mm, {args.size}² px, sources at {d1:.0f} "
-          f"and {d2:.0f} mm, --method {args.method}; each region: source, status, error, "
-          "z = error/σ, CPU ms")
-    print("| apart | seed | centroids apart px | blurs px | cut off | cut on |")
-    print("|---|---|---|---|---|---|")
+          f"and {d2:.0f} mm, {args.renderer} renderer, --method {args.method}; each region: "
+          "source, status, error, z = error/σ, CPU ms")
+    print("| apart | seed | centroids apart px | cut off | cut on |")
+    print("|---|---|---|---|---|")
     tally = {False: [0, 0, 0], True: [0, 0, 0]}  # within 3σ, over 3σ, sources unmeasured
     for apart in _floats(args.aparts):
         for seed in [int(s) for s in args.seeds.split(",")]:
             objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d
                                                                            / 1000]}
                        for d, s in ((d1, -1.0), (d2, 1.0))]
-            scene = {"seed": seed, "rays_per_source": 1_000_000, "camera": camera,
-                     "exposure": {"peak": 0.5}, "objects": objects}
-            raw, used, truth = simulate(base, scene_from_dict(scene))
-            image = raw.astype(np.float64) - used.sensor.black_level
-            white = float(used.sensor.white_level - used.sensor.black_level)
+            image, truth = render(base, prof, camera, objects, seed, args.renderer, top)
             stats = lenslet_stats(image, geom.lmap)
             capture_noise(image, geom.lmap, geom.pitch_px, stats,
-                          sensor_gain=distance.sensor_gain(prof, white))
+                          sensor_gain=distance.sensor_gain(measuring, white))
             cs = [s["centroid_px"] for s in truth["sources"]]
-            blurs = [round(s["diameter_mm"] / used.sensor.pixel_pitch_mm)
-                     for s in truth["sources"]]
             cells = []
             for split in (False, True):
-                res = measure(image, prof, geom, white, truth, args.method, split)
+                res = measure(image, measuring, geom, white, truth, args.method, split)
                 measured = set()
                 for k, status, _, z, _ in res:
                     if status == "ok":
@@ -110,8 +140,8 @@ def main() -> None:
                 cells.append("; ".join(
                     f"{k}: {status}" + (f" {err:+.3f} % ({z:+.1f}σ)" if status == "ok" else "")
                     + f", {ms:.0f} ms" for k, status, err, z, ms in res))
-            print(f"| {apart:g} | {seed} | {np.hypot(*np.subtract(*cs)):.0f} | {blurs[0]}, "
-                  f"{blurs[1]} | {cells[0]} | {cells[1]} |", flush=True)
+            print(f"| {apart:g} | {seed} | {np.hypot(*np.subtract(*cs)):.0f} | {cells[0]} | "
+                  f"{cells[1]} |", flush=True)
     for split in (False, True):
         within, over, missing = tally[split]
         print(f"# cut {'on' if split else 'off'}: {within} answers within 3σ, {over} over 3σ, "

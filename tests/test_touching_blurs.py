@@ -1,9 +1,10 @@
 """Two sources whose blurs touch: one cluster of lit lenslets, cut at its waist into two regions,
 each measured with the other as its neighbour and the lenslets both light left out.
 
-Truth: the renderer's distances (``lfcam.sim``, photon and read noise), and the region
-finder's old answer for the same capture (one ``multiple`` region, no distance) as the case the
-cut is for (docs/distance.md, "Touching blurs cut at their waist (stop 67)").
+Truth: the renderer's distances (``lfcam.sim``, the rays' own noise: 10⁶ a source, no sensor
+noise), and the region finder's old answer for the same capture (one ``multiple`` region, no
+distance) as the case the cut is for (docs/distance.md, "Touching blurs cut at their waist
+(stop 67)").
 """
 
 from __future__ import annotations
