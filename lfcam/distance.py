@@ -22,8 +22,8 @@ available, i.e. ``exact``); ``refocus`` is Hahne et al.'s depth from refocus.
 
 A region whose measurement fails numerically gets the status ``failed: <reason>``; the other
 regions and the outputs go on. A failed spot or line region that two overlapping blurs explain
-is cut in two and both are measured again (``SPLIT_OVERLAPS``, lenslet fit:
-:mod:`lfcam.measure.overlap`).
+is cut in two and both are measured again (``SPLIT_OVERLAPS``, every method but
+``diameter``: :mod:`lfcam.measure.overlap`).
 """
 
 from __future__ import annotations
@@ -316,10 +316,7 @@ def run_distance(
     finally:
         if pool is not None:
             pool.close()
-    # (the parts are for the lenslet fit, which placed them: the light-field fit leaves
-    # both poor-fit, ~20 s each, docs/distance.md, "Blurs that overlap without a waist")
-    if SPLIT_OVERLAPS and model != "refocus" and (
-            method == "lenslet" or (method == "auto" and tolerance_pct is not None)):
+    if SPLIT_OVERLAPS and model != "refocus" and method != "diameter":
         regions, estimates = _split_overlaps(profile, geom, img, stats, regions, near,
                                              estimates, noise, args)
     results = []
