@@ -149,8 +149,8 @@ def test_one_source_is_not_cut():
 
 def test_the_light_field_fit_measures_both_parts():
     # measure_lightfield on each part of the cut, the other its neighbour: its lenslet starts
-    # read the part as measure_lenslet does (band and neighbour left out: lightfield.
-    # _cut_moments); with the box's own moments both parts were poor-fit after ~20 s each
+    # read the part as measure_lenslet does (band and neighbour left out: fastfit.
+    # region_moments); with the box's own moments both parts were poor-fit after ~20 s each
     from lfcam.measure import measure_lightfield
 
     prof, geom, image, stats, noise, truth, white = _capture(13.0)

@@ -1507,6 +1507,16 @@ def _fd_jacobian(fun, fun_many, q, r, steps) -> np.ndarray:
     return np.column_stack([(v - r) / h for v, h in zip(values, steps, strict=True)])
 
 
+def region_moments(geom: Geometry, image: np.ndarray, region: Region,
+                   others: Sequence[Region] = ()) -> _Moments:
+    """:func:`data_moments` of a region's box as :func:`measure_lenslet` fits them: the
+    lenslets its blur shares with a touching one (``region.shared``) and, with
+    :data:`OTHERS_EXCLUDED`, ``others``' lenslets left out."""
+    exclude = np.concatenate([region.shared]
+                             + ([o.lenslets for o in others] if OTHERS_EXCLUDED else []))
+    return data_moments(geom, image, _region_box(geom, region, image.shape), exclude=exclude)
+
+
 def _region_box(geom: Geometry, region: Region, shape) -> tuple[int, int, int, int]:
     x0, y0, x1, y1 = region.box_px
     pad = int(math.ceil(0.5 * geom.pitch_px))
@@ -3091,12 +3101,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     """
     # the poor-fit gate and the line trigger are relative to the region's own noise
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
-    box = _region_box(geom, region, image.shape)
-    # (and the lenslets its blur shares with a touching one: regions.Region.shared)
-    exclude = np.concatenate([region.shared]
-                             + ([o.lenslets for o in others] if OTHERS_EXCLUDED else []))
     # once: the noise misfit, the point and the line fit
-    mom = data_moments(geom, image, box, exclude=exclude)
+    mom = region_moments(geom, image, region, others)
     noise_model = capture_noise(image, geom.lmap, geom.pitch_px)
     nm = noise_model.moments_misfit_of(mom.noise_sums, mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)

@@ -23,13 +23,7 @@ from lfcam.measure.base import (
     point_measurement,
     region_pixels_mask,
 )
-from lfcam.measure.fastfit import (
-    _Moments,
-    _region_box,
-    data_moments,
-    fit_lenslet_line,
-    fit_lenslet_point,
-)
+from lfcam.measure.fastfit import fit_lenslet_line, fit_lenslet_point, region_moments
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.linefit import fit_line_image
 from lfcam.measure.noise import capture_noise
@@ -109,6 +103,11 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     near = np.unique(np.concatenate([region.lenslets, neighbours(geom, region),
                                      _lenslets_in(geom, box)]))
     floor = 0.0  # of the σ (point_measurement): the pixel fit's alone
+    # the lenslet fits' moments (their points start the pixel fits): a cut region's as
+    # measure_lenslet reads them, band and neighbours left out (docs/distance.md, "Blurs
+    # that overlap without a waist (stop 68)": with the other blur's light in them the parts
+    # of two blurs 187 px apart were both poor-fit after ~20 s each); else the box's own
+    own = region_moments(geom, image, region, nearby) if region.touching else None
     # the noise a clipped capture cuts at zero: the pixel fits model its floor
     floor_sigma = capture_noise(image, geom.lmap, geom.pitch_px).floor_sigma
     moments = None  # the lenslet fit's point, where it runs
@@ -130,7 +129,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         # start can lie 3-4 % off in a side basin whose misfit already looks good (system 2,
         # focus ∞, 3500 mm at 80 % of the field: −2.4 %, docs/distance.md)
         start = fit.source_mm if fit.ok else None
-        own = _cut_moments(geom, image, region, nearby)
         moments = fit_lenslet_point(profile, geom, image, region, mom=own)
         if moments.ok:
             start = moments.source_mm
@@ -141,8 +139,8 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         others = []
         for other in nearby:
             # a touching blur's light in this box, where its lenslet fit puts it
-            fit_other = fit_lenslet_point(profile, geom, image, other,
-                                          mom=_cut_moments(geom, image, other, (region,)))
+            fit_other = fit_lenslet_point(profile, geom, image, other, mom=(
+                region_moments(geom, image, other, (region,)) if other.touching else None))
             if fit_other.ok:
                 others.append(fit_other.source_mm)
         fi = fit_point_image(profile, geom.d_in_mm, image, box, geom.lens_centres_mm[near],
@@ -160,7 +158,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
         if misfit > line_trigger(noise_mf, LINE_TRIGGER_MISFIT) or region.kind == "line":
             # the lenslet fit's line (~0.1-0.3 s, against the pixel fit's 4-15 s) is one start
             # of the pixel fit's, and says whether it is worth running at all
-            own = _cut_moments(geom, image, region, nearby)
             if moments is None:
                 moments = fit_lenslet_point(profile, geom, image, region, mom=own)
             lens_line = fit_lenslet_line(profile, geom, image, region,
@@ -180,21 +177,6 @@ def measure_lightfield(profile: CameraProfile, geom: Geometry, image: np.ndarray
     return point_measurement(profile, geom.d_in_mm, source, sigma_d, floor, misfit=misfit,
                              noise_misfit=noise_mf,
                              source_xy_mm=(float(source[0]), float(source[1])))
-
-
-def _cut_moments(geom: Geometry, image: np.ndarray, region: Region,
-                 others: tuple[Region, ...]) -> _Moments | None:
-    """The lenslet moments the lenslet fit of a region cut from touching or overlapping blurs
-    reads, as :func:`lfcam.measure.fastfit.measure_lenslet` reads them: the band both blurs
-    light (``region.shared``) and ``others``' lenslets left out; None (the box's moments,
-    as before) for any other region. With the other blur's light in them, the starts of the
-    pixel fit (this blur's and the other's) lay where neither source is: the parts of two
-    blurs 187 px apart were both `poor-fit` after ~20 s each; with it +0.003 and +0.018 % in
-    3.5 s (docs/distance.md, "Blurs that overlap without a waist (stop 68)")."""
-    if not region.touching:
-        return None
-    exclude = np.concatenate([region.shared] + [o.lenslets for o in others])
-    return data_moments(geom, image, _region_box(geom, region, image.shape), exclude=exclude)
 
 
 def _lenslets_in(geom: Geometry, box: tuple[int, int, int, int]) -> np.ndarray:

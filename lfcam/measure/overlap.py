@@ -115,9 +115,7 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     """
     if region.lenslets.size < TWO_MIN_LENSLETS:
         return None
-    box = ff._region_box(geom, region, image.shape)
-    exclude = np.concatenate([region.shared] + [o.lenslets for o in others])
-    mom = ff.data_moments(geom, image, box, exclude=exclude)
+    mom = ff.region_moments(geom, image, region, others)
     energy = mom.data[:, 0]
     lit = energy > TWO_LIT_SHARE * energy.max()
     if lit.sum() < TWO_MIN_LENSLETS // 2:
