@@ -199,8 +199,12 @@ def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     if min(first.sum(), second.sum()) < TWO_MIN_PART:
         return None
     shared = np.union1d(two.ids[band], region.shared)
-    parts = [make_region(rid, "spot", two.ids[m], stats, geom.lmap, geom.pitch_px, 1, shared)
-             for rid, m in ((region.region_id, first), (new_id, second))]
+    # each part's place: its source's light as the two-point fit spreads it (the part alone
+    # may be a crescent whose own centroid lies far off its source's)
+    centres = geom.lmap.centres_px[two.ids]
+    parts = [make_region(rid, "spot", two.ids[m], stats, geom.lmap, geom.pitch_px, 1, shared,
+                         (centres * two.light[k, :, None]).sum(0) / two.light[k].sum())
+             for k, (rid, m) in enumerate(((region.region_id, first), (new_id, second)))]
     return parts[0], parts[1]
 
 

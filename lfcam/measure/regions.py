@@ -211,13 +211,15 @@ def _footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
 
 def make_region(region_id: int, kind: str, members: np.ndarray, stats: LensletStats,
                 lmap: LensletMap, pitch_px: float, parts: int = 1,
-                shared: np.ndarray = _NONE) -> Region:
+                shared: np.ndarray = _NONE, centroid_px: np.ndarray | None = None) -> Region:
     """The :class:`Region` of the lenslets ``members`` (indices into ``lmap``'s list): its
-    energy, light centroid, box, elongation and axis from ``stats``."""
+    energy, light centroid (or ``centroid_px``, where the caller knows the light better than
+    the members do), box, elongation and axis from ``stats``."""
     e = stats.energy[members]
     cen = stats.centroid_px[members]
     good = np.isfinite(cen).all(axis=1)
-    centroid = (cen[good] * e[good, None]).sum(0) / e[good].sum()
+    centroid = ((cen[good] * e[good, None]).sum(0) / e[good].sum() if centroid_px is None
+                else np.asarray(centroid_px, dtype=np.float64))
     pos = lmap.centres_px[members]
     _, evecs, elong = _footprint_shape(e, pos, pitch_px)
     h, w = lmap.labels.shape
