@@ -10,56 +10,27 @@ overlap without a waist (stop 68)").
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
+from twin_points import CAMERA, NOISE, render_pair
 
 from lfcam import distance
 from lfcam.camera import load_profile
 from lfcam.measure import fastfit, lenslet_stats, overlap
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.regions import find_regions, nearby_regions
-from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.geometry import truth_geometry
+from lfcam.sim.capture import simulate
 from lfcam.sim.scene import scene_from_dict
 from lfcam.status import RegionStatus
 
-SIZE = 1024
-CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
-NOISE = {"photon_noise": True, "full_well_e": 20000.0, "read_noise_e": 3.0}
-_CAPTURES: dict = {}
-
 
 def _capture(apart: float, sensor: bool = True) -> tuple:
-    """System 2 focused at 1 m, points at 1 400 and 1 500 mm behind focus (blurs ~290 and ~305
-    px across) ``apart`` × 1/1000 of their distance off the axis on either side: 13 puts
-    their light centroids 187 px apart (no waist: one region), 14 201 px (without sensor
-    noise, the rays' own alone, a waist the lit lenslets' scatter shows in the wrong place:
-    two regions, one of them poor-fit). (profile, geometry, image, lenslet statistics, pixel
-    noise, truth, white level)."""
-    if (apart, sensor) not in _CAPTURES:
-        base = load_profile("system2")
-        prof = apply_overrides(base, CAMERA)
-        prof = prof.with_d_in(prof.d_in_mm)
-        # (the fits told the renders' full well)
-        prof = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
-        objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d / 1000]}
-                   for d, s in ((1400.0, -1.0), (1500.0, 1.0))]
-        scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,
-                 "exposure": {"peak": 0.5}, "objects": objects}
-        if sensor:
-            scene["sensor"] = NOISE
-        raw, used, truth = simulate(base, scene_from_dict(scene))
-        image = raw.astype(np.float64) - used.sensor.black_level
-        geom = truth_geometry(prof, (SIZE, SIZE))
-        white = float(used.sensor.white_level - used.sensor.black_level)
-        stats = lenslet_stats(image, geom.lmap)
-        capture_noise(image, geom.lmap, geom.pitch_px, stats,
-                      sensor_gain=distance.sensor_gain(prof, white))
-        _CAPTURES[apart, sensor] = (prof, geom, image, stats, distance.noise_sigma(image), truth,
-                                    white)
-    return _CAPTURES[apart, sensor]
+    """The pair ``apart`` (tests/twin_points.py), by default with the focus grid's sensor
+    noise: 13 puts their light centroids 187 px apart (no waist: one region), 14 201 px
+    (without sensor noise, the rays' own alone, a waist the lit lenslets' scatter shows in the
+    wrong place: two regions, one of them poor-fit). (profile, geometry, image, lenslet
+    statistics, pixel noise, truth, white level)."""
+    return render_pair(apart, sensor)
 
 
 def test_amplitudes_are_the_least_squares_brightnesses():

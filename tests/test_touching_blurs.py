@@ -11,41 +11,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from twin_points import render_pair
 
-from lfcam import distance
-from lfcam.camera import load_profile
-from lfcam.measure import fastfit, lenslet_stats
+from lfcam.measure import fastfit
 from lfcam.measure import regions as regions_module
-from lfcam.measure.noise import capture_noise
 from lfcam.measure.regions import find_regions, nearby_regions
-from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.geometry import truth_geometry
-from lfcam.sim.scene import scene_from_dict
-
-SIZE = 1024
-CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
 
 
 def _capture(apart: float) -> tuple:
-    """System 2 focused at 1 m, two points behind focus (1 400 and 1 500 mm, blurs ~290 and
-    ~305 px across) placed ``apart`` × 1/1000 of their distance off the axis on either side:
-    18 puts their light centroids 259 px apart, 16.5 237 px (the blurs overlap by ~40 and
-    ~60 px). (profile, geometry, image, its lenslet statistics, pixel noise, truth)."""
-    base = load_profile("system2")
-    prof = apply_overrides(base, CAMERA)
-    prof = prof.with_d_in(prof.d_in_mm)
-    objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d / 1000]}
-               for d, s in ((1400.0, -1.0), (1500.0, 1.0))]
-    scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,
-             "exposure": {"peak": 0.5}, "objects": objects}
-    raw, used, truth = simulate(base, scene_from_dict(scene))
-    image = raw.astype(np.float64) - used.sensor.black_level
-    geom = truth_geometry(prof, (SIZE, SIZE))
-    white = float(used.sensor.white_level - used.sensor.black_level)
-    stats = lenslet_stats(image, geom.lmap)
-    capture_noise(image, geom.lmap, geom.pitch_px, stats,
-                  sensor_gain=distance.sensor_gain(prof, white))
-    return prof, geom, image, stats, distance.noise_sigma(image), truth
+    """The pair ``apart`` (tests/twin_points.py, the rays' own noise): 18 puts their light
+    centroids 259 px apart, 16.5 237 px (the blurs overlap by ~40 and ~60 px). (profile,
+    geometry, image, its lenslet statistics, pixel noise, truth)."""
+    return render_pair(apart)[:6]
 
 
 @pytest.mark.parametrize("apart", [18.0, 16.5])
