@@ -4,7 +4,8 @@ overlap without a waist (stop 68)").
 
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
 [--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
-[--renderer sim|independent]`` (``--method lightfield``: ~20 s a capture)
+[--renderer sim|independent] [--brightness 1] [--field-mm 0]`` (``--method lightfield``:
+~20 s a capture)
 
 Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
 either side, rendered by :mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer
@@ -76,8 +77,8 @@ def render(base, prof, camera: dict, objects: list[dict], seed: int, renderer: s
     if renderer == "independent":
         from render_independent import render_capture
 
-        sources = [{"distance_mm": o["distance_mm"], "position_mm": o["position_mm"]}
-                   for o in objects]
+        sources = [{"distance_mm": o["distance_mm"], "position_mm": o["position_mm"],
+                    "intensity": o["intensity"]} for o in objects]
         img, truth = render_capture(prof, sources, seed=seed, peak=PEAK,
                                     full_well_e=NOISE["full_well_e"],
                                     read_noise_e=NOISE["read_noise_e"],
@@ -100,6 +101,11 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=1024, help="sensor side, px")
     ap.add_argument("--method", default="lenslet", choices=("lenslet", "lightfield", "auto"))
     ap.add_argument("--renderer", default="sim", choices=("sim", "independent"))
+    ap.add_argument("--brightness", type=float, default=1.0,
+                    help="the second source's intensity over the first's")
+    ap.add_argument("--field-mm", type=float, default=0.0,
+                    help="both sources this far off the axis across the pair's line (x), "
+                         "1/1000 of their distance each, mm at 1 m")
     args = ap.parse_args()
     d1, d2 = _floats(args.distances)
     camera = {"mla": {"focus_mm": args.focus},
@@ -113,16 +119,17 @@ def main() -> None:
     top = min(2 ** prof.sensor.bit_depth - 1, prof.sensor.white_level)
     white = float(prof.sensor.white_level - prof.sensor.black_level)
     print(f"# {args.system}, focus {args.focus:.0f} mm, {args.size}² px, sources at {d1:.0f} "
-          f"and {d2:.0f} mm, {args.renderer} renderer, --method {args.method}; each region: "
-          "source, status, error, z = error/σ, CPU ms")
+          f"and {d2:.0f} mm (the second {args.brightness:g} × as bright, both "
+          f"{args.field_mm:g} mm/m off the axis), {args.renderer} renderer, --method "
+          f"{args.method}; each region: source, status, error, z = error/σ, CPU ms")
     print("| apart | seed | centroids apart px | cut off | cut on |")
     print("|---|---|---|---|---|")
     tally = {False: [0, 0, 0], True: [0, 0, 0]}  # within 3σ, over 3σ, sources unmeasured
     for apart in _floats(args.aparts):
         for seed in [int(s) for s in args.seeds.split(",")]:
-            objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d
-                                                                           / 1000]}
-                       for d, s in ((d1, -1.0), (d2, 1.0))]
+            objects = [{"type": "point", "distance_mm": d, "intensity": b,
+                        "position_mm": [args.field_mm * d / 1000, s * apart * d / 1000]}
+                       for d, s, b in ((d1, -1.0, 1.0), (d2, 1.0, args.brightness))]
             image, truth = render(base, prof, camera, objects, seed, args.renderer, top)
             stats = lenslet_stats(image, geom.lmap)
             capture_noise(image, geom.lmap, geom.pitch_px, stats,
