@@ -388,7 +388,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
         whole = (reg if not sides else
                  merged_region(reg, regions[sides[0]], stats, geom.lmap, geom.pitch_px))
         others = tuple(o for o in near[i] if not any(o is regions[j] for j in sides))
-        pair = split_overlap(profile, geom, img, stats, whole, float("nan"), next_id, others)
+        pair = split_overlap(profile, geom, img, stats, whole, next_id, others)
         if pair is None:  # (the two-point fit's time is the failed region's too; the other
             #                 side, failed as well, would try the same union again)
             estimates[i] = (estimates[i][0], estimates[i][1] + time.process_time() - t)

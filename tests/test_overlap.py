@@ -78,7 +78,7 @@ def test_two_overlapping_blurs_are_cut_and_both_measured(monkeypatch):
     d = sorted(prof.main_lens.front_vertex_z_mm - two.sources_mm[:, 2])
     np.testing.assert_allclose(d, [1400.0, 1500.0], rtol=5e-3)
     assert two.misfit < two.noise_misfit
-    parts = overlap.split_overlap(prof, geom, image, stats, regions[0], float("nan"), 1)
+    parts = overlap.split_overlap(prof, geom, image, stats, regions[0], 1)
     assert parts[0].region_id == 0 and parts[1].region_id == 1
     assert np.array_equal(parts[0].shared, parts[1].shared) and parts[0].shared.size > 0
     assert not np.intersect1d(parts[0].lenslets, parts[1].lenslets).size
@@ -115,7 +115,7 @@ def test_one_source_is_not_cut():
     (region,) = find_regions(st, geom.lmap, geom.pitch_px)
     assert fastfit.measure_lenslet(prof, geom, img, region, distance.noise_sigma(img),
                                    others=nearby_regions([region])[0]).status == "ok"
-    assert overlap.split_overlap(prof, geom, img, st, region, float("nan"), 1) is None
+    assert overlap.split_overlap(prof, geom, img, st, region, 1) is None
 
 
 def test_the_light_field_fit_measures_both_parts():
@@ -126,7 +126,7 @@ def test_the_light_field_fit_measures_both_parts():
 
     prof, geom, image, stats, noise, truth, white = _capture(13.0)
     (region,) = find_regions(stats, geom.lmap, geom.pitch_px)
-    parts = overlap.split_overlap(prof, geom, image, stats, region, float("nan"), 1)
+    parts = overlap.split_overlap(prof, geom, image, stats, region, 1)
     found = set()
     for part, other in ((parts[0], parts[1]), (parts[1], parts[0])):
         m = measure_lightfield(prof, geom, image, part, noise, nearby=(other,))

@@ -8,13 +8,13 @@ lenslet fit ends ``poor-fit`` and neither source gets a distance.
 
 Such a region is fitted here as two point sources (six parameters) on its lenslet moments,
 the two models' brightnesses solved linearly at every step (:func:`two_points`). Where two
-points explain the region (their misfit under the region's poor-fit limit and under
-:data:`TWO_GAIN` × the one it had), the fit only places the two blurs: the region is cut, as
-touching blurs are, into the lenslets each blur lights alone, and a band that both light
-(``Region.shared``, left out of both fits' data) (:func:`split_overlap`). Each part is then
-measured as any touching region is, with the other as its neighbour, so that its answer,
-σ and status come from the same fits as every other region's (docs/distance.md, "Blurs that
-overlap without a waist (stop 68)").
+points explain the region (their misfit under :data:`TWO_NOISE` × its noise misfit, or
+:data:`TWO_FLOOR`, and under its poor-fit limit), the fit only places the two blurs: the
+region is cut, as touching blurs are, into the lenslets each blur lights alone, and a band
+that both light (``Region.shared``, left out of both fits' data) (:func:`split_overlap`).
+Each part is then measured as any touching region is, with the other as its neighbour, so
+that its answer, σ and status come from the same fits as every other region's
+(docs/distance.md, "Blurs that overlap without a waist (stop 68)").
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
-from lfcam.measure.regions import Region, make_region
+from lfcam.measure.regions import Region, footprint_shape, make_region
 from lfcam.measure.verify import poor_fit_limit
 
 TWO_MIN_LENSLETS = 40  # a region of fewer lenslets is not tried as two blurs
@@ -39,8 +39,8 @@ TWO_FINE_RAYS = 12000  # ... and of its last steps
 TWO_ITERATIONS = 8  # Levenberg–Marquardt iterations on the coarse model ...
 TWO_FINE_ITERATIONS = 3  # ... and on the fine one
 TWO_SCAN = (0.7, 0.85, 1.0, 1.18, 1.4)  # each blur's distance about the common scan's best
-TWO_GAIN = 0.5  # two points must leave under this × the misfit the region's own fit left
-TWO_NOISE = 1.5  # ... and under this × the region's noise misfit (they explain all there is),
+TWO_NOISE = 1.5  # two points must leave under this × the region's noise misfit (they explain
+#                  all there is),
 TWO_FLOOR = 0.02  # ... or this, where the noise misfit is less (the model's own ray noise)
 TWO_LIT_SHARE = 0.05  # a blur lights the lenslets over this share of its brightest
 TWO_BAND_SHARE = 0.005  # a lenslet is in the band where both blurs put over this share of
@@ -81,10 +81,8 @@ def _amplitudes(data: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
 def _lobes(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
     """The energy centroids (2, 2) of a footprint's two halves along its long axis: two
     means of the lenslets' positions ``pos`` (weights ``w``) on that axis."""
-    mean = (pos * w[:, None]).sum(0) / w.sum()
-    d = pos - mean
-    _, vecs = np.linalg.eigh((d.T * w) @ d / w.sum())
-    t = d @ vecs[:, 1]
+    mean, vecs, _ = footprint_shape(w, pos, 0.0)
+    t = (pos - mean) @ vecs[:, 1]
     order = np.argsort(t)
     cum = np.cumsum(w[order]) / w.sum()
     c = np.array([t[order][np.searchsorted(cum, 0.25)], t[order][np.searchsorted(cum, 0.75)]])
@@ -155,16 +153,14 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
             for d2, g2 in zip(trial, g_trial, strict=True)]
     costs = [ff._sq(r) for r in pairs_of(coarse, grid)]
     q = grid[int(np.argmin(costs))]
-    n_lit = ff.lit_lenslets(mom)
-    steps = np.tile(ff.point_steps(profile, geom, n_lit), 2)
-    for model, iterations in ((coarse, TWO_ITERATIONS),
-                              (ff.LensletModel(profile, geom, mom, TWO_FINE_RAYS),
-                               TWO_FINE_ITERATIONS)):
+    fine = ff.LensletModel(profile, geom, mom, TWO_FINE_RAYS)
+    steps = np.tile(ff.point_steps(profile, geom, ff.lit_lenslets(mom)), 2)
+    for model, iterations in ((coarse, TWO_ITERATIONS), (fine, TWO_FINE_ITERATIONS)):
         fun = (lambda qq, model=model: pairs_of(model, [qq])[0])  # noqa: E731
         many = (lambda qs, model=model: pairs_of(model, qs))  # noqa: E731
         q, r, f, _ = ff._levenberg_marquardt(fun, q, steps, iterations, 1e-4, many)
     sources = np.array([frame.source(q[:3]), frame.source(q[3:])])
-    m = model.simulate_groups(sources, np.arange(2, dtype=np.int64), 2, 1)
+    m = fine.simulate_groups(sources, np.arange(2, dtype=np.int64), 2, 1)
     a = _amplitudes(mom.data, m[0], m[1])
     if not (a > 0).all():
         return None
@@ -173,12 +169,12 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
 
 
 def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                  stats: LensletStats, region: Region, misfit: float, new_id: int,
+                  stats: LensletStats, region: Region, new_id: int,
                   others: tuple[Region, ...] = ()) -> tuple[Region, Region] | None:
-    """``region`` (whose own fit left ``misfit``) cut into the two blurs a two-point fit finds
-    in it (:func:`two_points`), or None where two points do not explain it: their misfit over
-    the region's poor-fit limit or over :data:`TWO_GAIN` × ``misfit``, or a part of fewer
-    than :data:`TWO_MIN_PART` lenslets.
+    """``region`` (whose own fit failed) cut into the two blurs a two-point fit finds in it
+    (:func:`two_points`), or None where two points do not explain it (their misfit over
+    :data:`TWO_NOISE` × the region's noise misfit, or :data:`TWO_FLOOR`, or over its poor-fit
+    limit) or a part would keep fewer than :data:`TWO_MIN_PART` lenslets.
 
     The parts: the region's lenslets where one blur puts over :data:`TWO_BAND_SHARE` of its
     brightest lenslet's light and the other does not, each to the blur that puts more light
@@ -189,7 +185,7 @@ def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return None
     limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
                 max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
-    if not (two.misfit < limit and (not math.isfinite(misfit) or two.misfit < TWO_GAIN * misfit)):
+    if not two.misfit < limit:
         return None
     share = two.light / two.light.max(axis=1, keepdims=True)
     mine = np.isin(two.ids, region.lenslets)

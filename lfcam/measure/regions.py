@@ -168,7 +168,7 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
         members, n_parts, shared = todo.pop(0)
         if members.size < MIN_LENSLETS:
             continue
-        shape = _footprint_shape(energy[members], centres[members], pitch_px)
+        shape = footprint_shape(energy[members], centres[members], pitch_px)
         pos, evecs, elong = centres[members], shape[1], shape[2]
         waist = (_waist(pos, evecs[:, 1], pitch_px)
                  if elong >= LINE_ELONGATION and members.size <= EXTENDED_SHARE * len(centres)
@@ -197,7 +197,7 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     return regions
 
 
-def _footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
+def footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
                      ) -> tuple[np.ndarray, np.ndarray, float]:
     """A footprint's energy-weighted centre (px), the eigenvectors of its second moments
     (columns, the long axis last; each lenslet a pitch-wide square) and its elongation
@@ -221,7 +221,7 @@ def make_region(region_id: int, kind: str, members: np.ndarray, stats: LensletSt
     centroid = ((cen[good] * e[good, None]).sum(0) / e[good].sum() if centroid_px is None
                 else np.asarray(centroid_px, dtype=np.float64))
     pos = lmap.centres_px[members]
-    _, evecs, elong = _footprint_shape(e, pos, pitch_px)
+    _, evecs, elong = footprint_shape(e, pos, pitch_px)
     h, w = lmap.labels.shape
     r = lmap.radius_px
     x0 = int(max(0, np.floor(pos[:, 0].min() - r - 1)))
