@@ -29,6 +29,7 @@ is cut in two and both are measured again (``SPLIT_OVERLAPS``, every method but
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -188,8 +189,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
             meas = measure_lenslet(profile, geom, img, reg, noise, accept, others=nearby)
         else:
             meas = measure_diameter(profile, geom, img, stats, reg, noise)
-    name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
-    return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
+    return _estimate_of(profile, meas, model, tolerance_pct)
 
 
 def sensor_gain(profile: CameraProfile, white_value: float | None) -> float:
@@ -360,59 +360,101 @@ _FAILED_FITS = (RegionStatus.POOR_FIT, RegionStatus.NO_SOLUTION)
 
 def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, args
                     ) -> tuple[list, list]:
-    """Regions and estimates with each failed spot or line region that two overlapping blurs
-    explain cut into those two, both measured again (:func:`lfcam.measure.overlap.
-    split_overlap`). A failed region cut from touching blurs is tried together with the
-    other side of its cut (the region sharing its band), whose answer the new cut replaces:
-    a cut misplaced at a waist that two overlapping discs only seem to have leaves one side
-    ``poor-fit`` and the other fitted to both blurs' light. The first part keeps the failed
-    region's id, and its time counts the failed fit's and the two-point fit's; the second
-    takes the other side's id, or a new one at the end."""
-    from lfcam.measure.overlap import merged_region, split_overlap
+    """Regions and estimates with each region that two overlapping blurs explain split
+    between those two (:func:`lfcam.measure.overlap.split_overlap`): a failed spot or line
+    region, and an ``ok`` one whose footprint is nearly round and whose lenslet fit leaves
+    over ``TWO_TRY`` × its noise and model misfits together (:func:`_unexplained`: two
+    sources a tenth of a blur apart read as one short line). Where the blurs can be cut both
+    parts are measured again, and a part whose own fit fails takes its source's answer from
+    the joint two-point fit (:func:`lfcam.measure.overlap.joint_measurements`); where they
+    cannot (too nearly one blur), both answers are the joint fit's.
 
+    A failed region cut from touching blurs is tried together with the other side of its cut
+    (the region sharing its band), whose answer the new split replaces: a cut misplaced at a
+    waist that two overlapping discs only seem to have leaves one side ``poor-fit`` and the
+    other fitted to both blurs' light. The first part keeps the region's id, and its time
+    counts the region's first fit and the two-point fit; the second takes the other side's
+    id, or a new one at the end."""
+    from lfcam.measure.overlap import joint_measurements, merged_region, split_overlap
+
+    model, _, tolerance_pct, _ = args
     regions, estimates = list(regions), list(estimates)
     near = list(near)
     next_id = max((r.region_id for r in regions), default=-1) + 1
     done: set[int] = set()
     for i in range(len(regions)):
         reg = regions[i]
+        status, meas = estimates[i][0][6], estimates[i][0][7]
+        failed_fit = status in _FAILED_FITS
         if (i in done or reg.kind not in ("spot", "line")
-                or estimates[i][0][6] not in _FAILED_FITS):
+                or not (failed_fit or (status == RegionStatus.OK and _unexplained(reg, meas)))):
             continue
         t = time.process_time()
         sides = [j for j, o in enumerate(regions)
-                 if j != i and reg.touching and o.shared.size == reg.shared.size
+                 if failed_fit and j != i and reg.touching and o.shared.size == reg.shared.size
                  and np.array_equal(o.shared, reg.shared)]
         if len(sides) > 1:
             continue
         whole = (reg if not sides else
                  merged_region(reg, regions[sides[0]], stats, geom.lmap, geom.pitch_px))
         others = tuple(o for o in near[i] if not any(o is regions[j] for j in sides))
-        pair = split_overlap(profile, geom, img, stats, whole, next_id, others)
-        if pair is None:  # (the two-point fit's time is the failed region's too; the other
-            #                 side, failed as well, would try the same union again)
+        split = split_overlap(profile, geom, img, stats, whole, next_id, others,
+                              beat=math.inf if failed_fit else meas.misfit)
+        if split is None:  # (the two-point fit's time is the region's too; the other
+            #                  side, failed as well, would try the same union again)
             estimates[i] = (estimates[i][0], estimates[i][1] + time.process_time() - t)
             done.update(sides)
             continue
+        pair = split.parts
         if sides:
             pair = (pair[0], dataclasses.replace(pair[1], region_id=regions[sides[0]].region_id))
         else:
             next_id += 1
-        spent = time.process_time() - t + estimates[i][1]  # (the failed fit's time too)
+        spent = time.process_time() - t + estimates[i][1]  # (the region's first fit too)
         for k, (part, other) in enumerate(((pair[0], pair[1]), (pair[1], pair[0]))):
-            est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
-                                        (other,) + others)
+            nearby = (other,) + others
+            est, secs = (None, 0.0)
+            if split.cut:
+                est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
+                                            nearby)
+            if est is None or est[6] != RegionStatus.OK:
+                # the part's own fit failed (a crescent), or the blurs are not cut: the
+                # source's answer is the joint fit's (its first user carries its time)
+                t_joint = time.process_time()
+                joint = joint_measurements(profile, geom, split.two)[k]
+                est = _estimate_of(profile, joint, model, tolerance_pct)
+                secs += time.process_time() - t_joint
             if k == 0:
-                regions[i], estimates[i], near[i] = part, (est, secs + spent), (other,) + others
+                regions[i], estimates[i], near[i] = part, (est, secs + spent), nearby
             elif sides:
                 j = sides[0]
-                regions[j], estimates[j], near[j] = part, (est, secs), (other,) + others
+                regions[j], estimates[j], near[j] = part, (est, secs), nearby
             else:
                 regions.append(part)
                 estimates.append((est, secs))
-                near.append((other,) + others)
+                near.append(nearby)
         done.update([i, *sides])
     return regions, estimates
+
+
+def _unexplained(reg: Region, meas: Measurement | None) -> bool:
+    """Whether an ``ok`` lenslet answer may be two sources that nearly share a line of sight:
+    its region's footprint nearly round (elongation under ``overlap.TWO_ROUND``) and its
+    misfit over ``overlap.TWO_TRY`` × its noise and its point models' own misfits in
+    quadrature."""
+    from lfcam.measure.overlap import TWO_ROUND, TWO_TRY
+
+    if meas is None or not reg.elongation < TWO_ROUND:
+        return False
+    floor = math.hypot(meas.noise_misfit, meas.model_misfit)
+    return bool(math.isfinite(floor) and meas.misfit > TWO_TRY * floor)
+
+
+def _estimate_of(profile: CameraProfile, meas: Measurement, model: str,
+                 tolerance_pct: float | None) -> tuple:
+    """The estimate tuple of :func:`_estimate` for a measurement."""
+    name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
+    return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
 
 
 def _timed_estimate(profile, geom, img, stats, reg, noise, args, nearby=()) -> tuple:

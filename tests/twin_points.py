@@ -21,22 +21,24 @@ NOISE = {"photon_noise": True, "full_well_e": 20000.0, "read_noise_e": 3.0}  # f
 _CAPTURES: dict = {}
 
 
-def render_pair(apart: float, sensor: bool = False) -> tuple:
-    """System 2 focused at 1 m, points at 1 400 and 1 500 mm behind focus (blurs ~290 and ~305
-    px across) ``apart`` × 1/1000 of their distance off the axis on either side (render seed 7,
-    10⁶ rays a source, brightest pixel at half of full scale): 18 puts their light centroids
-    259 px apart, 16.5 237 px, 14 201 px, 13 187 px. ``sensor``: the focus grid's sensor noise
-    (photon noise at a 20 000 e⁻ full well, which the profile then states, 3 e⁻ read noise);
-    else the rays' own noise alone. (profile, geometry, image, lenslet statistics, pixel noise,
-    truth, white level)."""
-    if (apart, sensor) not in _CAPTURES:
-        base = load_profile("system2")
+def render_pair(apart: float, sensor: bool = False, system: str = "system2",
+                distances: tuple[float, float] = (1400.0, 1500.0)) -> tuple:
+    """``system`` focused at 1 m, points at ``distances`` (system 2, 1 400 and 1 500 mm
+    behind focus: blurs ~290 and ~305 px across) ``apart`` × 1/1000 of their distance off the
+    axis on either side (render seed 7, 10⁶ rays a source, brightest pixel at half of full
+    scale): on system 2 18 puts their light centroids 259 px apart, 16.5 237 px, 14 201 px, 13
+    187 px. ``sensor``: the focus grid's sensor noise (photon noise at a 20 000 e⁻ full well,
+    which the profile then states, 3 e⁻ read noise); else the rays' own noise alone.
+    (profile, geometry, image, lenslet statistics, pixel noise, truth, white level)."""
+    key = (apart, sensor, system, distances)
+    if key not in _CAPTURES:
+        base = load_profile(system)
         prof = apply_overrides(base, CAMERA)
         prof = prof.with_d_in(prof.d_in_mm)
         if sensor:  # (the fits told the renders' full well)
             prof = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
         objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d / 1000]}
-                   for d, s in ((1400.0, -1.0), (1500.0, 1.0))]
+                   for d, s in zip(distances, (-1.0, 1.0), strict=True)]
         scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,
                  "exposure": {"peak": 0.5}, "objects": objects}
         if sensor:
@@ -48,6 +50,6 @@ def render_pair(apart: float, sensor: bool = False) -> tuple:
         stats = lenslet_stats(image, geom.lmap)
         capture_noise(image, geom.lmap, geom.pitch_px, stats,
                       sensor_gain=distance.sensor_gain(prof, white))
-        _CAPTURES[apart, sensor] = (prof, geom, image, stats, distance.noise_sigma(image), truth,
+        _CAPTURES[key] = (prof, geom, image, stats, distance.noise_sigma(image), truth,
                                     white)
-    return _CAPTURES[apart, sensor]
+    return _CAPTURES[key]

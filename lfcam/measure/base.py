@@ -33,6 +33,8 @@ class Measurement:
     endpoints: tuple = ()  # lines: ((y1, y2) of endpoint a, (y1, y2) of endpoint b)
     noise_misfit: float = float("nan")  # the misfit pixel noise alone would give
     source_xy_mm: tuple = ()  # lateral position (x, y) of the fitted source, when known
+    model_misfit: float = float("nan")  # the lenslet fit's point models' own disagreement
+    #                                     (their ray samples') at the point fit
 
     @classmethod
     def failed(cls, status: str, d_in_mm: float, kind: str = "spot") -> Measurement:

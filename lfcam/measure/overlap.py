@@ -20,12 +20,14 @@ that its answer, σ and status come from the same fits as every other region's
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 
 from lfcam.camera import CameraProfile
 from lfcam.measure import fastfit as ff
+from lfcam.measure.base import Measurement, point_measurement
 from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import capture_noise
@@ -38,6 +40,11 @@ TWO_RAYS = 3000  # rays a point of the two-point model (it places the blurs; it 
 TWO_FINE_RAYS = 12000  # ... and of its last steps
 TWO_ITERATIONS = 8  # Levenberg–Marquardt iterations on the coarse model ...
 TWO_FINE_ITERATIONS = 3  # ... and on the fine one
+TWO_ANSWER_RAYS = ff.POLISH_RAYS  # rays a point where the joint fit gives the answers ...
+TWO_ANSWER_ITERATIONS = 8  # ... its Levenberg–Marquardt iterations, at most ...
+TWO_SETTLE_LOG = ff.POLISH_SETTLE_LOG  # ... ending on a step under this (log distance)
+TWO_STARTS = ("halves", "spread")  # the two-point fit's starts, tried in turn until two points
+#                                     explain the region (two_points)
 TWO_SCAN = (0.7, 0.85, 1.0, 1.18, 1.4)  # each blur's distance about the common scan's best
 TWO_NOISE = 1.5  # two points must leave under this × the region's noise misfit (they explain
 #                  all there is),
@@ -45,7 +52,14 @@ TWO_FLOOR = 0.02  # ... or this, where the noise misfit is less (the model's own
 TWO_LIT_SHARE = 0.05  # a blur lights the lenslets over this share of its brightest
 TWO_BAND_SHARE = 0.005  # a lenslet is in the band where both blurs put over this share of
 #                        their brightest lenslet's light on it
-TWO_MIN_PART = 12  # each part keeps at least this many lenslets
+TWO_MIN_PART = 12  # each part keeps at least this many lenslets (else: the joint answers)
+TWO_TRY = 2.2  # an ``ok`` lenslet answer whose misfit is over this × its noise and model
+#               misfits in quadrature is tried as two sources (lfcam.distance._unexplained)
+TWO_ROUND = 1.5  # ... where its footprint's elongation is under this (two sources a tenth
+#                 to a fifth of a blur apart: 1.05-1.18; the grid's 720 mm lines on system
+#                 2, whose misfit passes TWO_TRY: 3.5-4.5)
+TWO_BEATS = 0.5  # where one source's fit explains a region, two must leave under this × its
+#                  misfit (as a line must a point's: fastfit.LINE_GAIN)
 
 
 class TwoPoints(NamedTuple):
@@ -56,6 +70,25 @@ class TwoPoints(NamedTuple):
     light: np.ndarray  # (2, K) each source's light on the box's lenslets (its fitted share)
     ids: np.ndarray  # (K,) the box's lenslets (indices into the lenslet list)
     noise_misfit: float  # the region's noise misfit
+    # () -> JointAnswer: the fit carried on to an answer (TWO_ANSWER_RAYS), run once on call
+    answer: Callable[[], JointAnswer]
+
+
+class JointAnswer(NamedTuple):
+    """The two sources as the joint fit measures them (:attr:`TwoPoints.answer`)."""
+
+    sources_mm: np.ndarray  # (2, 3) lens frame
+    sigma_mm: np.ndarray  # (2,) σ of each distance from the front vertex: the fit's
+    #                       statistical σ and its ray sample's shift in quadrature
+    misfit: float
+
+
+class Split(NamedTuple):
+    """A region that two point sources explain (:func:`split_overlap`)."""
+
+    parts: tuple[Region, Region]  # the lenslets each source lights more (source order)
+    two: TwoPoints
+    cut: bool  # the parts are measured on their own (else: the joint fit's answers)
 
 
 def _amplitudes(data: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
@@ -99,13 +132,28 @@ def _lobes(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.array([(pos[m] * w[m, None]).sum(0) / w[m].sum() for m in (near, ~near)])
 
 
+def _spread(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Two points (2, 2) about a footprint's centre on its long axis, as far apart as two
+    equally bright blurs of one size whose sum has that footprint: the variance along the
+    axis less the variance across it is a quarter of their separation squared."""
+    mean, vecs, _ = footprint_shape(w, pos, 0.0)
+    d = pos - mean
+    along = float((w * (d @ vecs[:, 1]) ** 2).sum() / w.sum())
+    across = float((w * (d @ vecs[:, 0]) ** 2).sum() / w.sum())
+    half = math.sqrt(max(along - across, 0.0))
+    return np.array([mean - half * vecs[:, 1], mean + half * vecs[:, 1]])
+
+
 def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: Region,
-               others: tuple[Region, ...] = ()) -> TwoPoints | None:
+               others: tuple[Region, ...] = (), starts: str = "halves") -> TwoPoints | None:
     """Fit ``region``'s lenslet moments as two point sources (module docstring).
 
-    Starts: the footprint's two halves along its long axis (their light centroids through the
-    chief ray at each trial distance), both at each distance of the point fit's scan, then each
-    at :data:`TWO_SCAN` × the best; then Levenberg–Marquardt on (log distance, x/L, y/L) of
+    Starts (``starts``): ``"halves"``, the light centroids of the footprint's two halves along
+    its long axis (:func:`_lobes`); ``"spread"``, two points on that axis as far apart as its
+    second moments say (:func:`_spread`: the halves of two blurs that overlap by over ~90 %
+    lie far outside their sources, in front of focus most). Each through the chief ray at
+    each trial distance: both at each distance of the point fit's scan, then each at
+    :data:`TWO_SCAN` × the best; then Levenberg–Marquardt on (log distance, x/L, y/L) of
     both, the two brightnesses solved at every evaluation. ``others``' lenslets and the
     region's ``shared`` band are left out of the data, as in :func:`fastfit.measure_lenslet`.
     Returns None for a region of fewer than :data:`TWO_MIN_LENSLETS` lenslets or where the
@@ -121,7 +169,8 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
                                                                           mom.norm)
     frame = ff._Frame(profile)
-    lobes = _lobes(geom.lens_centres_mm[mom.ids[lit]], energy[lit])
+    lobes = (_spread if starts == "spread" else _lobes)(geom.lens_centres_mm[mom.ids[lit]],
+                                                         energy[lit])
 
     def residual(model: ff.LensletModel, m: np.ndarray) -> np.ndarray:
         a = _amplitudes(mom.data, m[0], m[1])
@@ -155,53 +204,108 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     q = grid[int(np.argmin(costs))]
     fine = ff.LensletModel(profile, geom, mom, TWO_FINE_RAYS)
     steps = np.tile(ff.point_steps(profile, geom, ff.lit_lenslets(mom)), 2)
+
+    def fit(model: ff.LensletModel, q: np.ndarray, iterations: int, **lm) -> tuple:
+        fun = (lambda qq: pairs_of(model, [qq])[0])  # noqa: E731
+        many = (lambda qs: pairs_of(model, qs))  # noqa: E731
+        q, r, f, jac = ff._levenberg_marquardt(fun, q, steps, iterations, 1e-4, many, **lm)
+        if jac is None:  # (ended before its first Jacobian)
+            jac = ff._fd_jacobian(fun, many, q, r, steps)
+        return q, r, f, jac
+
     for model, iterations in ((coarse, TWO_ITERATIONS), (fine, TWO_FINE_ITERATIONS)):
-        fun = (lambda qq, model=model: pairs_of(model, [qq])[0])  # noqa: E731
-        many = (lambda qs, model=model: pairs_of(model, qs))  # noqa: E731
-        q, r, f, _ = ff._levenberg_marquardt(fun, q, steps, iterations, 1e-4, many)
+        q, r, f, _ = fit(model, q, iterations)
     sources = np.array([frame.source(q[:3]), frame.source(q[3:])])
     m = fine.simulate_groups(sources, np.arange(2, dtype=np.int64), 2, 1)
     a = _amplitudes(mom.data, m[0], m[1])
     if not (a > 0).all():
         return None
     light = np.array([a[0] * m[0][:, 0], a[1] * m[1][:, 0]])
-    return TwoPoints(sources, math.sqrt(f), light, mom.ids, nm)
+    done: list[JointAnswer] = []
+
+    def answer() -> JointAnswer:
+        # The placing fit's 12 000 rays a source leave its minimum where their own sample
+        # puts it (two equal sources at 2 000 mm: 2 017 / 2 009 mm after its 3 iterations,
+        # 2 010 / 2 003 after 8, 2 001 / 2 004 on 40 000 rays, 1 999.4 / 1 998.5 on 100 000):
+        # the answer is carried on on the point polish's rays. Each distance's σ: the
+        # Jacobian's (the point fit's rule, that distance's column first) and the shift a
+        # turned pupil sample's Gauss–Newton step gives it (fastfit's settled tests).
+        if not done:
+            model = ff.LensletModel(profile, geom, mom, TWO_ANSWER_RAYS)
+            qa, ra, fa, jac = fit(model, q, TWO_ANSWER_ITERATIONS, settle_log=TWO_SETTLE_LOG)
+            turned = ff.LensletModel(profile, geom, mom, TWO_ANSWER_RAYS, phase=1.0)
+            shift = ff._linear_step(jac, pairs_of(turned, [qa])[0] - ra)
+            sigma_log = np.array([
+                math.hypot(ff._log_distance_sigma(jac[:, np.roll(np.arange(6), -k)], ra),
+                           math.inf if shift is None else float(shift[0][k]))
+                for k in (0, 3)])
+            src = np.array([frame.source(qa[:3]), frame.source(qa[3:])])
+            done.append(JointAnswer(src, sigma_log * (frame.z_front - src[:, 2]),
+                                    math.sqrt(fa)))
+        return done[0]
+
+    return TwoPoints(sources, math.sqrt(f), light, mom.ids, nm, answer)
 
 
 def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                   stats: LensletStats, region: Region, new_id: int,
-                  others: tuple[Region, ...] = ()) -> tuple[Region, Region] | None:
-    """``region`` (whose own fit failed) cut into the two blurs a two-point fit finds in it
-    (:func:`two_points`), or None where two points do not explain it (their misfit over
-    :data:`TWO_NOISE` × the region's noise misfit, or :data:`TWO_FLOOR`, or over its poor-fit
-    limit) or a part would keep fewer than :data:`TWO_MIN_PART` lenslets.
+                  others: tuple[Region, ...] = (), beat: float = math.inf) -> Split | None:
+    """``region`` split between the two sources a two-point fit finds in it
+    (:func:`two_points`), or None where two points do not explain it: their misfit over
+    :data:`TWO_NOISE` × the region's noise misfit (or :data:`TWO_FLOOR`), over its poor-fit
+    limit, or — for a region one source already explains, whose misfit is ``beat`` — over
+    :data:`TWO_BEATS` × that.
 
     The parts: the region's lenslets where one blur puts over :data:`TWO_BAND_SHARE` of its
     brightest lenslet's light and the other does not, each to the blur that puts more light
-    on it; the band where both do is ``shared`` by both and in neither. The first part keeps
+    on it; the band where both do is ``shared`` by both and in neither. Where either part
+    would keep fewer than :data:`TWO_MIN_PART` lenslets the blurs are too nearly one to be
+    cut (``cut`` false): the parts are then the lenslets each source lights more, for the
+    map, and the answers the joint fit's (:func:`joint_measurements`). The first part keeps
     ``region``'s id, the second takes ``new_id``; both are ``spot`` regions."""
-    two = two_points(profile, geom, image, region, others)
-    if two is None:
-        return None
-    limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
-                max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
-    if not two.misfit < limit:
+    for starts in TWO_STARTS:
+        two = two_points(profile, geom, image, region, others, starts)
+        if two is None:
+            return None
+        limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
+                    max(TWO_NOISE * two.noise_misfit, TWO_FLOOR), TWO_BEATS * beat)
+        if two.misfit < limit:
+            break
+    else:
         return None
     share = two.light / two.light.max(axis=1, keepdims=True)
     mine = np.isin(two.ids, region.lenslets)
     band = mine & (share > TWO_BAND_SHARE).all(axis=0)
     first = mine & ~band & (two.light[0] >= two.light[1])
     second = mine & ~band & ~first
-    if min(first.sum(), second.sum()) < TWO_MIN_PART:
-        return None
-    shared = np.union1d(two.ids[band], region.shared)
+    cut = min(first.sum(), second.sum()) >= TWO_MIN_PART
+    if cut:
+        shared = np.union1d(two.ids[band], region.shared)
+    else:  # (no band: each lenslet to the source that lights it more)
+        first = mine & (two.light[0] >= two.light[1])
+        second = mine & ~first
+        shared = region.shared
+        if not (first.any() and second.any()):
+            first = second = mine
     # each part's place: its source's light as the two-point fit spreads it (the part alone
     # may be a crescent whose own centroid lies far off its source's)
     centres = geom.lmap.centres_px[two.ids]
     parts = [make_region(rid, "spot", two.ids[m], stats, geom.lmap, geom.pitch_px, 1, shared,
                          (centres * two.light[k, :, None]).sum(0) / two.light[k].sum())
              for k, (rid, m) in enumerate(((region.region_id, first), (new_id, second)))]
-    return parts[0], parts[1]
+    return Split((parts[0], parts[1]), two, cut)
+
+
+def joint_measurements(profile: CameraProfile, geom: Geometry,
+                       two: TwoPoints) -> tuple[Measurement, Measurement]:
+    """Each source's answer as the joint two-point fit measures it (:attr:`TwoPoints.answer`):
+    its distance, that distance's σ (with :data:`fastfit.SIGMA_FLOOR_REL` in quadrature) and
+    the pair's misfit."""
+    got = two.answer()
+    out = [point_measurement(profile, geom.d_in_mm, src, float(sig), ff.SIGMA_FLOOR_REL,
+                             misfit=got.misfit, noise_misfit=two.noise_misfit)
+           for src, sig in zip(got.sources_mm, got.sigma_mm, strict=True)]
+    return out[0], out[1]
 
 
 def merged_region(a: Region, b: Region, stats: LensletStats, lmap: LensletMap,
