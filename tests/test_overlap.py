@@ -192,3 +192,20 @@ def test_a_pair_in_front_of_focus_is_found_from_its_spread(monkeypatch):
     after, truth = _run(3.0, monkeypatch, split=True, **pair)
     # measured: −0.002 % and +0.004 % (σ 0.03 %, its floor)
     _check_both(after, truth, bound=1e-3)
+
+
+def test_a_joint_answer_without_a_finite_sigma_is_refused():
+    # a singular Jacobian leaves a distance's σ infinite: that source is poor-fit, the other
+    # keeps its answer (its distance from the front vertex, σ with the 0.03 % floor)
+    prof = load_profile("system2")
+    z = prof.main_lens.front_vertex_z_mm
+    src = np.array([[0.0, 0.0, z - 1400.0], [0.0, 0.0, z - 1500.0]])
+    answer = overlap.JointAnswer(src, np.array([np.inf, 1.0]), 0.01)
+    two = overlap.TwoPoints(src, 0.01, np.ones((2, 3)), np.arange(3), 0.02, lambda: answer)
+    geom = type("G", (), {"d_in_mm": prof.d_in_mm})()
+    first, second = overlap.joint_measurements(prof, geom, two)
+    assert first.status == RegionStatus.POOR_FIT
+    assert second.status == RegionStatus.OK
+    assert second.distance_mm == pytest.approx(1500.0, rel=1e-9)
+    floor_mm = fastfit.SIGMA_FLOOR_REL * 1500.0
+    assert second.sigma_distance_mm == pytest.approx(np.hypot(1.0, floor_mm), rel=1e-9)

@@ -15,6 +15,13 @@ that both light (``Region.shared``, left out of both fits' data) (:func:`split_o
 Each part is then measured as any touching region is, with the other as its neighbour, so
 that its answer, σ and status come from the same fits as every other region's
 (docs/distance.md, "Blurs that overlap without a waist (stop 68)").
+
+Where a part's own fit fails (a crescent of a blur the other overlaps by ~80 %), or the two
+blurs are too nearly one to cut (two sources a tenth of a blur apart, which one short line
+explains all but their misfit), the source's answer is the joint fit's own, carried on on the
+point polish's rays with a σ of its own (:attr:`TwoPoints.answer`,
+:func:`joint_measurements`; docs/distance.md, "Two sources one fit explains: the joint answer
+(stop 69)"). Those answers are the lenslet moments' whatever the method.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region, footprint_shape, make_region
 from lfcam.measure.verify import poor_fit_limit
+from lfcam.status import RegionStatus
 
 TWO_MIN_LENSLETS = 40  # a region of fewer lenslets is not tried as two blurs
 TWO_RAYS = 3000  # rays a point of the two-point model (it places the blurs; it does not measure)
@@ -300,10 +308,11 @@ def joint_measurements(profile: CameraProfile, geom: Geometry,
                        two: TwoPoints) -> tuple[Measurement, Measurement]:
     """Each source's answer as the joint two-point fit measures it (:attr:`TwoPoints.answer`):
     its distance, that distance's σ (with :data:`fastfit.SIGMA_FLOOR_REL` in quadrature) and
-    the pair's misfit."""
+    the pair's misfit; ``poor-fit`` where that σ is not finite (a singular Jacobian)."""
     got = two.answer()
     out = [point_measurement(profile, geom.d_in_mm, src, float(sig), ff.SIGMA_FLOOR_REL,
                              misfit=got.misfit, noise_misfit=two.noise_misfit)
+           if math.isfinite(sig) else Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
            for src, sig in zip(got.sources_mm, got.sigma_mm, strict=True)]
     return out[0], out[1]
 
