@@ -3154,6 +3154,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                 stages.close()
                 return _line_answer(profile, geom, line, limit, nm, fit.model_misfit)
         fit = next(stages)
+    model_misfit = fit.model_misfit  # (the fine fit's look: the answer carries it)
     trigger = trigger_of(fit.model_misfit) if fit.ok else noise_trigger
     if not fit.ok and fit.reason == RegionStatus.NO_SOLUTION and fit.misfit > trigger:
         # a point fit run out to the far bound that explains the data no better than the
@@ -3163,7 +3164,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         stages.close()
         line = line_for(dataclasses.replace(fit, ok=True))
         if line.ok and line.misfit < beats(fit.misfit):
-            return _line_answer(profile, geom, line, limit, nm, fit.model_misfit)
+            return _line_answer(profile, geom, line, limit, nm, model_misfit)
         return Measurement.failed(fit.reason, geom.d_in_mm)
     if fit.ok and worth_a_line(fit.polish_floor, trigger):
         # no polish can bring this misfit under the trigger, so a line will be tried: it is
@@ -3172,7 +3173,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         line = line_for(fit)
         if line.ok and line.misfit < beats(fit.polish_floor):
             stages.close()
-            return _line_answer(profile, geom, line, limit, nm, fit.model_misfit)
+            return _line_answer(profile, geom, line, limit, nm, model_misfit)
         if ((not line.ok or line.misfit >= beats(fit.misfit))
                 and fit.polish_floor > limit):
             # the line cannot win even against the unpolished point (the polish only lowers
@@ -3193,7 +3194,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # a line changes the answer only below both: a win over the point, and an `ok` fit
         line = line_for(fit)
         if line.ok and line.misfit < beats(fit.misfit):
-            return _line_answer(profile, geom, line, limit, nm, fit.model_misfit)
+            return _line_answer(profile, geom, line, limit, nm, model_misfit)
     if not fit.misfit <= limit:
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
     if PIXEL_POLISH and _uncertain(profile, fit, accept):
@@ -3206,14 +3207,14 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             # read as a spot 38 % long: docs/distance.md, "A point the pixels refuse")
             line = line_for(fit)
             if line.ok and line.misfit < beats(fit.misfit):
-                return _line_answer(profile, geom, line, limit, nm, fit.model_misfit)
+                return _line_answer(profile, geom, line, limit, nm, model_misfit)
             return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm)
         if better is not None and better.ok and _agrees(profile, fit, better):
             fit = dataclasses.replace(fit, source_mm=better.source_mm,
                                       sigma_distance_mm=better.sigma_distance_mm)
     return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
                              SIGMA_FLOOR_REL, misfit=fit.misfit, noise_misfit=nm,
-                             model_misfit=fit.model_misfit)
+                             model_misfit=model_misfit)
 
 
 def _agrees(profile: CameraProfile, lenslet: LensletFit, pixel: LensletFit) -> bool:
