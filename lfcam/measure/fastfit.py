@@ -206,6 +206,12 @@ LINE_TURN_BELOW = 0.05  # ... when the footprint's elongation (λ₁ − λ₂)/
 LINE_STRETCHED = 0.1  # a point footprint elongated more (off axis): the line's starts turn
 LINE_STRETCH_MIN_LIT = 40  # ... on blurs of this many lit lenslets or more
 LINE_STRETCH_AXIS_DEG = 20.0  # ... whose footprint's axis is within this of the stretch's
+LINE_SCAN_RECENTRE = 1  # where the frame's edge cuts a region, the line's scan segments are
+#                          moved this many times so that the scan model's light centroid on the
+#                          region's lenslets is the data's (the visible part's centroid lies off
+#                          the source's chief ray: scene (b)'s 1 131 mm line, scanned 16 % long
+#                          and poor-fit on 10 of 11 draws; docs/distance.md, "A line the frame's
+#                          edge cuts (stop 69)")
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
 LINE_CELLS_RACE_ITERATIONS = 1  # ... on the cells, where the coarse stage's own Gauss–Newton
 #                                 steps go on from the leader (168 grid lines: the same answers
@@ -2407,6 +2413,13 @@ def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray
     return (lambda q: model.residual_of(moments(q).sum(0))), jac
 
 
+def _frame_cut(region: Region, shape: tuple[int, ...], pitch_px: float) -> bool:
+    """Whether ``region``'s box reaches within a lenslet pitch of the frame's edge (the
+    lenslets the edge cuts are not in the map)."""
+    x0, y0, x1, y1 = region.box_px
+    return min(x0, y0, shape[1] - x1, shape[0] - y1) < pitch_px
+
+
 def cells_apply(profile: CameraProfile, geom: Geometry, mom: _Moments, n_lit: int,
                 points: np.ndarray) -> bool:
     """Whether a blur of ``n_lit`` lit lenslets is modelled on the lenslet cells
@@ -2584,8 +2597,25 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
-    scan = [segment(float(d), g=float(g)) for d, g in zip(
-        distances, chief_ray_gains(profile, geom.d_in_mm, distances), strict=True)]
+    gains_scan = chief_ray_gains(profile, geom.d_in_mm, distances)
+    scan = [segment(float(d), g=float(g)) for d, g in zip(distances, gains_scan, strict=True)]
+    if LINE_SCAN_RECENTRE and _frame_cut(region, image.shape, geom.pitch_px):
+        # the frame cuts the model's light on the region's lenslets as it cuts the data's: the
+        # segment at each node moves by the chief-ray offset between the two centroids
+        for _ in range(LINE_SCAN_RECENTRE):
+            models = scan_model.simulate_sets([_line_points(frame, q, n_scan) for q in scan])
+            moved = []
+            for q, m, d, g in zip(scan, models, distances, gains_scan, strict=True):
+                if not m[:, 0].max() > 0:
+                    moved.append(q)
+                    continue
+                c_model, _ = _footprint(geom, mom, m[:, 0])
+                dxy = (chief_ray_offset(profile, geom.d_in_mm, float(d), cbar, gain=float(g))
+                       - chief_ray_offset(profile, geom.d_in_mm, float(d), c_model,
+                                          gain=float(g)))
+                _, along = mla_to_object(float(d), float(g))
+                moved.append(np.r_[q[0], q[1:3] + dxy / along, q[3:5] + dxy / along])
+            scan = moved
     costs = [_sq(r) for r in many_of(scan_model, n_scan)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     # the scan's best node is a start of its own unless it lies in the point's basin (stopping
