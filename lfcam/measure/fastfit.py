@@ -2599,7 +2599,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
     gains_scan = chief_ray_gains(profile, geom.d_in_mm, distances)
     scan = [segment(float(d), g=float(g)) for d, g in zip(distances, gains_scan, strict=True)]
-    if LINE_SCAN_RECENTRE and _frame_cut(region, image.shape, geom.pitch_px):
+    if (LINE_SCAN_RECENTRE and region is not None
+            and _frame_cut(region, image.shape, geom.pitch_px)):
         # the frame cuts the model's light on the region's lenslets as it cuts the data's: the
         # segment at each node moves by the chief-ray offset between the two centroids
         for _ in range(LINE_SCAN_RECENTRE):
