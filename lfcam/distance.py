@@ -21,9 +21,10 @@ error (model error table ⊕ measurement uncertainty) meets ``tolerance_pct`` (d
 available, i.e. ``exact``); ``refocus`` is Hahne et al.'s depth from refocus.
 
 A region whose measurement fails numerically gets the status ``failed: <reason>``; the other
-regions and the outputs go on. A failed spot or line region that two overlapping blurs explain
-is cut in two and both are measured again (``SPLIT_OVERLAPS``, every method but
-``diameter``: :mod:`lfcam.measure.overlap`).
+regions and the outputs go on. A failed spot or line region that two overlapping blurs explain,
+or a round ``ok`` one that one source does not, is split between the two sources: cut in two
+and both measured again, or answered by the joint two-point fit (``SPLIT_OVERLAPS``, every
+method but ``diameter``: :mod:`lfcam.measure.overlap`).
 """
 
 from __future__ import annotations
@@ -354,7 +355,7 @@ def run_distance(
                                        "region_s": [t for _, t in estimates]}, checks)
 
 
-SPLIT_OVERLAPS = True  # a failed region of two overlapping blurs is cut in two (overlap.py)
+SPLIT_OVERLAPS = True  # a region two overlapping blurs explain is split (_split_overlaps)
 _FAILED_FITS = (RegionStatus.POOR_FIT, RegionStatus.NO_SOLUTION)
 
 
@@ -411,6 +412,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
         else:
             next_id += 1
         spent = time.process_time() - t + estimates[i][1]  # (the region's first fit too)
+        joint: tuple = ()  # both sources' joint answers, made once where a part needs one
         for k, (part, other) in enumerate(((pair[0], pair[1]), (pair[1], pair[0]))):
             nearby = (other,) + others
             est, secs = (None, 0.0)
@@ -421,8 +423,8 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
                 # the part's own fit failed (a crescent), or the blurs are not cut: the
                 # source's answer is the joint fit's (its first user carries its time)
                 t_joint = time.process_time()
-                joint = joint_measurements(profile, geom, split.two)[k]
-                est = _estimate_of(profile, joint, model, tolerance_pct)
+                joint = joint or joint_measurements(profile, geom, split.two)
+                est = _estimate_of(profile, joint[k], model, tolerance_pct)
                 secs += time.process_time() - t_joint
             if k == 0:
                 regions[i], estimates[i], near[i] = part, (est, secs + spent), nearby
