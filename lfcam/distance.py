@@ -300,11 +300,18 @@ def run_distance(
         # Illum size), not in the time of each worker's first region (the pool gets it)
         lattice = ((lattice_of(geom, profile.mla.pitch_mm),)
                    if method in ("lenslet", "auto") and regions else None)
+        jobs = max(1, min(int(jobs), len(regions)))
+        serial = pool is None or jobs == 1
+        if serial and regions and method != "diameter" and model != "refocus":
+            # the compiled kernels loaded here, as a pool worker loads them before its first
+            # region: not in the first region's time (~0.25 s of it in a fresh process)
+            from lfcam.measure.kernels import warm_up
+
+            warm_up()
         t2 = time.perf_counter()
         args = (model, method, tolerance_pct, fast)
-        jobs = max(1, min(int(jobs), len(regions)))
         near = nearby_regions(regions)  # each region's touching blurs (both fits read them)
-        if pool is not None and jobs > 1:
+        if not serial:
             estimates = pool.estimate(profile, geom, img, stats, regions, near, noise, args,
                                       progress, noise_model, lattice)
         else:
