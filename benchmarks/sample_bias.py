@@ -67,7 +67,7 @@ def main() -> None:
     region = max(regions, key=lambda r: len(r.lenslets))
 
     made, ends = [], []
-    line_model, gauss_newton = ff.line_model, ff._gauss_newton_fixed
+    line_model, gauss_newton = ff.line_model, ff.gauss_newton_fixed
 
     def keep_model(model, frame, count, steps):
         made.append((model, frame, count, steps))
@@ -78,7 +78,7 @@ def main() -> None:
         ends.append(out[0])
         return out
 
-    levenberg = ff._levenberg_marquardt
+    levenberg = ff.levenberg_marquardt
 
     def keep_lm_end(*a, **k):
         out = levenberg(*a, **k)
@@ -94,14 +94,14 @@ def main() -> None:
         if k.get("phase") == 1.0:
             turned.append(self.rx.size)
 
-    ff.line_model, ff._gauss_newton_fixed = keep_model, keep_end
-    ff._levenberg_marquardt = keep_lm_end
+    ff.line_model, ff.gauss_newton_fixed = keep_model, keep_end
+    ff.levenberg_marquardt = keep_lm_end
     ff.LensletModel.__init__ = keep_turned
     try:
         got = ff.measure_lenslet(prof, geom, img, region, distance.noise_sigma(img))
     finally:
-        ff.line_model, ff._gauss_newton_fixed = line_model, gauss_newton
-        ff._levenberg_marquardt = levenberg
+        ff.line_model, ff.gauss_newton_fixed = line_model, gauss_newton
+        ff.levenberg_marquardt = levenberg
         ff.LensletModel.__init__ = init
     ray_models = [m for m in made if not m[0].cells]
     if got.kind != "line" or not ray_models:

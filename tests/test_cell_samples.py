@@ -399,7 +399,7 @@ def test_gauss_newton_does_not_evaluate_a_step_under_its_floor():
     q_min = np.linalg.lstsq(a, b, rcond=None)[0]
     for floor, evaluations in ((0.0, 4), (1e-6, 1)):
         calls.clear()
-        q, r, f = ff._gauss_newton_fixed(fun, q0, fun(q0), a, 4, skip_below=floor)
+        q, r, f = ff.gauss_newton_fixed(fun, q0, fun(q0), a, 4, skip_below=floor)
         assert len(calls) - 1 == evaluations
         np.testing.assert_allclose(q, q_min, atol=1e-9)
         assert f == pytest.approx(float((a @ q_min - b) @ (a @ q_min - b)), rel=1e-9)
@@ -455,7 +455,7 @@ def test_line_on_a_hexagonal_lattice_lands_on_the_fine_models_minimum(hex_line_3
     n_pts = int(np.clip(math.ceil(length_mm / (ff.LINE_SPACING_PITCH * used.mla.pitch_mm)),
                         ff.LINE_POINTS, ff.LINE_POINTS_MAX))
     fun, jac = ff.line_model(fine, frame, n_pts, steps)
-    q_min = ff._levenberg_marquardt(fun, q, steps, 6, 1e-4, jac_of=jac, settle_log=1e-6)[0]
+    q_min = ff.levenberg_marquardt(fun, q, steps, 6, 1e-4, jac_of=jac, settle_log=1e-6)[0]
     assert not fine.folded
     assert abs(q_min[0] - q[0]) < 5e-4
     assert abs(line.source_mm[2] - (frame.z_front - 3400.0)) < 3.0 * line.sigma_distance_mm
@@ -622,13 +622,13 @@ def test_a_point_at_the_far_bound_gives_the_line_no_start(hex_line_3400, monkeyp
         monkeypatch.setattr(ff, "LINE_RACE_START_RATIO", 1e9)
         monkeypatch.setattr(ff, "LINE_RACE_HOPELESS", 1e9)
         starts = []
-        inner = ff._levenberg_marquardt
+        inner = ff.levenberg_marquardt
 
         def logged(fun, q0, *args, **kwargs):
             starts.append(float(q0[0]))
             return inner(fun, q0, *args, **kwargs)
 
-        monkeypatch.setattr(ff, "_levenberg_marquardt", logged)
+        monkeypatch.setattr(ff, "levenberg_marquardt", logged)
         fit = ff.fit_lenslet_line(used, geom, img, None, point=at_bound, mom=mom)
         monkeypatch.undo()
         return starts, fit
@@ -655,15 +655,15 @@ def test_a_start_far_behind_the_best_is_not_raced(monkeypatch):
     def raced(ratio):
         monkeypatch.setattr(ff, "LINE_RACE_START_RATIO", ratio)
         heats = []  # (misfit² where a heat starts, where it ends)
-        inner = ff._levenberg_marquardt
+        inner = ff.levenberg_marquardt
 
         def logged(fun, q0, *args, **kwargs):
             out = inner(fun, q0, *args, **kwargs)
             if "stop_above" in kwargs:  # (only the race's heats give up)
-                heats.append((ff._sq(kwargs["r0"]), out[2]))
+                heats.append((ff.sq(kwargs["r0"]), out[2]))
             return out
 
-        monkeypatch.setattr(ff, "_levenberg_marquardt", logged)
+        monkeypatch.setattr(ff, "levenberg_marquardt", logged)
         fit = ff.fit_lenslet_line(used, geom, img, reg, point=point, mom=mom)
         monkeypatch.undo()
         return heats, fit

@@ -513,7 +513,7 @@ def test_line_jacobian_from_points_matches_differences(dist, turns):
     fun, jac = ff.line_model(ff.LensletModel(prof, geom, mom, 6667, turn_every=turns), frame,
                              12, steps)
     r = fun(q)
-    got, ref = jac(q, r), ff._fd_jacobian(fun, None, q, r, steps)
+    got, ref = jac(q, r), ff.fd_jacobian(fun, None, q, r, steps)
     np.testing.assert_allclose(got[:, 0], ref[:, 0], rtol=1e-9, atol=1e-12)
     for k in range(1, 5):
         cos = got[:, k] @ ref[:, k] / np.linalg.norm(got[:, k]) / np.linalg.norm(ref[:, k])
@@ -556,13 +556,13 @@ def test_turned_line_points_sample_the_pupil_better(dist):
 
 
 def test_polish_ends_when_its_step_is_nothing():
-    # fastfit._levenberg_marquardt with secant (Broyden) updates, as the point polish runs it,
+    # solve.levenberg_marquardt with secant (Broyden) updates, as the point polish runs it,
     # on a linear residual that is flat below 1e-7 in q (as a model's own ray sample is at its
     # minimum): once at the minimum the next undamped step is ~1e-9. Without ``settle_log`` the
     # fit tries it (its damped repeats, the same step within 1 %, are not:
     # LM_RETRY_MIN_CHANGE) and then takes the Jacobian again by differences; with it, it ends
     # there, at the same point
-    from lfcam.measure.fastfit import _levenberg_marquardt
+    from lfcam.measure.solve import levenberg_marquardt
 
     rng = np.random.default_rng(3)
     a = rng.normal(size=(40, 3))
@@ -583,8 +583,8 @@ def test_polish_ends_when_its_step_is_nothing():
     for settle in (0.0, 1e-6):
         log: list = []
         fun, many = counted(log)
-        q, r, f, _ = _levenberg_marquardt(fun, q0, np.full(3, 1e-4), 4, 1e-9, many, r0=fun(q0),
-                                          jac0=a, broyden=True, settle_log=settle)
+        q, r, f, _ = levenberg_marquardt(fun, q0, np.full(3, 1e-4), 4, 1e-9, many, r0=fun(q0),
+                                         jac0=a, broyden=True, settle_log=settle)
         runs[settle] = (q, len(log))
     best = np.linalg.lstsq(a, b, rcond=None)[0]
     for q, _ in runs.values():
@@ -594,7 +594,7 @@ def test_polish_ends_when_its_step_is_nothing():
 
 
 def _cube_with_floor_lm(max_iter, **rules):
-    """fastfit._levenberg_marquardt on r(q) = (10 (q − 1)³, 5) from q = 0 (analytic Jacobian):
+    """solve.levenberg_marquardt on r(q) = (10 (q − 1)³, 5) from q = 0 (analytic Jacobian):
     (q, cost, the q of every evaluation)."""
     import lfcam.measure.fastfit as ff
 
@@ -604,14 +604,14 @@ def _cube_with_floor_lm(max_iter, **rules):
         calls.append(float(q[0]))
         return np.array([10.0 * (q[0] - 1.0) ** 3, 5.0])
 
-    q, r, f, _ = ff._levenberg_marquardt(
+    q, r, f, _ = ff.levenberg_marquardt(
         fun, np.zeros(1), np.ones(1), max_iter, 1e-15, r0=np.array([-10.0, 5.0]),
         jac_of=lambda q, r: np.array([[30.0 * (q[0] - 1.0) ** 2], [0.0]]), **rules)
     return q, f, calls
 
 
 def test_lm_ends_on_an_iteration_that_gains_little():
-    # fastfit._levenberg_marquardt's ``ftol`` (the point's coarse stage on the cells:
+    # solve.levenberg_marquardt's ``ftol`` (the point's coarse stage on the cells:
     # COARSE_CELLS_FTOL). r(q) = (10 (q − 1)³, 5): the 5 is a floor no parameter removes (a
     # line's blur fitted as a point), and Gauss–Newton on the cube leaves 2/3 of the error at
     # each step, so the cost 100 e⁶ + 25 falls 125 → 33.8 → 25.77 → 25.068 → 25.0059: by 73,
@@ -634,7 +634,7 @@ def test_lm_ends_on_an_iteration_that_gains_little():
 
 
 def test_lm_ends_where_it_began_when_its_given_jacobians_first_step_fails():
-    # fastfit._levenberg_marquardt's ``first_or_stop`` (the point polish the settled test asks
+    # solve.levenberg_marquardt's ``first_or_stop`` (the point polish the settled test asks
     # for: POLISH_FIRST_OR_STOP). r(q) = A (q − q*), a linear residual, from q0 = 0 with
     # ``jac0`` = −A: its Gauss–Newton step goes to −q* and doubles the cost. With the flag the
     # fit ends at q0 after that one evaluation, its cost and Jacobian those it began with;
@@ -655,22 +655,22 @@ def test_lm_ends_where_it_began_when_its_given_jacobians_first_step_fails():
     calls.clear()
     steps = np.array([1e-6, 1e-6])
     kw = dict(r0=r0, jac0=-a, broyden=True)
-    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, first_or_stop=True, **kw)
+    q, r, f, jac = ff.levenberg_marquardt(fun, q0, steps, 6, 1e-9, first_or_stop=True, **kw)
     # (the one evaluation at −q*, damped by λ = 1e-4: within 1e-4)
     assert len(calls) == 1 and np.allclose(calls[0], -target, atol=1e-4)
     assert np.array_equal(q, q0) and f == pytest.approx(float(r0 @ r0)) and np.array_equal(jac, -a)
     calls.clear()
-    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, **kw)
+    q, r, f, jac = ff.levenberg_marquardt(fun, q0, steps, 6, 1e-9, **kw)
     assert len(calls) > 4  # (the damped trials, the differences' columns, the steps)
     np.testing.assert_allclose(q, target, atol=1e-5)
     # a fit that starts by differences (no jac0) is not stopped by the flag
     calls.clear()
-    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 6, 1e-9, r0=r0, first_or_stop=True)
+    q, *_ = ff.levenberg_marquardt(fun, q0, steps, 6, 1e-9, r0=r0, first_or_stop=True)
     np.testing.assert_allclose(q, target, atol=1e-5)
 
 
 def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
-    # fastfit._levenberg_marquardt's ``pause`` (a ray-sampled line's settled test before its
+    # solve.levenberg_marquardt's ``pause`` (a ray-sampled line's settled test before its
     # fine fit's last iteration: LINE_REFIT_EARLY). Rosenbrock's residual (10 (y − x²), 1 − x)
     # from (−1.2, 1): pause is called after each iteration but the last, with that
     # iteration's end and the Jacobian it stepped with; returning true after the second ends
@@ -695,24 +695,24 @@ def test_lm_pause_ends_the_fit_after_the_iteration_it_returns_true():
             return it == k
         return pause
 
-    free = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of)
+    free = ff.levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of)
     np.testing.assert_allclose(free[0], [1.0, 1.0], atol=1e-6)
-    two = ff._levenberg_marquardt(fun, q0, steps, 2, 1e-12, jac_of=jac_of)
-    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
-                                           pause=pause_after(1))
+    two = ff.levenberg_marquardt(fun, q0, steps, 2, 1e-12, jac_of=jac_of)
+    q, r, f, jac = ff.levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
+                                          pause=pause_after(1))
     assert [s[0] for s in seen] == [0, 1]
     assert np.array_equal(q, two[0]) and np.array_equal(seen[1][1], q)
     assert np.array_equal(seen[1][2], r) and f == pytest.approx(float(r @ r))
     assert np.array_equal(jac, seen[1][3]) and np.array_equal(jac, two[3])
     assert np.linalg.norm(q - [1.0, 1.0]) > 1e-3  # (stopped short of the minimum)
     seen.clear()
-    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
-                                    pause=pause_after(-1))
+    q, *_ = ff.levenberg_marquardt(fun, q0, steps, 40, 1e-12, jac_of=jac_of,
+                                   pause=pause_after(-1))
     assert np.array_equal(q, free[0]) and len(seen) >= 2
 
 
 def test_lm_reads_a_stale_secants_verdict_again_by_differences():
-    # fastfit._levenberg_marquardt's ``confirm_above`` (the point polish's secant steps:
+    # solve.levenberg_marquardt's ``confirm_above`` (the point polish's secant steps:
     # POLISH_CONFIRM_NOISE). r(q) = A (q − q*) + e, a linear residual whose least-squares
     # minimum is known; the fit starts from a Jacobian whose first (distance) column is 100 ×
     # too large, as a secant's stale column can be, so its steps in q[0] are ~1/100 of the
@@ -734,8 +734,8 @@ def test_lm_reads_a_stale_secants_verdict_again_by_differences():
     q0, steps = np.zeros(2), np.array([1e-3, 1e-3])
 
     def fit(**kw):
-        return ff._levenberg_marquardt(fun, q0, steps, 6, 1e-3, r0=fun(q0), jac0=stale,
-                                       broyden=True, settle_log=2e-5, **kw)[0]
+        return ff.levenberg_marquardt(fun, q0, steps, 6, 1e-3, r0=fun(q0), jac0=stale,
+                                      broyden=True, settle_log=2e-5, **kw)[0]
 
     plain = fit()
     assert abs(plain[0] - best[0]) > 0.5 * abs(best[0])  # stopped short by the stale column
@@ -748,7 +748,7 @@ def test_lm_reads_a_stale_secants_verdict_again_by_differences():
 
 
 def test_lm_tries_no_step_under_its_least_with_a_lateral_share():
-    # fastfit._levenberg_marquardt's ``trial_lateral`` (a ray-sampled line's fine fit:
+    # solve.levenberg_marquardt's ``trial_lateral`` (a ray-sampled line's fine fit:
     # LINE_FINE_TRIAL_LATERAL). r(q) = A (q − q*), a linear residual whose minimum q* lies
     # 1e-4 from q0 in the first parameter (log distance) and 0.3 difference steps in the
     # second: the step there is under min_trial = 3e-4 and under half a difference step, so
@@ -769,13 +769,13 @@ def test_lm_tries_no_step_under_its_least_with_a_lateral_share():
 
     q0 = np.zeros(2)
     kw = dict(min_trial=3e-4, trial_gain=1.0, jac_of=lambda q, r: a)
-    q, r, f, jac = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.5, **kw)
+    q, r, f, jac = ff.levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.5, **kw)
     assert len(calls) == 1 and np.array_equal(q, q0)  # (the start's residual alone)
     calls.clear()
-    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.2, **kw)
+    q, *_ = ff.levenberg_marquardt(fun, q0, steps, 5, 1e-12, trial_lateral=0.2, **kw)
     assert len(calls) > 1
     np.testing.assert_allclose(q, target, rtol=1e-3)
-    q, *_ = ff._levenberg_marquardt(fun, q0, steps, 5, 1e-12, **kw)
+    q, *_ = ff.levenberg_marquardt(fun, q0, steps, 5, 1e-12, **kw)
     np.testing.assert_allclose(q, target, rtol=1e-3)
 
 
@@ -805,7 +805,7 @@ def test_refit_starts_at_its_guess_only_where_the_misfit_is_no_worse():
 
 
 def test_gauss_newton_tries_no_step_under_its_least():
-    # fastfit._gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
+    # solve.gauss_newton_fixed's ``min_trial`` (a point's fine steps: FINE_MIN_TRIAL_LOG).
     # r(q) = q − 1 (Jacobian 1), its cost raised by 4 on |q − 1| ≤ 0.015 (a model's ray noise
     # at its minimum). From q = 0: the step 1 fails, its half (q = 0.5) is taken; the next
     # step 0.5 fails, its half 0.25 is under min_trial = 0.3 and is not tried: 3 evaluations,
@@ -819,8 +819,8 @@ def test_gauss_newton_tries_no_step_under_its_least():
             tried.append(float(q[0]))
             return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
 
-        q, r, f = ff._gauss_newton_fixed(fun, np.zeros(1), np.array([-1.0]), np.ones((1, 1)),
-                                         4, min_trial=min_trial)
+        q, r, f = ff.gauss_newton_fixed(fun, np.zeros(1), np.array([-1.0]), np.ones((1, 1)),
+                                        4, min_trial=min_trial)
         return q, tried
 
     q, tried = run(0.3)
@@ -834,7 +834,7 @@ def test_gauss_newton_tries_no_step_under_its_least():
 
 
 def test_lm_tries_no_step_under_its_least():
-    # fastfit._levenberg_marquardt's ``min_trial`` and ``trial_gain`` (the point's polish:
+    # solve.levenberg_marquardt's ``min_trial`` and ``trial_gain`` (the point's polish:
     # POLISH_MIN_TRIAL_LOG, SETTLED_GAIN). r(q) = (q − 1, 5) (Jacobian (1, 0)) from q = 0, the
     # first entry raised by 2 on |q − 1| ≤ 0.015 (a model's ray noise at its minimum; the 5 a
     # floor no parameter removes, as the data's noise). The first iteration tries the undamped
@@ -852,10 +852,10 @@ def test_lm_tries_no_step_under_its_least():
             tried.append(float(q[0]))
             return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0), 5.0])
 
-        q, r, f, _ = ff._levenberg_marquardt(fun, np.zeros(1), np.ones(1), 2,
-                                             r0=np.array([-1.0, 5.0]),
-                                             jac_of=lambda q, r: np.array([[1.0], [0.0]]),
-                                             min_trial=min_trial, trial_gain=trial_gain)
+        q, r, f, _ = ff.levenberg_marquardt(fun, np.zeros(1), np.ones(1), 2,
+                                            r0=np.array([-1.0, 5.0]),
+                                            jac_of=lambda q, r: np.array([[1.0], [0.0]]),
+                                            min_trial=min_trial, trial_gain=trial_gain)
         return q, tried
 
     first = [1.0 / (1.0 + 1e-4), 1.0 / 1.1]
@@ -873,7 +873,7 @@ def test_lm_tries_no_step_under_its_least():
 
 
 def test_lm_heat_gives_up_above_its_limit():
-    # fastfit._levenberg_marquardt's ``stop_above`` (a line race's heats: LINE_RACE_GIVE_UP).
+    # solve.levenberg_marquardt's ``stop_above`` (a line race's heats: LINE_RACE_GIVE_UP).
     # r(q) = (10 (q − 1)³, 5) from q = 0: the cost falls 125 → 33.8 → 25.77 (Gauss–Newton on the
     # cube leaves a little over 2/3 of the error a step). Over a limit of 30 after its first
     # iteration the fit ends there (one evaluation); under a limit of 40 it runs all three
@@ -902,8 +902,8 @@ def test_a_damped_repeat_of_a_failed_step_is_not_tried():
         tried.append(float(q[0]))
         return np.array([q[0] - 1.0 + (2.0 if abs(q[0] - 1.0) <= 0.015 else 0.0)])
 
-    q, r, f, _ = ff._levenberg_marquardt(fun, np.zeros(1), np.ones(1), 1, r0=np.array([-1.0]),
-                                         jac_of=lambda q, r: np.ones((1, 1)))
+    q, r, f, _ = ff.levenberg_marquardt(fun, np.zeros(1), np.ones(1), 1, r0=np.array([-1.0]),
+                                        jac_of=lambda q, r: np.ones((1, 1)))
     np.testing.assert_allclose(tried, [1.0 / (1.0 + 1e-4), 1.0 / 1.1], rtol=1e-12)
     np.testing.assert_allclose(q, [1.0 / 1.1], rtol=1e-12)
     assert f == pytest.approx((1.0 / 1.1 - 1.0) ** 2, rel=1e-12)

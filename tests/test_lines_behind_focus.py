@@ -263,7 +263,7 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
         return best.distance_mm / 3400.0 - 1.0, best.uncertainty_mm / 3400.0
 
     paused = []
-    lm = ff._levenberg_marquardt
+    lm = ff.levenberg_marquardt
 
     def spied(*a, pause=None, **k):  # (whether the fine fit stopped for the settled test)
         if pause is not None:
@@ -273,7 +273,7 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
             return lm(*a, pause=pause_spied, **k)
         return lm(*a, **k)
 
-    monkeypatch.setattr(ff, "_levenberg_marquardt", spied)
+    monkeypatch.setattr(ff, "levenberg_marquardt", spied)
     err, sigma = line_error()
     assert abs(err) < 0.003 and abs(err) < 3.0 * sigma
     # The settled test read before the fine fit's last iteration sends the line to the refit

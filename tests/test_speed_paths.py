@@ -397,7 +397,7 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     # noise whose size varies 30× between lenslets and is correlated within one; the true σ of
     # the fitted parameter 0 is (JᵀJ)⁻¹ Jᵀ Σ J (JᵀJ)⁻¹ (analytic). The estimator, fed one
     # residual a draw, must average to it within 10 %; the classical s²(JᵀJ)⁻¹ is a third low
-    from lfcam.measure.fastfit import _log_distance_sigma
+    from lfcam.measure.solve import log_distance_sigma
 
     rng = np.random.default_rng(7)
     k, p = 400, 3
@@ -409,7 +409,7 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     for _ in range(300):
         noise = (rng.normal(size=(k, 4)) @ mix.T).ravel() * scale
         r = noise - jac @ (lsq @ noise)  # the residual at the least-squares minimum
-        est.append(_log_distance_sigma(jac, r))
+        est.append(log_distance_sigma(jac, r))
         classical.append(math.sqrt(float(r @ r) / (4 * k - p) * inv[0, 0]))
     assert np.mean(est) == pytest.approx(true_sigma, rel=0.1)
     assert np.mean(classical) < 0.75 * true_sigma  # what the classical σ states (0.67×)
@@ -421,7 +421,7 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
     # show only part of it, and the sandwich Σ g_k g_kᵀ averages to 0.76× the analytic σ.
     # The delete-one-lenslet jackknife must average to it within 10 % (it states 1.04×), and
     # equal the parameter change of refits that leave each lenslet out (its definition)
-    from lfcam.measure.fastfit import _jackknife_variance, _log_distance_sigma
+    from lfcam.measure.solve import jackknife_variance, log_distance_sigma
 
     rng = np.random.default_rng(7)
     k, p = 40, 3
@@ -432,7 +432,7 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
     for _ in range(400):
         noise = (rng.normal(size=(k, 4)) @ mix.T).ravel() * scale
         r = noise - jac @ (lsq @ noise)
-        est.append(_log_distance_sigma(jac, r))
+        est.append(log_distance_sigma(jac, r))
         g = (jac * r[:, None]).reshape(k, 4, p).sum(axis=1) @ inv[0]
         sandwich.append(math.sqrt(float(g @ g) * 4 * k / (4 * k - p)))
     assert np.mean(est) == pytest.approx(true_sigma, rel=0.1)
@@ -447,14 +447,14 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
         keep[4 * i:4 * i + 4] = False
         drops.append(np.linalg.lstsq(jac[keep], noise[keep], rcond=None)[0] - theta)
     ref = (k - 1) / k * sum(np.outer(d, d) for d in drops)
-    np.testing.assert_allclose(_jackknife_variance(jac, r, inv), ref, rtol=1e-8)
+    np.testing.assert_allclose(jackknife_variance(jac, r, inv), ref, rtol=1e-8)
 
 
 def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone():
     # one lenslet of 12 carries most of the first parameter (leverage over LEVERAGE_CAP): its
     # term is the capped one (eigenvalues of H_k cut to the cap); every other lenslet's term
     # is still its exact leave-one-out refit (the plain solve, no eigen-decomposition)
-    from lfcam.measure.fastfit import LEVERAGE_CAP, _gram, _jackknife_variance
+    from lfcam.measure.solve import LEVERAGE_CAP, gram, jackknife_variance
 
     rng = np.random.default_rng(11)
     k, p = 12, 3
@@ -462,7 +462,7 @@ def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone():
     jac[:4, 0] *= 40.0
     jac[4:, 0] *= 0.05
     r_all = rng.normal(size=4 * k)
-    inv = np.linalg.inv(_gram(jac))
+    inv = np.linalg.inv(gram(jac))
     theta = inv @ (jac.T @ r_all)
     r = r_all - jac @ theta
     jk = jac.reshape(k, 4, p)
@@ -476,7 +476,7 @@ def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone():
         keep[4 * i:4 * i + 4] = False
         drops.append(np.linalg.lstsq(jac[keep], r_all[keep], rcond=None)[0] - theta)
     ref = (k - 1) / k * sum(np.outer(d, d) for d in drops)
-    np.testing.assert_allclose(_jackknife_variance(jac, r, inv), ref, rtol=1e-8)
+    np.testing.assert_allclose(jackknife_variance(jac, r, inv), ref, rtol=1e-8)
 
 
 @pytest.mark.parametrize("lens", ["cooke_triplet", "double_gauss"])

@@ -55,6 +55,16 @@ from lfcam.measure.noise import NoiseModel, capture_noise, clipped_mean, moment_
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
 from lfcam.measure.sampling import pixel_boxes, ray_share, vogel_disc
+from lfcam.measure.solve import (
+    fd_jacobian,
+    gauss_newton_fixed,
+    gram,
+    jt,
+    levenberg_marquardt,
+    linear_step,
+    log_distance_sigma,
+    sq,
+)
 from lfcam.measure.verify import line_beats, line_trigger, poor_fit_limit
 from lfcam.optics.trace import trace_sources_fast
 from lfcam.robust import NORMAL_MAD_SCALE
@@ -63,7 +73,6 @@ from lfcam.status import RegionStatus
 RAYS_PER_LENSLET = 160  # pupil samples per lit lenslet (clipped to MIN_RAYS … MAX_RAYS)
 MIN_RAYS = 12000
 MAX_RAYS = 20000
-MAX_ITERATIONS = 12
 COARSE_RAYS = 3000  # rays per evaluation while the basin is found
 SCAN_RAYS = 1000  # rays per evaluation of the distance scan
 COARSE_PER_LENSLET = 25  # ... at least this many per lit lenslet
@@ -1353,166 +1362,6 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
 # Long vectors are reduced with einsum rather than BLAS: a threaded BLAS wakes its threads for
 # a dot product of ~10⁴ residuals, and their spinning cost more CPU than the fit itself
 # (2.4× a region's CPU time on a loaded 2-core machine).
-def _sq(r: np.ndarray) -> float:
-    """Σ r² of a vector."""
-    return float(np.einsum("i,i->", r, r))
-
-
-def _gram(jac: np.ndarray) -> np.ndarray:
-    """JᵀJ of a tall Jacobian."""
-    return np.einsum("ki,kj->ij", jac, jac)
-
-
-def _jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Jᵀr."""
-    return np.einsum("ki,k->i", jac, r)
-
-
-LM_RETRY_MIN_CHANGE = 0.01  # a damped step within this share (in units of the difference steps)
-#                             of one that failed is not tried: of 866 such trials on the focus
-#                             grids' 108 points and 231 lines, 1 lowered the cost
-#                             (docs/distance.md, "Levenberg–Marquardt's repeated trials (stop 48)")
-
-
-def _levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_many=None,
-                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
-                         ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
-                         first_or_stop=False, pause=None, trial_lateral=0.0,
-                         confirm_above=math.inf, confirm_below=math.inf, confirm_jac=None):
-    """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
-
-    ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
-    one by one (the difference Jacobian's columns in one model pass). ``r0`` (optional) is
-    ``fun(q0)`` when the caller already has it. ``jac0`` (optional): the Jacobian to start
-    from (of a model of the same function with fewer rays), else it is taken by differences.
-    ``broyden``: after an accepted step the Jacobian is updated by Broyden's rule (one
-    evaluation a step instead of one a parameter more) and taken by differences again only
-    when a step fails.
-
-    Returns (q, residual, cost, Jacobian at the last linearisation: with ``broyden``, the
-    last one taken by differences or ``jac0``; the secant updates steer the steps only, as
-    they leave the σ of a line 2-3× off).
-
-    ``jac_of`` (optional): ``jac_of(q, r)``, the Jacobian at ``q`` (residual ``r``) by the
-    caller's own rule, instead of differences. ``settle_log``: after the first iteration, the
-    fit ends when an iteration's undamped step would move the log distance ``q[0]`` by less
-    than this (its damped trials move it less still). ``ftol``: the fit ends after an
-    iteration whose accepted step lowered the cost by less than this share of it.
-
-    A damped trial whose step lies within :data:`LM_RETRY_MIN_CHANGE` of the last failed
-    one's (in units of ``steps``) is not evaluated: λ is raised again and the trial counted.
-    ``min_trial``, ``trial_gain``: no trial is evaluated whose step moves the log distance by
-    less than ``min_trial`` (each other parameter by less than as large a share of its
-    difference step) and would lower the cost by less than ``trial_gain`` of it by the linear
-    model; the fit ends there (such a step is the model's own ray noise to judge).
-    ``trial_lateral`` (optional): with it, a step is that small where its log distance
-    moves by less than ``min_trial`` and each other parameter by less than this share of
-    its difference step.
-    ``stop_above``: the fit ends after an iteration that leaves the cost over this.
-    ``first_or_stop``: with ``jac0``, the fit ends where it began when the first step
-    evaluated (``jac0``'s own) does not lower the cost.
-    ``confirm_above``: with ``broyden``, a fit that a secant Jacobian's step calls settled
-    (``settle_log``, or a step under ``tol``) while its misfit (√cost) is over this goes on
-    with a Jacobian taken by differences (the secant's distance column can be stale: the step
-    it calls short may be long); ``inf``: never. ``confirm_below``: only where the fit's σ of
-    the log distance (the last Jacobian taken by differences, the residual where it stands)
-    is under this. ``confirm_jac`` (optional): ``confirm_jac(q)``, that Jacobian by the
-    caller's rule.
-    ``pause`` (optional): ``pause(it, q, r, jac)``, called after iteration ``it`` (from 0)
-    when another would follow (``jac``: the Jacobian that iteration stepped with); the fit
-    ends there when it returns true.
-    """
-    q = np.asarray(q0, dtype=np.float64)
-    r = fun(q) if r0 is None else r0
-    f = _sq(r)
-    lam = 1e-4
-    jac = None if jac0 is None else np.array(jac0, dtype=np.float64)
-    last = jac
-    fresh = jac is None
-
-    def stale() -> bool:  # a secant's verdict read again (confirm_above)
-        return bool(not fresh and math.sqrt(f) > confirm_above
-                    and _log_distance_sigma(last, r) < confirm_below)
-    for it in range(max_iter):
-        if jac is None:
-            jac = jac_of(q, r) if jac_of is not None else _fd_jacobian(fun, fun_many, q, r,
-                                                                        steps)
-            last, fresh = jac, True
-        jtj = _gram(jac)
-        g = _jt(jac, r)
-        improved = settled = confirm = False
-        dq = np.zeros_like(q)
-        failed = None  # the last step tried that did not lower the cost (in units of steps)
-        for trial in range(5):
-            a = jtj + lam * np.diag(np.diag(jtj) + 1e-30)
-            try:
-                dq = -np.linalg.solve(a, g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            if it > 0 and trial == 0 and abs(dq[0]) < settle_log:
-                confirm = stale()
-                settled = not confirm
-                break
-            small = (abs(dq[0]) < min_trial
-                     and float(np.max(np.abs(dq[1:] / steps[1:]))) < trial_lateral
-                     if trial_lateral > 0.0
-                     else float(np.max(np.abs(dq / steps))) * steps[0] < min_trial)
-            if small and f - _sq(r + jac @ dq) < trial_gain * f:
-                settled = True
-                break
-            if failed is not None and (np.linalg.norm(dq / steps - failed)
-                                       < LM_RETRY_MIN_CHANGE * np.linalg.norm(failed)):
-                # the damping barely changed the step that failed: it would fail again
-                lam *= 10
-                continue
-            r2 = fun(q + dq)
-            f2 = _sq(r2)
-            if f2 < f:
-                if broyden:  # the secant of the accepted step
-                    jac = jac + np.outer((r2 - r) - jac @ dq, dq) / float(dq @ dq)
-                    fresh = False
-                settled = f - f2 < ftol * f
-                q, r, f = q + dq, r2, f2
-                lam = max(lam / 10, 1e-8)
-                improved = True
-                break
-            if first_or_stop and it == 0 and jac0 is not None:
-                settled = True  # (jac0's own first step failed: the fit ends where it began)
-                break
-            failed = dq / steps
-            lam *= 10
-        short = improved and bool(np.all(np.abs(dq) < tol * np.maximum(steps, 1e-12)
-                                         / steps[0]))
-        if confirm or (short and stale()):
-            # a secant's verdict (settled, or a step too short to go on) read again with a
-            # Jacobian by differences (confirm_above)
-            jac = None if confirm_jac is None else confirm_jac(q)
-            if jac is not None:
-                last, fresh = jac, True
-            continue
-        if settled or f > stop_above:  # (a secant Jacobian is not taken again by
-            break  #                           differences to confirm it, but as above)
-        if not improved and not fresh:
-            jac = None  # the updated Jacobian found no descent: take it by differences
-            continue
-        if not improved or short:
-            break
-        if pause is not None and it + 1 < max_iter and pause(it, q, r, last):
-            break
-        if not broyden:
-            jac = None
-    return q, r, f, last
-
-
-def _fd_jacobian(fun, fun_many, q, r, steps) -> np.ndarray:
-    """Forward-difference Jacobian of ``fun`` at ``q`` (value ``r``), steps ``steps``; with
-    ``fun_many``, all columns in one call."""
-    points = [q + h * e for h, e in zip(steps, np.eye(len(q)), strict=True)]
-    values = fun_many(points) if fun_many is not None else [fun(p) for p in points]
-    return np.column_stack([(v - r) / h for v, h in zip(values, steps, strict=True)])
-
-
 def region_moments(geom: Geometry, image: np.ndarray, region: Region,
                    others: Sequence[Region] = ()) -> _Moments:
     """:func:`data_moments` of a region's box as :func:`measure_lenslet` fits them: the
@@ -1626,7 +1475,7 @@ def _starts(profile, geom, mom, frame, model):
     scan = []
     for q, m in zip(qs, ms, strict=True):
         r = model.residual_of(m)
-        scan.append((_sq(r), q, summary(profile, geom, mom, m)))
+        scan.append((sq(r), q, summary(profile, geom, mom, m)))
     out = []
     bd, rd = t_data[0], t_data[3]
     for (f0, q0, t0), (f1, q1, t1) in zip(scan[:-1], scan[1:], strict=True):
@@ -1678,10 +1527,10 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         ms = model.simulate_sets([frame.source(qq) for qq in qs])
         return [summary(profile, geom, mom, m) for m in ms]
 
-    def fd_jacobian(q, t):
-        return _fd_jacobian(t_of, t_many, q, t, steps)
+    def summary_jacobian(q, t):
+        return fd_jacobian(t_of, t_many, q, t, steps)
 
-    jac, fresh = (fd_jacobian(q, t), True) if jac0 is None else (jac0, False)
+    jac, fresh = (summary_jacobian(q, t), True) if jac0 is None else (jac0, False)
     for _ in range(iterations):
         if not np.isfinite(jac).all():
             break
@@ -1696,7 +1545,7 @@ def _match_summary(profile, geom, mom, frame, model, q, t_data, iterations=SUMMA
         if not err2 < err:
             if fresh:
                 break
-            jac, fresh = fd_jacobian(q, t), True  # the Broyden update went stale: refresh
+            jac, fresh = summary_jacobian(q, t), True  # the Broyden update went stale: refresh
             continue
         jac = jac + np.outer((t2 - t) - jac @ dq, dq) / float(dq @ dq)
         fresh = False
@@ -1722,7 +1571,7 @@ def _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err):
     Returns the parameters and the summary's normalised misfit there (``err`` at ``q``)."""
     d = math.exp(_log_distance(q))
     gain = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
-    best = (SUMMARY_RECENTRE_GAIN * _sq(model.residual_of(m)), q, err)
+    best = (SUMMARY_RECENTRE_GAIN * sq(model.residual_of(m)), q, err)
     for _ in range(SUMMARY_RECENTRE_STEPS):
         if gain == 0 or not np.isfinite(t).all():
             break
@@ -1732,7 +1581,7 @@ def _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err):
         q = q + np.r_[0.0, shift / along]
         m = model.simulate(frame.source(q))
         t = summary(profile, geom, mom, m)
-        f = _sq(model.residual_of(m))
+        f = sq(model.residual_of(m))
         if f < best[0]:
             best = (f, q, float(np.linalg.norm((t - t_data) / scale))
                     if np.isfinite(t).all() else math.inf)
@@ -1755,98 +1604,6 @@ def _polish_rays(n_fine: int, model_misfit: float, noise_misfit: float) -> int:
     return int(min(max(need, n_fine), POLISH_RAYS))
 
 
-def _log_distance_sigma(jac: np.ndarray, r: np.ndarray) -> float:
-    """σ of the fitted log distance (parameter 0) from the Jacobian ``jac`` and residual ``r``
-    at the minimum: the larger of the classical ``s²·(JᵀJ)⁻¹`` (``s² = Σr²/(n − p)``, every
-    residual equally noisy) and the lenslet jackknife (:func:`_jackknife_variance`).
-
-    The moments are not equally noisy — a bright lenslet's carry more photon noise, the model's
-    mismatch gathers on a few — so the classical σ left far, dim sources of the 12-source
-    scenes 3–7σ off. The cluster-robust sandwich ``(JᵀJ)⁻¹ (Σ_k g_k g_kᵀ) (JᵀJ)⁻¹``,
-    ``g_k = Σ J·r`` over lenslet ``k``'s four moments, that replaced it was still 1.2–3.7× low
-    there: the few bright lenslets that fix the distance pull the fit onto their own noise, so
-    their residuals show only part of it (docs/distance.md, "Uncertainty that covers the
-    error"). ``inf`` when the Jacobian is singular."""
-    n, p = jac.shape
-    try:
-        inv = np.linalg.inv(_gram(jac))
-    except np.linalg.LinAlgError:
-        return math.inf
-    classical = _sq(r) / max(n - p, 1) * inv[0, 0]
-    if n % 4:
-        return math.sqrt(max(classical, 0.0))
-    return math.sqrt(max(classical, _jackknife_variance(jac, r, inv)[0, 0], 0.0))
-
-
-LEVERAGE_CAP = 0.95  # a lenslet's leverage counted at most this (its residual × ≤ 20)
-
-
-def _jackknife_variance(jac: np.ndarray, r: np.ndarray, inv: np.ndarray) -> np.ndarray:
-    """Covariance of the least-squares parameters by the delete-one-lenslet jackknife
-    (the cluster "CR3" estimator): ``(K − 1)/K · Σ_k δ_k δ_kᵀ``, ``δ_k`` the change of the
-    parameters when lenslet ``k``'s four moments are left out,
-
-        δ_k = (JᵀJ)⁻¹ J_kᵀ (I − H_k)⁻¹ r_k,   H_k = J_k (JᵀJ)⁻¹ J_kᵀ,
-
-    exact for a linear model (Woodbury), one 4×4 eigen-decomposition a lenslet. Against the
-    sandwich it undoes the leverage ``H_k`` that shrinks a lenslet's residual below its noise.
-    Eigenvalues of ``H_k`` are capped at :data:`LEVERAGE_CAP`: a lenslet that alone fixes a
-    parameter does not make the variance infinite."""
-    n, p = jac.shape
-    k = n // 4
-    jk = jac.reshape(k, 4, p)
-    rk = r.reshape(k, 4)
-    h = (jk @ inv) @ jk.transpose(0, 2, 1)
-    x = np.empty((k, 4))
-    # H_k is positive semi-definite: its eigenvalues lie in [0, trace]. Where the trace is
-    # under the cap none is capped, and (I − H_k)⁻¹ r_k is a plain solve (a blur of 2 000
-    # lenslets: 0.4 ms against 3.2 ms for the eigen-decompositions)
-    plain = np.trace(h, axis1=1, axis2=2) < LEVERAGE_CAP
-    if plain.any():
-        x[plain] = np.linalg.solve(np.eye(4) - h[plain], rk[plain, :, None])[..., 0]
-    if not plain.all():
-        lam, vec = np.linalg.eigh(h[~plain])
-        shrink = 1.0 / (1.0 - np.minimum(lam, LEVERAGE_CAP))
-        x[~plain] = np.einsum("kab,kb->ka", vec,
-                              shrink * np.einsum("kcb,kc->kb", vec, rk[~plain]))
-    d = np.einsum("kaq,ka->kq", jk, x) @ inv  # (inv is symmetric)
-    return (k - 1) / k * (d.T @ d)
-
-
-def _gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0, min_trial=0.0):
-    """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step.
-    ``skip_below``: a step whose log distance is under this is not taken (nor evaluated): at
-    the minimum the misfit no longer falls by a step that small, and such a step was
-    evaluated and halved twice: three evaluations for nothing. ``min_trial``: no step, nor a
-    halving of one that failed, is evaluated under this log distance: the fit ends there."""
-    f = _sq(r)
-    jtj = _gram(jac)
-    try:
-        solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj)))
-    except np.linalg.LinAlgError:
-        return q, r, f
-    for _ in range(iterations):
-        dq = -(solve @ _jt(jac, r))
-        if abs(dq[0]) < skip_below:
-            break
-        lower = False
-        for _ in range(3):
-            if abs(dq[0]) < min_trial:
-                break  # (a step this short is the model's own ray noise to judge)
-            r2 = fun(q + dq)
-            f2 = _sq(r2)
-            if f2 < f:
-                lower = True
-                break
-            dq = 0.5 * dq
-        if not lower:
-            break
-        q, r, f = q + dq, r2, f2
-        if abs(dq[0]) < 2e-5:
-            break
-    return q, r, f
-
-
 def _refit_start(fun_r, q: np.ndarray, f: float, guess: np.ndarray | None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Where a line's refit starts, and the refit model's residual ``fun_r`` there: at
@@ -1857,22 +1614,9 @@ def _refit_start(fun_r, q: np.ndarray, f: float, guess: np.ndarray | None
     guess was 0.3-0.9 × the fine one's)."""
     if guess is not None:
         r = fun_r(guess)
-        if _sq(r) <= f:
+        if sq(r) <= f:
             return guess, r
     return q, fun_r(q)
-
-
-def _linear_step(jac: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """The Gauss–Newton step ``−δ`` on residual ``r`` with Jacobian ``jac`` (``δ`` returned, as
-    solved) and the misfit² it would remove by the linear model (``Jᵀr · δ``); ``None`` when
-    ``JᵀJ`` is singular."""
-    jtj = _gram(jac)
-    g = _jt(jac, r)
-    try:
-        step = np.linalg.solve(jtj + 1e-9 * np.diag(np.diag(jtj)), g)
-    except np.linalg.LinAlgError:
-        return None
-    return step, float(g @ step)
 
 
 def _accepted(accept: Callable[[float, float], bool], q: np.ndarray, sigma_log: float,
@@ -1925,12 +1669,12 @@ def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarr
     far from its own minimum and the bound is 0: the point is polished before a line is tried
     (docs/distance.md, "An unsettled point is polished before a line (stop 60)").
     """
-    f = _sq(r_check)
+    f = sq(r_check)
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
     if not math.sqrt(f) > bound_above:
         return floor
-    step_gain = _linear_step(_fd_jacobian(fun, fun_many, q, r, steps) if jac is None else jac,
-                             r_check)
+    step_gain = linear_step(fd_jacobian(fun, fun_many, q, r, steps) if jac is None else jac,
+                            r_check)
     if step_gain is None:
         return floor
     gain = step_gain[1]
@@ -1956,24 +1700,24 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
 
     Returns (settled, the fine model's Jacobian at ``q``).
     """
-    jac_q = _fd_jacobian(fun, fun_many, q, r, steps)
-    jtj = _gram(jac_q)
-    step_gain = _linear_step(jac_q, r_check)
+    jac_q = fd_jacobian(fun, fun_many, q, r, steps)
+    jtj = gram(jac_q)
+    step_gain = linear_step(jac_q, r_check)
     if step_gain is None:
         return False, jac_q
     step, gain = step_gain
-    if not (abs(step[0]) < 0.5 * SETTLED_LOG and gain < SETTLED_GAIN * _sq(r_check)):
+    if not (abs(step[0]) < 0.5 * SETTLED_LOG and gain < SETTLED_GAIN * sq(r_check)):
         return False, jac_q
     # a shallow minimum (dim or far sources): the step above is no guide along its valley
-    f = _sq(r_check)
+    f = sq(r_check)
     try:
         var = f / max(r_check.size - len(q), 1) * np.linalg.inv(jtj)[0, 0]
     except np.linalg.LinAlgError:
         return False, jac_q
     if not math.sqrt(max(var, 0.0)) < SETTLED_SIGMA:
         return False, jac_q
-    q_b, _, _ = _gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS,
-                                    min_trial=FINE_MIN_TRIAL_LOG)
+    q_b, _, _ = gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS,
+                                   min_trial=FINE_MIN_TRIAL_LOG)
     return bool(abs(q_b[0] - q[0]) < SETTLED_LOG), jac_q
 
 
@@ -2003,29 +1747,29 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
     (docs/distance.md, "Fewer evaluations: a cheaper σ profile and polish").
     """
     r0 = fun(q) if r0 is None else r0
-    f0 = _sq(r0)
+    f0 = sq(r0)
     s2 = f0 / max(n_res - 3, 1)
     if not s2 > 0.0:
         return sigma_rel
     systematic = min(f0, PROFILE_FLOOR**2)
-    jac = _fd_jacobian(fun, fun_many, q, r0, steps) if jac0 is None else jac0
+    jac = fd_jacobian(fun, fun_many, q, r0, steps) if jac0 is None else jac0
     jp, jz = jac[:, 1:], jac[:, 0]
     try:
-        solve = np.linalg.inv(_gram(jp))
+        solve = np.linalg.inv(gram(jp))
     except np.linalg.LinAlgError:
         return math.inf
-    lateral_slope = -(solve @ _jt(jp, jz))  # the lateral minimum's drift per unit of t
+    lateral_slope = -(solve @ jt(jp, jz))  # the lateral minimum's drift per unit of t
 
     def rise(t: float) -> float:
         p = q[1:] + t * lateral_slope
         best = math.inf
         for _ in range(PROFILE_GN_STEPS):
             r = fun(np.r_[q[0] + t, p])
-            f = _sq(r)
+            f = sq(r)
             if not f < best:
                 break
             best = f
-            p = p - solve @ _jt(jp, r)
+            p = p - solve @ jt(jp, r)
         return best - f0
 
     worst = 0.0
@@ -2148,7 +1892,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     scan_ends: list[np.ndarray] = []  # where the starts matched on the cells had their scan match
     for k, q0 in enumerate(starts):
         if (k > 0 and best[1] <= START_GOOD
-                and _sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
+                and sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
             continue  # its light misses the data's: no summary matching has brought one back
         model = coarse_of[int(cells_ok[k])]
         if cells_ok[k] and SUMMARY_SCAN_FIRST:
@@ -2167,16 +1911,16 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         else:
             q = _match_summary(profile, geom, mom, frame, model, q0, t_data)[0]
         r = model.residual(frame.source(q))
-        f = _sq(r)
+        f = sq(r)
         if best is None or f < best[1]:
             best = (q, f, r, k)
     on_cells = cells_ok[best[3]]
     coarse = coarse_of[int(on_cells)]
     fine = LensletModel(profile, geom, mom, n_rays,
                         cells=0 if not on_cells else coarse.fine_cells())
-    q, r, f, jac = _levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
-                                        COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2],
-                                        ftol=COARSE_CELLS_FTOL if on_cells else 0.0)
+    q, r, f, jac = levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
+                                       COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2],
+                                       ftol=COARSE_CELLS_FTOL if on_cells else 0.0)
     fun = fun_of(fine)
     q_c = q
     r = fun(q_c)
@@ -2185,7 +1929,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # for the steps (as the line fit's): the fine model's own, for them and the rays'
         # below (a 3500 mm point's answer +0.17 % at 5σ on n = 2's: docs/distance.md, "Whole
         # hexagonal cells (stop 45)")
-        jac = _fd_jacobian(fun, many_of(fine), q_c, r, steps)
+        jac = fd_jacobian(fun, many_of(fine), q_c, r, steps)
     # The ray sample's own noise moves the minimum: on 100-200 lenslet blurs off axis, by ~1 %
     # of the distance at 12 000-20 000 rays (a lateral shift trades against distance), 0.3 %
     # at 80 000. The same fit through a turned pupil sample measures that shift; only when it
@@ -2209,11 +1953,11 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # model's residual
         nonlocal polish_above, bound_above
         r_p = fun_p(q)
-        model_misfit = math.sqrt(_sq(r - r_p))
+        model_misfit = math.sqrt(sq(r - r_p))
         if gates is not None:
             polish_above, bound_above = gates(model_misfit)
         far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
-        return LensletFit(frame.source(q), math.sqrt(_sq(r_p)), math.nan, evaluations(),
+        return LensletFit(frame.source(q), math.sqrt(sq(r_p)), math.nan, evaluations(),
                           not far, RegionStatus.NO_SOLUTION if far else "",
                           polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p,
                                                      bound_above, steps, jac_q),
@@ -2221,8 +1965,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     if early and on_cells:
         yield first_look(q_c, r, jac, True)[0]
-    q, r, f = _gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS,
-                                  min_trial=FINE_MIN_TRIAL_LOG)
+    q, r, f = gauss_newton_fixed(fun, q_c, r, jac, FINE_ITERATIONS,
+                                 min_trial=FINE_MIN_TRIAL_LOG)
     r_fine = r  # the fine model's residual at q (the σ profile's start, when q stays)
     look, r_p = first_look(q, r, None, False)
     yield look
@@ -2237,35 +1981,35 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         counted += [fine, polish]
         fun, fun_p = fun_of(fine), fun_of(polish)
         q_c = q
-        q, r, f = _gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS,
-                                      min_trial=FINE_MIN_TRIAL_LOG)
+        q, r, f = gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS,
+                                     min_trial=FINE_MIN_TRIAL_LOG)
         r_fine = r
         r_p = fun_p(q)
         if gates is not None:  # (the polish's gate as the ray models' disagreement sets it)
-            polish_above, bound_above = gates(math.sqrt(_sq(r - r_p)))
+            polish_above, bound_above = gates(math.sqrt(sq(r - r_p)))
     # a misfit near a gate is polished whatever the settled test says: do not run it then
-    near_gate = not math.sqrt(_sq(r_p)) <= polish_above
+    near_gate = not math.sqrt(sq(r_p)) <= polish_above
     settled, jac_q = (False, None) if near_gate else (
         _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
     polished = not settled
     to_go = 0.0  # the linear step still to go to the polishing model's minimum (log distance),
     #              kept in σ where the caller accepts the fine fit with it
     if polished and accept is not None and jac_q is not None and POLISH_BY_TOLERANCE:
-        linear = _linear_step(jac_q, r_p)
+        linear = linear_step(jac_q, r_p)
         if linear is not None:
-            s_log, step_log = _log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
+            s_log, step_log = log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
             if (math.isfinite(s_log) and math.isfinite(step_log)
                     and _accepted(accept, q, s_log, step_log, SIGMA_FLOOR_REL)):
                 polished, to_go = False, step_log
     if not polished:  # the misfit as the polishing model sees it (the fine one adds its
         #               own noise)
-        jac, r, f = jac_q, r_p, _sq(r_p)
+        jac, r, f = jac_q, r_p, sq(r_p)
     else:
         # (a polish the settled test asked for whose first step, that test's own, does not
         # lower the polishing model's misfit ends there: POLISH_FIRST_OR_STOP)
         # (where the photons' noise dwarfs the rays', on fewer rays: POLISH_NOISE_SHARE)
         lm_model, r_lm = polish, r_p
-        n_polish = _polish_rays(n_rays, math.sqrt(_sq(r - r_p)), noise_misfit)
+        n_polish = _polish_rays(n_rays, math.sqrt(sq(r - r_p)), noise_misfit)
         if n_polish <= n_rays:
             lm_model, r_lm = fine, r  # (the fine model itself, its residual at q)
         elif n_polish < POLISH_RAYS:
@@ -2276,24 +2020,24 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # (POLISH_CONFIRM_NOISE; no noise misfit known: never)
         confirm_above = (POLISH_CONFIRM_NOISE * noise_misfit
                          if POLISH_CONFIRM_NOISE > 0 and noise_misfit > 0 else math.inf)
-        q, r, f, jac_fine = _levenberg_marquardt(fun_of(lm_model), q, steps, FINE_LM_ITERATIONS,
-                                                 1e-3, many_of(lm_model), r0=r_lm,
-                                                 jac0=jac_q, broyden=True,
-                                                 settle_log=POLISH_SETTLE_LOG,
-                                                 min_trial=0.0 if near_gate
-                                                 else POLISH_MIN_TRIAL_LOG,
-                                                 trial_gain=SETTLED_GAIN,
-                                                 first_or_stop=POLISH_FIRST_OR_STOP,
-                                                 confirm_above=confirm_above,
-                                                 confirm_below=POLISH_CONFIRM_BELOW,
-                                                 confirm_jac=lambda qq: _fd_jacobian(
+        q, r, f, jac_fine = levenberg_marquardt(fun_of(lm_model), q, steps, FINE_LM_ITERATIONS,
+                                                1e-3, many_of(lm_model), r0=r_lm,
+                                                jac0=jac_q, broyden=True,
+                                                settle_log=POLISH_SETTLE_LOG,
+                                                min_trial=0.0 if near_gate
+                                                else POLISH_MIN_TRIAL_LOG,
+                                                trial_gain=SETTLED_GAIN,
+                                                first_or_stop=POLISH_FIRST_OR_STOP,
+                                                confirm_above=confirm_above,
+                                                confirm_below=POLISH_CONFIRM_BELOW,
+                                                confirm_jac=lambda qq: fd_jacobian(
                                                      fun, many_of(fine), qq, fun(qq), steps))
         if jac_fine is not None:
             jac = jac_fine
     misfit = math.sqrt(f)
     source = frame.source(q)
     dist = math.exp(_log_distance(q))
-    sigma_d = dist * math.hypot(_log_distance_sigma(jac, r), to_go)
+    sigma_d = dist * math.hypot(log_distance_sigma(jac, r), to_go)
     ridge = False
     if n_lit <= PROFILE_LENSLETS and math.isfinite(sigma_d) and not _at_far_bound(q):
         s_rel = _profile_sigma(fun_of(fine), many_of(fine), q, len(r), sigma_d / dist,
@@ -2545,7 +2289,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             for h in halves:
                 for hh in (h, h + extra):
                     cands.append(np.r_[q[0], centre - hh * u, centre + hh * u])
-        costs = [_sq(r) for r in many_of(scan_model, n_scan)(cands)]
+        costs = [sq(r) for r in many_of(scan_model, n_scan)(cands)]
         return [cands[i] for i in np.argsort(costs)[:LINE_TURNED_STARTS]]
 
     d0 = float(frame.z_front - point.source_mm[2])
@@ -2617,7 +2361,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                 _, along = mla_to_object(float(d), float(g))
                 moved.append(np.r_[q[0], q[1:3] + dxy / along, q[3:5] + dxy / along])
             scan = moved
-    costs = [_sq(r) for r in many_of(scan_model, n_scan)(scan)]
+    costs = [sq(r) for r in many_of(scan_model, n_scan)(scan)]
     best_scan = scan[int(np.argmin(costs))]
     # the scan's best node is a start of its own unless it lies in the point's basin (stopping
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
@@ -2677,7 +2421,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # LINE_RACE_START_RATIO × the best start's, or LINE_RACE_HOPELESS × the best race's end,
     # does not run (a far start, or an axis turned the wrong way)
     r_starts = [race_c(start) for start in starts]  # (the race's first evaluations)
-    f_starts = [_sq(r0) for r0 in r_starts]
+    f_starts = [sq(r0) for r0 in r_starts]
     best_start = min(f_starts)
     heats = []
     for k in np.argsort(f_starts, kind="stable"):
@@ -2685,9 +2429,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if heats and (f_starts[k] > LINE_RACE_START_RATIO * best_start
                       or f_starts[k] > LINE_RACE_HOPELESS * best_end):
             continue
-        heats.append(_levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
-                                          r0=r_starts[k], jac_of=race_j,
-                                          stop_above=LINE_RACE_GIVE_UP * best_end))
+        heats.append(levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
+                                         r0=r_starts[k], jac_of=race_j,
+                                         stop_above=LINE_RACE_GIVE_UP * best_end))
     q, r, f, jac = min(heats, key=lambda heat: heat[2])
     if coarse.cells:
         # Gauss–Newton on the coarse cells, its Jacobian refreshed only where the steps are
@@ -2695,23 +2439,23 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # iteration cost three evaluations each, to reach a minimum the fine model moves by
         # 0.4-0.7 % anyway (docs/distance.md, "Fewer evaluations on the cells")
         r = fun_c(q)
-        f = _sq(r)
+        f = sq(r)
         jac = jac_c(q, r)  # (the race's, from the rays: one more round, no less CPU)
         for _ in range(LINE_CELLS_JACOBIANS):
             f_round = f
-            q, r, f = _gauss_newton_fixed(fun_c, q, r, jac, LINE_CELLS_GN_STEPS,
-                                          skip_below=LINE_CELLS_COARSE_STEP_LOG)
-            step = _linear_step(jac, r)
+            q, r, f = gauss_newton_fixed(fun_c, q, r, jac, LINE_CELLS_GN_STEPS,
+                                         skip_below=LINE_CELLS_COARSE_STEP_LOG)
+            step = linear_step(jac, r)
             if (step is None or abs(float(step[0][0])) < LINE_CELLS_COARSE_STEP_LOG
                     or f > (1.0 - LINE_CELLS_COARSE_GAIN) * f_round
                     or step[1] < LINE_CELLS_COARSE_GAIN * f):
                 break
             jac = jac_c(q, r)
     elif len(starts) > 1:
-        q, r, f, jac_lead = _levenberg_marquardt(fun_c, q, steps,
-                                                 COARSE_ITERATIONS - LINE_RACE_ITERATIONS, 1e-3,
-                                                 r0=r if race_c is fun_c else None,
-                                                 jac_of=jac_c)
+        q, r, f, jac_lead = levenberg_marquardt(fun_c, q, steps,
+                                                COARSE_ITERATIONS - LINE_RACE_ITERATIONS, 1e-3,
+                                                r0=r if race_c is fun_c else None,
+                                                jac_of=jac_c)
         jac = jac if jac_lead is None else jac_lead
 
     sigma_log = None  # the fit's statistical σ (log distance), once computed
@@ -2737,8 +2481,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    q, r, f = _gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
-                                  skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
+    q, r, f = gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
+                                 skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     probe: list = []  # the settled test's residual function (its turned model's), once made
@@ -2761,16 +2505,16 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # (LINE_REFIT_EARLY); any other takes its last iteration, and keeps that verdict
         # unless the iteration moved it by more than LINE_SETTLED_LOG (then the fit had not
         # settled, and the test is read again where it ends, as without this rule).
-        if it != LINE_FINE_LM_ITERATIONS - 2 or not math.sqrt(_sq(r_it)) < useful_below:
+        if it != LINE_FINE_LM_ITERATIONS - 2 or not math.sqrt(sq(r_it)) < useful_below:
             return False
         r_t = fun_turned()(q_it)
-        shift = _linear_step(jac_it, r_t - r_it)
+        shift = linear_step(jac_it, r_t - r_it)
         moved = math.inf if shift is None else abs(float(shift[0][0]))
         early[:] = [moved, float(q_it[0]), None]
         if not moved > LINE_SETTLED_LOG:
             return False
         if accept is not None and math.isfinite(moved) and _accepted(
-                accept, q_it, _log_distance_sigma(jac_it, r_it), moved, LINE_SIGMA_FLOOR_REL):
+                accept, q_it, log_distance_sigma(jac_it, r_it), moved, LINE_SIGMA_FLOOR_REL):
             return False
         # The refit starts at the linear step to the two samples' mean minimum, the better
         # guess of the refit model's: its one Jacobian, taken there, is then taken nearer its
@@ -2779,13 +2523,13 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # by where it is taken: started where the fit stands, the line landed 0.14 % off the
         # old path's; started here, 0.05 % (docs/distance.md, "The settled test before the
         # fine fit's last iteration (stop 58)").
-        mean_step = _linear_step(jac_it, 0.5 * (r_it + r_t))
+        mean_step = linear_step(jac_it, 0.5 * (r_it + r_t))
         if mean_step is not None:
             early[2] = q_it - mean_step[0]
         return True
 
     if not fine.cells:
-        q, r, f, jac_fine = _levenberg_marquardt(
+        q, r, f, jac_fine = levenberg_marquardt(
             fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r, jac_of=jac_f,
             settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None,
             min_trial=LINE_REFIT_MIN_TRIAL_LOG if LINE_FINE_TRIAL_LATERAL > 0.0 else 0.0,
@@ -2813,21 +2557,21 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         else:
             fun_t = fun_turned()
             r_t = fun_t(q)
-            shift = _linear_step(jac, r_t)
+            shift = linear_step(jac, r_t)
             moved = math.inf if shift is None else abs(float(shift[0][0]))
         refit = moved > LINE_SETTLED_LOG
         if fine.cells and shift is not None:
             # the step to n = 6's minimum: as it is, or, where long, by Gauss–Newton on n = 6
             if moved > LINE_CELLS_SETTLED_LOG:
-                q, r, f = _gauss_newton_fixed(fun_t, q, r_t, jac, LINE_CELLS_SETTLE_STEPS,
-                                              skip_below=LINE_REFIT_STEP_LOG)
+                q, r, f = gauss_newton_fixed(fun_t, q, r_t, jac, LINE_CELLS_SETTLE_STEPS,
+                                             skip_below=LINE_REFIT_STEP_LOG)
             else:
                 q = q - shift[0]
             refit = False
         if refit and accept is not None and math.isfinite(moved):
             # the refit is for the sample's share of the error: not needed where the caller
             # accepts the answer with that share in its σ
-            sigma_log = _log_distance_sigma(jac, r)
+            sigma_log = log_distance_sigma(jac, r)
             if _accepted(accept, q, sigma_log, moved, LINE_SIGMA_FLOOR_REL):
                 refit, sampling_log = False, moved
         if refit:
@@ -2838,8 +2582,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             q, r = _refit_start(fun_r, q, f, early[2] if early else None)
             jac = jac_r(q, r)
             # (LINE_REFIT_MIN_TRIAL_LOG ≥ LINE_REFIT_STEP_LOG: no step under the latter either)
-            q, r, f = _gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
-                                          min_trial=LINE_REFIT_MIN_TRIAL_LOG)
+            q, r, f = gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
+                                         min_trial=LINE_REFIT_MIN_TRIAL_LOG)
             sigma_log = None
     pts = _line_points(frame, q, 2)
     z = pts[0, 2]
@@ -2847,7 +2591,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
     dist = math.exp(_log_distance(q))
     if sigma_log is None:
-        sigma_log = _log_distance_sigma(jac, r)
+        sigma_log = log_distance_sigma(jac, r)
     sigma_d = dist * math.hypot(sigma_log, sampling_log)
     total = evaluations()
     mid = 0.5 * (ends[0] + ends[1])
@@ -2984,7 +2728,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
         return (data - mean) * weight, slope
 
     def residuals_at(qs: list[np.ndarray]) -> list[np.ndarray]:
-        # the residuals at source parameters qs, p's intensity (one trace: _fd_jacobian)
+        # the residuals at source parameters qs, p's intensity (one trace: fd_jacobian)
         return [residual(np.append(q_i, p[3]), m_i[:, 0])[0] for q_i, m_i in
                 zip(qs, model.simulate_sets([frame.source(q_i) for q_i in qs]), strict=True)]
 
@@ -3001,7 +2745,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     reweighted = False  # the weights are the pixels' own photon gain's (_local_gain)
     for _ in range(PIXEL_ITERATIONS):
         if jac3 is None or last > PIXEL_REJACOBIAN_LOG:
-            jac3 = _fd_jacobian(None, residuals_at, p[:3], r, steps)
+            jac3 = fd_jacobian(None, residuals_at, p[:3], r, steps)
         j_use = jacobian()[use]
         step = np.linalg.lstsq(j_use, -r[use], rcond=None)[0]
         # the least distance step worth a trace: a share of the fit's σ (log distance) there

@@ -40,6 +40,13 @@ from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region, footprint_shape, make_region
+from lfcam.measure.solve import (
+    fd_jacobian,
+    levenberg_marquardt,
+    linear_step,
+    log_distance_sigma,
+    sq,
+)
 from lfcam.measure.verify import poor_fit_limit
 from lfcam.status import RegionStatus
 
@@ -202,13 +209,13 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     distances = np.geomspace(1.1 * f_mm, 3e4, ff.SCAN_DISTANCES)
     gains = chief_ray_gains(profile, geom.d_in_mm, distances)
     scan = [at(d, d, g, g) for d, g in zip(distances, gains, strict=True)]
-    costs = [ff._sq(r) for r in pairs_of(coarse, scan)]
+    costs = [sq(r) for r in pairs_of(coarse, scan)]
     best = float(distances[int(np.argmin(costs))])
     trial = np.array(TWO_SCAN) * best
     g_trial = chief_ray_gains(profile, geom.d_in_mm, trial)
     grid = [at(d1, d2, g1, g2) for d1, g1 in zip(trial, g_trial, strict=True)
             for d2, g2 in zip(trial, g_trial, strict=True)]
-    costs = [ff._sq(r) for r in pairs_of(coarse, grid)]
+    costs = [sq(r) for r in pairs_of(coarse, grid)]
     q = grid[int(np.argmin(costs))]
     fine = ff.LensletModel(profile, geom, mom, TWO_FINE_RAYS)
     steps = np.tile(ff.point_steps(profile, geom, ff.lit_lenslets(mom)), 2)
@@ -216,9 +223,9 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     def fit(model: ff.LensletModel, q: np.ndarray, iterations: int, **lm) -> tuple:
         fun = (lambda qq: pairs_of(model, [qq])[0])  # noqa: E731
         many = (lambda qs: pairs_of(model, qs))  # noqa: E731
-        q, r, f, jac = ff._levenberg_marquardt(fun, q, steps, iterations, 1e-4, many, **lm)
+        q, r, f, jac = levenberg_marquardt(fun, q, steps, iterations, 1e-4, many, **lm)
         if jac is None:  # (ended before its first Jacobian)
-            jac = ff._fd_jacobian(fun, many, q, r, steps)
+            jac = fd_jacobian(fun, many, q, r, steps)
         return q, r, f, jac
 
     for model, iterations in ((coarse, TWO_ITERATIONS), (fine, TWO_FINE_ITERATIONS)):
@@ -242,9 +249,9 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
             model = ff.LensletModel(profile, geom, mom, TWO_ANSWER_RAYS)
             qa, ra, fa, jac = fit(model, q, TWO_ANSWER_ITERATIONS, settle_log=TWO_SETTLE_LOG)
             turned = ff.LensletModel(profile, geom, mom, TWO_ANSWER_RAYS, phase=1.0)
-            shift = ff._linear_step(jac, pairs_of(turned, [qa])[0] - ra)
+            shift = linear_step(jac, pairs_of(turned, [qa])[0] - ra)
             sigma_log = np.array([
-                math.hypot(ff._log_distance_sigma(jac[:, np.roll(np.arange(6), -k)], ra),
+                math.hypot(log_distance_sigma(jac[:, np.roll(np.arange(6), -k)], ra),
                            math.inf if shift is None else float(shift[0][k]))
                 for k in (0, 3)])
             src = np.array([frame.source(qa[:3]), frame.source(qa[3:])])
