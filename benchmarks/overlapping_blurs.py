@@ -4,14 +4,16 @@ overlap without a waist (stop 68)").
 
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
 [--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
-[--renderer sim|independent] [--brightness 1] [--field-mm 0]`` (``--method lightfield``:
-~20 s a capture)
+[--renderer sim|independent] [--brightness 1] [--field-mm 0] [--first-line-mm 0]``
+(``--method lightfield``: ~20 s a capture)
 
 Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
-either side, rendered by :mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer
-independent``, by ``benchmarks/render_independent.py`` (per-pixel irradiance of the exact ray
-map: no ray binning, no :mod:`lfcam.sim`), both with the focus grid's sensor noise (photon
-noise at a full well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full scale),
+either side (with ``--first-line-mm L``, the first a line instead: L × its distance / 1000 mm
+long across the pair's line, centred where the point would be, as bright in all), rendered by
+:mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer independent``, by
+``benchmarks/render_independent.py`` (per-pixel irradiance of the exact ray map: no ray
+binning, no :mod:`lfcam.sim`), both with the focus grid's sensor noise (photon noise at a full
+well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full scale),
 on the profile's own lenslet lattice (truth geometry), the fits told the full well.
 :func:`lfcam.distance.run_distance` measures each capture twice on one core,
 ``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status, the error and its
@@ -106,7 +108,12 @@ def main() -> None:
     ap.add_argument("--field-mm", type=float, default=0.0,
                     help="both sources this far off the axis across the pair's line (x), "
                          "1/1000 of their distance each, mm at 1 m")
+    ap.add_argument("--first-line-mm", type=float, default=0.0,
+                    help="the first source a line this long at 1 m (its length × distance / "
+                         "1000 mm, across the pair's line; sim renderer only); 0: a point")
     args = ap.parse_args()
+    if args.first_line_mm > 0 and args.renderer != "sim":
+        ap.error("--first-line-mm: with --renderer sim only")
     d1, d2 = _floats(args.distances)
     camera = {"mla": {"focus_mm": args.focus},
               "sensor": {"width_px": args.size, "height_px": args.size}}
@@ -120,7 +127,9 @@ def main() -> None:
     white = float(prof.sensor.white_level - prof.sensor.black_level)
     print(f"# {args.system}, focus {args.focus:.0f} mm, {args.size}² px, sources at {d1:.0f} "
           f"and {d2:.0f} mm (the second {args.brightness:g} × as bright, both "
-          f"{args.field_mm:g} mm/m off the axis), {args.renderer} renderer, --method "
+          f"{args.field_mm:g} mm/m off the axis"
+          + (f"; the first a {args.first_line_mm:g} mm/m line" if args.first_line_mm > 0 else "")
+          + f"), {args.renderer} renderer, --method "
           f"{args.method}; each region: source, status, error, z = error/σ, CPU ms")
     print("| apart | seed | centroids apart px | cut off | cut on |")
     print("|---|---|---|---|---|")
@@ -130,6 +139,11 @@ def main() -> None:
             objects = [{"type": "point", "distance_mm": d, "intensity": b,
                         "position_mm": [args.field_mm * d / 1000, s * apart * d / 1000]}
                        for d, s, b in ((d1, -1.0, 1.0), (d2, 1.0, args.brightness))]
+            if args.first_line_mm > 0:
+                x, y = objects[0]["position_mm"]
+                half = 0.5 * args.first_line_mm * d1 / 1000
+                objects[0] = {"type": "line", "distance_mm": d1, "intensity": 1.0 / (2 * half),
+                              "start_mm": [x - half, y], "end_mm": [x + half, y]}
             image, truth = render(base, prof, camera, objects, seed, args.renderer, top)
             stats = lenslet_stats(image, geom.lmap)
             capture_noise(image, geom.lmap, geom.pitch_px, stats,
