@@ -115,3 +115,33 @@ def test_refocus_baseline_near_and_its_f2_limit():
     assert abs(r.distance_mm - 450.0) <= 0.06 * 450.0
     far, _ = _run("system2", 3500, 0, model="refocus")
     assert far.regions[0].status != "ok" and np.isnan(far.regions[0].distance_mm)
+
+
+def test_serial_regions_load_the_kernels_before_the_first(monkeypatch):
+    """A run that measures its regions in its own process (one region, or ``jobs=1``) loads
+    the compiled kernels before its first region, as a pool worker does, so that their load
+    (~0.25 s in a fresh process) is not that region's time; the diameter method, which uses
+    none, loads nothing (docs/distance.md, "A single region's kernels loaded before its time
+    (stop 70)")."""
+    import lfcam.distance as distance_module
+    import lfcam.measure.kernels as kernels
+
+    order: list[str] = []
+    warm_up, timed = kernels.warm_up, distance_module._timed_estimate
+
+    def warm() -> None:
+        order.append("kernels")
+        warm_up()
+
+    def region(*args, **kwargs):
+        order.append("region")
+        return timed(*args, **kwargs)
+
+    monkeypatch.setattr(kernels, "warm_up", warm)
+    monkeypatch.setattr(distance_module, "_timed_estimate", region)
+    run, _ = _run("system1", 1500, 5, model="exact", method="lenslet", jobs=1)
+    assert run.regions[0].status == "ok"
+    assert order == ["kernels", "region"]
+    order.clear()
+    _run("system2", 2000, 0, model="exact", method="diameter", jobs=1)
+    assert order == ["region"]
