@@ -37,6 +37,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -77,6 +78,21 @@ from lfcam.status import RegionStatus, failed, unsupported
 
 # numerical failures of one region's fit that must not take down the capture
 _REGION_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError, cv2.error, LfcamError)
+
+
+class Estimate(NamedTuple):
+    """One region's answer as a method and model give it (:func:`_estimate`): NaN numbers
+    where there is none."""
+
+    kind: str  # spot or line (the measurement's), or the region's unsupported kind
+    model: str  # the distance model that answered
+    distance_mm: float
+    offset_mm: float
+    diameter_mm: float  # |y1 − y2| on the MLA plane
+    sigma_mm: float
+    status: str
+    measurement: Measurement | None  # None: the refocus model, an unsupported region, or a
+    #                                  fit that raised (status ``failed: …``)
 
 
 @dataclass(frozen=True)
@@ -155,15 +171,15 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
 
 def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, reg: Region,
               noise: float, model: str, method: str, tolerance_pct: float | None,
-              fast: bool, nearby: tuple[Region, ...] = ()) -> tuple:
-    """(kind, model name, distance, offset, diameter, sigma, status, Measurement or None) of
-    one region (``nearby``: the regions whose blur may reach into its box)."""
+              fast: bool, nearby: tuple[Region, ...] = ()) -> Estimate:
+    """The :class:`Estimate` of one region (``nearby``: the regions whose blur may reach
+    into its box)."""
     nan = float("nan")
     if reg.kind not in ("spot", "line"):
-        return reg.kind, model, nan, nan, nan, nan, unsupported(reg.kind), None
+        return Estimate(reg.kind, model, nan, nan, nan, nan, unsupported(reg.kind), None)
     if model == "refocus":
         d, sig, status = measure_refocus(profile, geom, img, reg)
-        return reg.kind, "refocus", d, nan, nan, sig, status, None
+        return Estimate(reg.kind, "refocus", d, nan, nan, sig, status, None)
     meas = None
     # a line's refit with more rays only where the tolerance needs it (fit_lenslet_line)
     accept = (None if tolerance_pct is None else
@@ -392,7 +408,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
     done: set[int] = set()
     for i in range(len(regions)):
         reg = regions[i]
-        status, meas = estimates[i][0][6], estimates[i][0][7]
+        status, meas = estimates[i][0].status, estimates[i][0].measurement
         failed_fit = status in _FAILED_FITS
         if (i in done or reg.kind not in ("spot", "line")
                 or not (failed_fit or (status == RegionStatus.OK and _unexplained(reg, meas)))):
@@ -426,7 +442,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
             if split.cut:
                 est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
                                             nearby)
-            if est is None or est[6] != RegionStatus.OK:
+            if est is None or est.status != RegionStatus.OK:
                 # the part's own fit failed (a crescent), or the blurs are not cut: the
                 # source's answer is the joint fit's (its first user carries its time)
                 t_joint = time.process_time()
@@ -460,14 +476,16 @@ def _unexplained(reg: Region, meas: Measurement | None) -> bool:
 
 
 def _estimate_of(profile: CameraProfile, meas: Measurement, model: str,
-                 tolerance_pct: float | None) -> tuple:
-    """The estimate tuple of :func:`_estimate` for a measurement."""
+                 tolerance_pct: float | None) -> Estimate:
+    """The :class:`Estimate` of a measurement."""
     name, d, off, sig, status = _apply_model(profile, meas, model, tolerance_pct)
-    return meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas
+    return Estimate(meas.kind, name, d, off, abs(meas.y1_mm - meas.y2_mm), sig, status, meas)
 
 
-def _timed_estimate(profile, geom, img, stats, reg, noise, args, nearby=()) -> tuple:
-    """(estimate of :func:`_estimate` or its failure, CPU seconds of this region)."""
+def _timed_estimate(profile, geom, img, stats, reg, noise, args,
+                    nearby=()) -> tuple[Estimate, float]:
+    """(:class:`Estimate` of :func:`_estimate` or its failure, CPU seconds of this
+    region)."""
     model, method, tolerance_pct, fast = args
     t = time.process_time()
     try:
@@ -475,7 +493,7 @@ def _timed_estimate(profile, geom, img, stats, reg, noise, args, nearby=()) -> t
                         fast, nearby)
     except _REGION_FAILURES as exc:
         nan = float("nan")
-        est = (reg.kind, model, nan, nan, nan, nan, failed(type(exc).__name__), None)
+        est = Estimate(reg.kind, model, nan, nan, nan, nan, failed(type(exc).__name__), None)
     return est, time.process_time() - t
 
 
@@ -544,7 +562,7 @@ def _worker_attach(names: tuple[str, str, str], shape: tuple[int, int]) -> dict:
 
 
 def _worker_region(names: tuple[str, str, str], shape: tuple[int, int], reg: Region,
-                   nearby: tuple[Region, ...] = ()) -> tuple:
+                   nearby: tuple[Region, ...] = ()) -> tuple[Estimate, float]:
     w = _worker_attach(names, shape)
     return _timed_estimate(w["profile"], w["geom"], w["img"], w["stats"], reg, w["noise"],
                            w["args"], nearby)
