@@ -39,7 +39,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
-from lfcam.measure.regions import Region, footprint_shape, make_region
+from lfcam.measure.regions import Region, footprint_moments, make_region
 from lfcam.measure.solve import (
     fd_jacobian,
     levenberg_marquardt,
@@ -129,7 +129,7 @@ def _amplitudes(data: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
 def _lobes(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
     """The energy centroids (2, 2) of a footprint's two halves along its long axis: two
     means of the lenslets' positions ``pos`` (weights ``w``) on that axis."""
-    mean, vecs, _ = footprint_shape(w, pos, 0.0)
+    mean, _, vecs = footprint_moments(w, pos, 0.0)
     t = (pos - mean) @ vecs[:, 1]
     order = np.argsort(t)
     cum = np.cumsum(w[order]) / w.sum()
@@ -151,11 +151,8 @@ def _spread(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Two points (2, 2) about a footprint's centre on its long axis, as far apart as two
     equally bright blurs of one size whose sum has that footprint: the variance along the
     axis less the variance across it is a quarter of their separation squared."""
-    mean, vecs, _ = footprint_shape(w, pos, 0.0)
-    d = pos - mean
-    along = float((w * (d @ vecs[:, 1]) ** 2).sum() / w.sum())
-    across = float((w * (d @ vecs[:, 0]) ** 2).sum() / w.sum())
-    half = math.sqrt(max(along - across, 0.0))
+    mean, (across, along), vecs = footprint_moments(w, pos, 0.0)
+    half = math.sqrt(max(float(along - across), 0.0))
     return np.array([mean - half * vecs[:, 1], mean + half * vecs[:, 1]])
 
 

@@ -197,15 +197,24 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     return regions
 
 
-def footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
-                     ) -> tuple[np.ndarray, np.ndarray, float]:
-    """A footprint's energy-weighted centre (px), the eigenvectors of its second moments
-    (columns, the long axis last; each lenslet a pitch-wide square) and its elongation
-    √(λ₁/λ₂), from its lenslets' energies ``e`` and centres ``pos``."""
+def footprint_moments(e: np.ndarray, pos: np.ndarray, pitch_px: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A footprint's energy-weighted centre, the eigenvalues of its second moments (the
+    variances across and along it, ascending; each lenslet a pitch-wide square) and their
+    eigenvectors (columns, the long axis last), from its lenslets' energies ``e`` and
+    centres ``pos`` (``pitch_px`` 0: points at the centres)."""
     mean = (pos * e[:, None]).sum(0) / e.sum()
     d = pos - mean
     cov = (d.T * e) @ d / e.sum() + np.eye(2) * (pitch_px**2 / 12.0)
     evals, evecs = np.linalg.eigh(cov)
+    return mean, evals, evecs
+
+
+def footprint_shape(e: np.ndarray, pos: np.ndarray, pitch_px: float
+                    ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A footprint's energy-weighted centre (px), the eigenvectors of its second moments
+    (columns, the long axis last) and its elongation √(λ₁/λ₂) (:func:`footprint_moments`)."""
+    mean, evals, evecs = footprint_moments(e, pos, pitch_px)
     return mean, evecs, float(np.sqrt(evals[1] / evals[0]))
 
 
