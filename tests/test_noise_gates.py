@@ -170,7 +170,6 @@ def test_two_merged_sources_are_both_measured():
                        jobs=1)
     assert [str(r.status) for r in run.regions] == ["ok", "ok"]
     for r in run.regions:
-        print(r.distance_mm, r.uncertainty_mm)
         assert abs(r.distance_mm / 2000.0 - 1) < min(3 * r.uncertainty_mm / 2000.0, 5e-3)
 
 
