@@ -302,6 +302,7 @@ def run_distance(
     if jobs is None:
         jobs = os.cpu_count() or 1
     pool = _RegionPool(int(jobs)) if int(jobs) > 1 else None
+    fitted = method != "diameter" and model != "refocus"  # the lenslet and pixel fits run
     try:
         geom = geometry or prepare_geometry(profile, calibration, img.shape)
         t1 = time.perf_counter()
@@ -318,7 +319,7 @@ def run_distance(
                    if method in ("lenslet", "auto") and regions else None)
         jobs = max(1, min(int(jobs), len(regions)))
         serial = pool is None or jobs == 1
-        if serial and regions and method != "diameter" and model != "refocus":
+        if serial and regions and fitted:
             # the compiled kernels loaded here, as a pool worker loads them before its first
             # region: not in the first region's time (~0.25 s of it in a fresh process)
             from lfcam.measure.kernels import warm_up
@@ -340,7 +341,7 @@ def run_distance(
     finally:
         if pool is not None:
             pool.close()
-    if SPLIT_OVERLAPS and model != "refocus" and method != "diameter":
+    if SPLIT_OVERLAPS and fitted:
         regions, estimates = _split_overlaps(profile, geom, img, stats, regions, near,
                                              estimates, noise, args)
     results = []
