@@ -4,8 +4,8 @@ overlap without a waist (stop 68)").
 
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
 [--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
-[--renderer sim|independent] [--brightness 1] [--field-mm 0] [--first-line-mm 0]``
-(``--method lightfield``: ~20 s a capture)
+[--renderer sim|independent] [--brightness 1] [--field-mm 0] [--first-line-mm 0]
+[--neighbours-in]`` (``--method lightfield``: ~20 s a capture)
 
 Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
 either side (with ``--first-line-mm L``, the first a line instead: L × its distance / 1000 mm
@@ -17,8 +17,10 @@ well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full scale),
 on the profile's own lenslet lattice (truth geometry), the fits told the full well.
 :func:`lfcam.distance.run_distance` measures each capture twice on one core,
 ``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status, the error and its
-z (error / σ), and the region's CPU time. A summary counts the answers within and over 3σ and
-the sources left unmeasured, each way.
+z (error / σ), and the region's CPU time. ``--neighbours-in``: both runs without touching
+regions refitted on their moments less their neighbours' light (``NEIGHBOURS_OUT`` off:
+docs/distance.md, "A touching blur's light taken out (stop 71)"). A summary counts the
+answers within and over 3σ and the sources left unmeasured, each way.
 """
 
 from __future__ import annotations
@@ -111,7 +113,11 @@ def main() -> None:
     ap.add_argument("--first-line-mm", type=float, default=0.0,
                     help="the first source a line this long at 1 m (its length × distance / "
                          "1000 mm, across the pair's line; sim renderer only); 0: a point")
+    ap.add_argument("--neighbours-in", action="store_true",
+                    help="touching regions not refitted without their neighbours' light "
+                         "(the code before stop 71)")
     args = ap.parse_args()
+    distance.NEIGHBOURS_OUT = not args.neighbours_in
     if args.first_line_mm > 0 and args.renderer != "sim":
         ap.error("--first-line-mm: with --renderer sim only")
     d1, d2 = _floats(args.distances)
@@ -130,7 +136,8 @@ def main() -> None:
           f"{args.field_mm:g} mm/m off the axis"
           + (f"; the first a {args.first_line_mm:g} mm/m line" if args.first_line_mm > 0 else "")
           + f"), {args.renderer} renderer, --method "
-          f"{args.method}; each region: source, status, error, z = error/σ, CPU ms")
+          f"{args.method}" + ("; neighbours' light left in" if args.neighbours_in else "")
+          + "; each region: source, status, error, z = error/σ, CPU ms")
     print("| apart | seed | centroids apart px | cut off | cut on |")
     print("|---|---|---|---|---|")
     tally = {False: [0, 0, 0], True: [0, 0, 0]}  # within 3σ, over 3σ, sources unmeasured

@@ -101,7 +101,7 @@ def test_auto_method_measures_with_pixels_only_where_the_lenslet_sigma_misses(mo
     ok = replace(Measurement.failed("ok", prof.d_in_mm), status="ok", distance_mm=1000.0,
                  offset_mm=0.0, y1_mm=0.1, y2_mm=-0.1, sigma_y_mm=1e-4)
 
-    def lenslet(profile, geom, img, reg, noise, accept=None, others=()):
+    def lenslet(profile, geom, img, reg, noise, accept=None, others=(), light=None):
         calls.append(("lenslet", reg.region_id))
         # the line fit's refit rule is the tolerance's: 5σ within 1 % of the distance
         assert accept(1000.0, 1.99) and not accept(1000.0, 2.01)

@@ -1,10 +1,13 @@
 """Two sources whose blurs touch: one cluster of lit lenslets, cut at its waist into two regions,
-each measured with the other as its neighbour and the lenslets both light left out.
+each measured with the other as its neighbour and the lenslets both light left out, and
+refitted without the light the other's fitted source puts past the band.
 
 Truth: the renderer's distances (``lfcam.sim``, the rays' own noise: 10⁶ a source, no sensor
 noise), and the region finder's old answer for the same capture (one ``multiple`` region, no
 distance) as the case the cut is for (docs/distance.md, "Touching blurs cut at their waist
-(stop 67)").
+(stop 67)"); for the neighbour's light, each source rendered alone, and the same captures'
+answers without it taken out (docs/distance.md, "A touching blur's light taken out (stop
+71)").
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ import numpy as np
 import pytest
 from twin_points import render_pair
 
-from lfcam.measure import fastfit
+from lfcam import distance
+from lfcam.measure import fastfit, overlap
 from lfcam.measure import regions as regions_module
 from lfcam.measure.regions import find_regions, nearby_regions
+from lfcam.status import RegionStatus
 
 
 def _capture(apart: float) -> tuple:
@@ -47,3 +52,69 @@ def test_touching_points_each_measured(apart, monkeypatch):
     # the same capture without the cut: one region no method measures
     monkeypatch.setattr(regions_module, "SPLIT_TOUCHING", False)
     assert [r.kind for r in find_regions(stats, geom.lmap, geom.pitch_px)] == ["multiple"]
+
+
+def _errors(run, truth) -> dict:
+    """{truth source index: (relative error, relative σ)} of a run's ``ok`` regions."""
+    out = {}
+    for r in run.regions:
+        assert r.status == RegionStatus.OK, r
+        k = int(np.argmin([np.hypot(r.x_px - s["centroid_px"][0], r.y_px - s["centroid_px"][1])
+                           for s in truth["sources"]]))
+        d = truth["sources"][k]["distance_mm"]
+        out[k] = (r.distance_mm / d - 1.0, r.uncertainty_mm / d)
+    assert set(out) == {0, 1}
+    return out
+
+
+@pytest.mark.parametrize("line_mm, apart, lit", [
+    (0.0, 14.0, 1),  # a point pair (measured: the 1 500 mm point +0.348 → +0.054 %, σ 0.05 %)
+    (10.0, 12.0, 0),  # a 14 mm line beside a point (the line +0.786 → −0.024 %, σ 0.12 %)
+])
+def test_a_touching_blurs_light_is_taken_out(line_mm, apart, lit, monkeypatch):
+    prof, geom, image, stats, noise, truth, white = render_pair(apart, True,
+                                                                first_line_mm=line_mm)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    assert len(regions) == 2 and all(r.touching for r in regions)
+    runs = {}
+    for out in (False, True):
+        monkeypatch.setattr(distance, "NEIGHBOURS_OUT", out)
+        run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                    geometry=geom, jobs=1, white_value=white)
+        runs[out] = _errors(run, truth)
+    # source ``lit`` reads the other's light past the band as its own: long, by ~3σ
+    err, sigma = runs[False][lit]
+    assert err > max(3e-3, 2.5 * sigma), runs[False]
+    for k in (0, 1):
+        err, sigma = runs[True][k]
+        assert abs(err) < min(3 * sigma, 1.5e-3), (k, runs[True])
+    # the other side, which ``lit``'s light past the band does not reach, is not refitted
+    assert runs[True][1 - lit] == runs[False][1 - lit]
+
+
+def test_neighbour_light_is_the_sources_own():
+    # the light the 1 400 mm point's fitted source puts on the 1 500 mm point's lenslets
+    # against that point rendered alone (the renderer's rays, scaled to the pair's data on
+    # its own region)
+    prof, geom, image, stats, noise, truth, white = render_pair(14.0, True)
+    alone = render_pair(14.0, False, only=0)[2]  # (no sensor noise: the rays' own alone)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    near = nearby_regions(regions)
+    c1 = np.array(truth["sources"][0]["centroid_px"])
+    b = int(np.argmin([np.hypot(*(np.array(r.centroid_px) - c1)) for r in regions]))
+    a = 1 - b
+    meas = fastfit.measure_lenslet(prof, geom, image, regions[b], noise, others=near[b])
+    assert meas.method == "lenslet" and len(meas.fitted_mm) == 1
+    mom = fastfit.region_moments(geom, image, regions[a], near[a])
+    light = overlap.neighbour_light(prof, geom, image, mom, [(regions[b], near[b], meas)])
+    # the renderer's: the point alone, on the same lenslets, scaled by its own region's data
+    own = fastfit.region_moments(geom, image, regions[b], near[b]).data
+    own_alone = fastfit.region_moments(geom, alone, regions[b], near[b]).data
+    scale = float((own * own_alone).sum() / (own_alone * own_alone).sum())
+    truth_light = scale * fastfit.region_moments(geom, alone, regions[a], near[a]).data
+    # 2.5 % of the region's own light (norms of the moments); the model's misses the
+    # renderer's by 4.0 % of it (the rays' noise of both in it), its norm by +1.0 %
+    share = np.linalg.norm(truth_light) / mom.norm
+    assert 0.015 < share < 0.04, share
+    miss = np.linalg.norm(light - truth_light) / np.linalg.norm(truth_light)
+    assert miss < 0.06, miss

@@ -22,15 +22,20 @@ _CAPTURES: dict = {}
 
 
 def render_pair(apart: float, sensor: bool = False, system: str = "system2",
-                distances: tuple[float, float] = (1400.0, 1500.0)) -> tuple:
+                distances: tuple[float, float] = (1400.0, 1500.0), first_line_mm: float = 0.0,
+                only: int | None = None) -> tuple:
     """``system`` focused at 1 m, points at ``distances`` (system 2, 1 400 and 1 500 mm
     behind focus: blurs ~290 and ~305 px across) ``apart`` × 1/1000 of their distance off the
     axis on either side (render seed 7, 10⁶ rays a source, brightest pixel at half of full
     scale): on system 2 18 puts their light centroids 259 px apart, 16.5 237 px, 14 201 px, 13
     187 px. ``sensor``: the focus grid's sensor noise (photon noise at a 20 000 e⁻ full well,
     which the profile then states, 3 e⁻ read noise); else the rays' own noise alone.
-    (profile, geometry, image, lenslet statistics, pixel noise, truth, white level)."""
-    key = (apart, sensor, system, distances)
+    ``first_line_mm`` L > 0: the first source a line of L × its distance / 1000 mm, across the
+    pair's line, of the same total light (benchmarks/overlapping_blurs.py
+    ``--first-line-mm``). ``only`` = k: source k alone, the other left out of the scene (its
+    light by itself). (profile, geometry, image, lenslet statistics, pixel noise, truth,
+    white level)."""
+    key = (apart, sensor, system, distances, first_line_mm, only)
     if key not in _CAPTURES:
         base = load_profile(system)
         prof = apply_overrides(base, CAMERA)
@@ -39,6 +44,13 @@ def render_pair(apart: float, sensor: bool = False, system: str = "system2",
             prof = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
         objects = [{"type": "point", "distance_mm": d, "position_mm": [0.0, s * apart * d / 1000]}
                    for d, s in zip(distances, (-1.0, 1.0), strict=True)]
+        if first_line_mm > 0:
+            half = 0.5 * first_line_mm * distances[0] / 1000
+            y = -apart * distances[0] / 1000
+            objects[0] = {"type": "line", "distance_mm": distances[0], "intensity": 0.5 / half,
+                          "start_mm": [-half, y], "end_mm": [half, y]}
+        if only is not None:
+            objects = [objects[only]]
         scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,
                  "exposure": {"peak": 0.5}, "objects": objects}
         if sensor:

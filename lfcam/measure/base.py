@@ -35,6 +35,9 @@ class Measurement:
     source_xy_mm: tuple = ()  # lateral position (x, y) of the fitted source, when known
     model_misfit: float = float("nan")  # the lenslet fit's point models' own disagreement
     #                                     (their ray samples') at the point fit
+    fitted_mm: tuple = ()  # the fitted source in the lens frame: a point's (x, y, z), a
+    #                        line's two ends; empty when no fit located it
+    method: str = ""  # the fit that made it, where a later stage needs to know ("lenslet")
 
     @classmethod
     def failed(cls, status: str, d_in_mm: float, kind: str = "spot") -> Measurement:
@@ -124,8 +127,9 @@ def point_measurement(profile, d_in_mm: float, source_mm: np.ndarray, sigma_dist
     y1, y2 = float(fw.y1_mm[0]), float(fw.y2_mm[0])
     dy = abs(float(fw.y1_mm[1] - fw.y2_mm[1]) - (y1 - y2)) / (0.001 * distance)
     sigma_y = sigma_distance_mm * dy if np.isfinite(sigma_distance_mm) else nan
+    fitted = (tuple(float(v) for v in source_mm),)
     return Measurement(y1, y2, sigma_y, distance, offset, sigma_distance_mm, RegionStatus.OK,
-                       d_in_mm, **extra)
+                       d_in_mm, fitted_mm=fitted, **extra)
 
 
 def line_measurement(profile, d_in_mm: float, ends_mm, sigma_distance_mm: float,
@@ -157,4 +161,5 @@ def line_measurement(profile, d_in_mm: float, ends_mm, sigma_distance_mm: float,
     return Measurement(0.5 * (ends[0][0] + ends[1][0]), 0.5 * (ends[0][1] + ends[1][1]),
                        float("nan"), distance, float(np.hypot(mid[0], mid[1])),
                        math.hypot(sigma_distance_mm, LINE_SIGMA_FLOOR_REL * distance),
-                       RegionStatus.OK, d_in_mm, kind="line", endpoints=ends, **extra)
+                       RegionStatus.OK, d_in_mm, kind="line", endpoints=ends,
+                       fitted_mm=tuple(tuple(float(v) for v in pt) for pt in ends_mm), **extra)

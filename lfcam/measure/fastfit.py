@@ -2848,7 +2848,8 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
 def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                     region: Region, noise: float,
                     accept: Callable[[float, float], bool] | None = None,
-                    others: Sequence[Region] = ()) -> Measurement:
+                    others: Sequence[Region] = (),
+                    light: np.ndarray | None = None) -> Measurement:
     """Lenslet-statistics fit of one region (module docstring).
 
     Parameters
@@ -2869,6 +2870,11 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         (:func:`data_moments`' ``exclude``). In a crowded capture a neighbouring blur's
         lenslets in the box put misfits of 0.24-0.50 on a point whose own light the model
         fits to 0.04 (docs/distance.md, "Other regions' lenslets left out of a box (stop 60)").
+    light : (K, 4) array, optional
+        Other sources' fitted light on this region's lenslets, in the layout of
+        :func:`region_moments` (``region``, ``others``), taken from the data's moments before
+        the fit: a touching blur's light past the band
+        (:func:`lfcam.measure.overlap.neighbour_light`).
 
     Returns
     -------
@@ -2878,6 +2884,12 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # (lfcam.measure.noise); a fit whose misfit comes near either is polished
     # once: the noise misfit, the point and the line fit
     mom = region_moments(geom, image, region, others)
+    if light is not None:
+        if light.shape != mom.data.shape:
+            raise ValueError(f"light {light.shape} does not match the region's moments "
+                             f"{mom.data.shape}")
+        data = mom.data - light
+        mom = dataclasses.replace(mom, data=data, norm=float(np.sqrt((data * data).sum())))
     noise_model = capture_noise(image, geom.lmap, geom.pitch_px)
     nm = noise_model.moments_misfit_of(mom.noise_sums, mom.norm)
     limit = poor_fit_limit(nm, POOR_FIT)
@@ -2989,7 +3001,7 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                       sigma_distance_mm=better.sigma_distance_mm)
     return point_measurement(profile, geom.d_in_mm, fit.source_mm, fit.sigma_distance_mm,
                              SIGMA_FLOOR_REL, misfit=fit.misfit, noise_misfit=nm,
-                             model_misfit=model_misfit)
+                             model_misfit=model_misfit, method="lenslet")
 
 
 def _agrees(profile: CameraProfile, lenslet: LensletFit, pixel: LensletFit) -> bool:
@@ -3027,4 +3039,4 @@ def _line_answer(profile: CameraProfile, geom: Geometry, line: LensletFit, limit
         return Measurement.failed(RegionStatus.POOR_FIT, geom.d_in_mm, kind="line")
     return line_measurement(profile, geom.d_in_mm, line.ends_mm, line.sigma_distance_mm,
                             misfit=line.misfit, noise_misfit=noise_misfit,
-                            model_misfit=model_misfit)
+                            model_misfit=model_misfit, method="lenslet")
