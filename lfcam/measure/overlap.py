@@ -22,6 +22,11 @@ explains all but their misfit), the source's answer is the joint fit's own, carr
 point polish's rays with a σ of its own (:attr:`TwoPoints.answer`,
 :func:`joint_measurements`; docs/distance.md, "Two sources one fit explains: the joint answer
 (stop 69)"). Those answers are the lenslet moments' whatever the method.
+
+A touching blur's rim reaches past the band left out of both parts: :func:`neighbour_light`
+models a fitted neighbour's light on a region's lenslets, which
+:func:`lfcam.distance.run_distance` takes from the region's moments before its refit
+(docs/distance.md, "A touching blur's light taken out (stop 71)").
 """
 
 from __future__ import annotations
