@@ -20,7 +20,7 @@ from lfcam import distance
 from lfcam.measure import fastfit, overlap
 from lfcam.measure import regions as regions_module
 from lfcam.measure.regions import find_regions, nearby_regions
-from lfcam.status import RegionStatus
+from lfcam.status import RegionStatus, unsupported
 
 
 def _capture(apart: float) -> tuple:
@@ -118,3 +118,28 @@ def test_neighbour_light_is_the_sources_own():
     assert 0.015 < share < 0.04, share
     miss = np.linalg.norm(light - truth_light) / np.linalg.norm(truth_light)
     assert miss < 0.06, miss
+
+
+def test_a_side_the_band_took_is_no_blur(monkeypatch):
+    # two lines in a T (system 2, 1 400 mm across, 1 500 mm along the pair's line, 12 ‰
+    # apart): the band about the waist takes 395 lenslets, most of the 1 500 mm line's blur,
+    # and leaves its side 8. That rim is reported as `multiple` (no distance), not as a
+    # `near-focus` blur; the other side's line is measured (1 399.8 mm)
+    prof, geom, image, stats, noise, truth, white = render_pair(12.0, True, first_line_mm=10.0,
+                                                                second_line_mm=10.0)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    assert sorted(r.kind for r in regions) == ["line", "multiple"]
+    sliver = next(r for r in regions if r.kind == "multiple")
+    assert sliver.lenslets.size < regions_module.SLIVER_SHARE * sliver.shared.size
+    run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                geometry=geom, jobs=1, white_value=white)
+    got = {r.kind: r for r in run.regions}
+    assert got["multiple"].status == unsupported("multiple")
+    line = got["line"]
+    assert line.status == RegionStatus.OK
+    assert abs(line.distance_mm / 1400.0 - 1) < min(3 * line.uncertainty_mm / 1400.0, 2e-3)
+    # the rule off: the same lenslets, fitted, read as a blur near focus
+    monkeypatch.setattr(regions_module, "SLIVER_SHARE", 0.0)
+    run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                geometry=geom, jobs=1, white_value=white)
+    assert sorted(r.status for r in run.regions) == [RegionStatus.NEAR_FOCUS, RegionStatus.OK]

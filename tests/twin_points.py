@@ -23,7 +23,7 @@ _CAPTURES: dict = {}
 
 def render_pair(apart: float, sensor: bool = False, system: str = "system2",
                 distances: tuple[float, float] = (1400.0, 1500.0), first_line_mm: float = 0.0,
-                only: int | None = None) -> tuple:
+                only: int | None = None, second_line_mm: float = 0.0) -> tuple:
     """``system`` focused at 1 m, points at ``distances`` (system 2, 1 400 and 1 500 mm
     behind focus: blurs ~290 and ~305 px across) ``apart`` × 1/1000 of their distance off the
     axis on either side (render seed 7, 10⁶ rays a source, brightest pixel at half of full
@@ -32,10 +32,11 @@ def render_pair(apart: float, sensor: bool = False, system: str = "system2",
     which the profile then states, 3 e⁻ read noise); else the rays' own noise alone.
     ``first_line_mm`` L > 0: the first source a line of L × its distance / 1000 mm, across the
     pair's line, of the same total light (benchmarks/overlapping_blurs.py
-    ``--first-line-mm``). ``only`` = k: source k alone, the other left out of the scene (its
-    light by itself). (profile, geometry, image, lenslet statistics, pixel noise, truth,
-    white level)."""
-    key = (apart, sensor, system, distances, first_line_mm, only)
+    ``--first-line-mm``); ``second_line_mm``: the second a line along the pair's line, across
+    the first (a T), as bright per mm as a first line of that length. ``only`` = k: source k
+    alone, the other left out of the scene (its light by itself). (profile, geometry, image,
+    lenslet statistics, pixel noise, truth, white level)."""
+    key = (apart, sensor, system, distances, first_line_mm, only, second_line_mm)
     if key not in _CAPTURES:
         base = load_profile(system)
         prof = apply_overrides(base, CAMERA)
@@ -49,6 +50,12 @@ def render_pair(apart: float, sensor: bool = False, system: str = "system2",
             y = -apart * distances[0] / 1000
             objects[0] = {"type": "line", "distance_mm": distances[0], "intensity": 0.5 / half,
                           "start_mm": [-half, y], "end_mm": [half, y]}
+        if second_line_mm > 0:
+            half = 0.5 * second_line_mm * distances[1] / 1000
+            y = apart * distances[1] / 1000
+            per_mm = 1000.0 / (second_line_mm * distances[0])
+            objects[1] = {"type": "line", "distance_mm": distances[1], "intensity": per_mm,
+                          "start_mm": [0.0, y - half], "end_mm": [0.001, y + half]}
         if only is not None:
             objects = [objects[only]]
         scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": CAMERA,

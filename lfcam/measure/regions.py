@@ -72,6 +72,8 @@ WAIST_MIN_LENSLETS = 40
 _NONE = np.zeros(0, dtype=np.int64)
 SPLIT_TOUCHING = True  # a cluster with a waist is cut there into two regions (False: one region
 #                        of kind ``multiple``, no distance)
+SLIVER_SHARE = 0.25  # a side of a cut that keeps fewer lenslets than this × the band is a
+#                      sliver of a blur the band took: ``multiple``, no distance (find_regions)
 HALO_REACH = 1.6
 FAINT_RADII_PITCH = (2.0, 4.0, 8.0, 12.0)  # scales of the faint-blur search (lenslet pitches)
 FAINT_MIN_LENSLETS = 12  # a faint blur found by smoothing covers at least this many lenslets
@@ -149,8 +151,11 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     Returns
     -------
     list of Region
-        ``spot``, ``line`` or ``extended`` clusters of at least ``MIN_LENSLETS`` lenslets
-        (``multiple`` only with ``SPLIT_TOUCHING`` off).
+        ``spot``, ``line`` or ``extended`` clusters of at least ``MIN_LENSLETS`` lenslets;
+        ``multiple``: a cluster with a waist, with ``SPLIT_TOUCHING`` off, or a side of a cut
+        that kept fewer lenslets than ``SLIVER_SHARE`` × the band about the cut (the rim of
+        a blur whose body the band took: a line crossing another's blur read it as a
+        `near-focus` blur of 8 lenslets).
     """
     energy = stats.energy
     thr = lit_threshold(energy)
@@ -163,9 +168,9 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
     groups, parts = _add_faint(groups, parts, faint_lit(energy, lit, centres, pitch_px),
                                centres, pitch_px)
     regions = []
-    todo = list(zip(groups, parts, [_NONE] * len(groups), strict=True))
+    todo = [(g, p, _NONE, False) for g, p in zip(groups, parts, strict=True)]
     while todo:
-        members, n_parts, shared = todo.pop(0)
+        members, n_parts, shared, sliver = todo.pop(0)
         if members.size < MIN_LENSLETS:
             continue
         shape = footprint_shape(energy[members], centres[members], pitch_px)
@@ -181,12 +186,13 @@ def find_regions(stats: LensletStats, lmap: LensletMap, pitch_px: float) -> list
             u = (pos - pos.mean(axis=0)) @ evecs[:, 0]
             half = _overlap(t, u, waist[0], waist[1], pitch_px)
             both = members[np.abs(t - waist[0]) < half]
-            todo[:0] = [(members[t <= waist[0] - half], n_parts, np.union1d(both, shared)),
-                        (members[t >= waist[0] + half], 1, np.union1d(both, shared))]
+            sides = (members[t <= waist[0] - half], members[t >= waist[0] + half])
+            todo[:0] = [(side, k, np.union1d(both, shared), side.size < SLIVER_SHARE * both.size)
+                        for side, k in zip(sides, (n_parts, 1), strict=True)]
             continue
         if members.size > EXTENDED_SHARE * len(centres):
             kind = "extended"
-        elif waist is not None:
+        elif waist is not None or sliver:
             kind = "multiple"
         elif elong >= LINE_ELONGATION:
             kind = "line"
