@@ -122,7 +122,7 @@ def sensitivity(cache: Path) -> None:
 
     fastfit.pixel_polish, above = recorded, fastfit.PIXEL_POLISH_ABOVE
     fastfit.PIXEL_POLISH_ABOVE = 0.0
-    frame = fastfit._Frame(profile)
+    frame = fastfit.SourceFrame(profile)
     print("\n| lattice | pixel answer error % ± σ | final answer error % ± σ |\n|---|---|---|")
     try:
         for name, geom, region, lattice in (

@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lfcam.camera import load_profile  # noqa: E402
-from lfcam.measure.fastfit import LensletModel, _Frame, _packed_lens, data_moments  # noqa: E402
+from lfcam.measure.fastfit import LensletModel, SourceFrame, _packed_lens, data_moments  # noqa: E402
 from lfcam.measure.kernels import trace_model_rays, warm_up  # noqa: E402
 from lfcam.optics.trace import pupil_map, trace_sources_fast  # noqa: E402
 from lfcam.sim.capture import apply_overrides  # noqa: E402
@@ -70,7 +70,7 @@ def main() -> None:
         shape = (prof.sensor.height_px, prof.sensor.width_px)
         geom = truth_geometry(prof, shape)
         mom = data_moments(geom, np.zeros(shape), (50, 50, 350, 350))
-        src = np.array([3.0, -2.0, _Frame(prof).z_front - 1600.0])
+        src = np.array([3.0, -2.0, SourceFrame(prof).z_front - 1600.0])
         lens = prof.main_lens
         table, coef, mapped = _packed_lens(lens)[:3]
         maps = np.array([pupil_map(lens, tuple(src)) if mapped else (0.0, 0.0, 1.0, 1.0)])

@@ -430,7 +430,7 @@ def hex_line_3400():
     fit's answer as the line model's parameters ``q``: (profile, geom, mom, line, frame, q)."""
     img, used, geom, reg, mom = _hex_line(3400.0, 135.0)
     line = ff.fit_lenslet_line(used, geom, img, reg, mom=mom)
-    frame = ff._Frame(used)
+    frame = ff.SourceFrame(used)
     a, b = line.ends_mm
     along = frame.z_rim - a[2]
     q = np.r_[math.log(frame.z_front - a[2]), a[:2] / along, b[:2] / along]
@@ -542,7 +542,7 @@ def _large_point_2900(monkeypatch, same_log: float | None = None):
 
     prof, geom = _system2()
     mom = _moments_box(prof, geom, half_px=330)
-    frame = ff._Frame(prof)
+    frame = ff.SourceFrame(prof)
     z = prof.main_lens.front_vertex_z_mm - 2900.0
     src = np.array([23.0, 0.0, z])
     dense = ff.LensletModel(prof, geom, mom, 2_000_000).simulate(src[None])
@@ -678,7 +678,7 @@ def test_a_start_far_behind_the_best_is_not_raced(monkeypatch):
     assert fit.ok and full.ok
     assert fit.source_mm[2] == full.source_mm[2]
     assert fit.sigma_distance_mm == full.sigma_distance_mm
-    frame = ff._Frame(used)
+    frame = ff.SourceFrame(used)
     assert abs(frame.z_front - fit.source_mm[2] - 1500.0) < 3.0 * fit.sigma_distance_mm
 
 
@@ -1045,7 +1045,7 @@ def test_large_point_on_a_hexagonal_lattice_steps_with_the_fine_models_jacobian(
                            {**CAMERA, "mla": {"focus_mm": 1000.0, "grid": "hex"}})
     geom = truth_geometry(prof, (SIZE, SIZE))
     mom = _moments_box(prof, geom, half_px=330)
-    frame = ff._Frame(prof)
+    frame = ff.SourceFrame(prof)
     src = np.array([0.0, 0.0, prof.main_lens.front_vertex_z_mm - 3500.0])
     dense = ff.LensletModel(prof, geom, mom, 2_000_000).simulate(src[None])
     mom = dataclasses.replace(mom, data=dense, norm=float(np.sqrt((dense * dense).sum())))

@@ -120,7 +120,7 @@ def test_lateral_steps_keep_a_small_blur_linear():
     from lfcam.measure.fastfit import (
         COARSE_STEPS,
         LensletModel,
-        _Frame,
+        SourceFrame,
         _region_box,
         data_moments,
         lit_lenslets,
@@ -130,7 +130,7 @@ def test_lateral_steps_keep_a_small_blur_linear():
     img, prof, cal, geom, truth = _capture("point_system2_2800mm_dh10", "system2")
     mom = data_moments(geom, img, _region_box(geom, _region(img, geom), img.shape))
     n_lit = lit_lenslets(mom)
-    frame = _Frame(prof)
+    frame = SourceFrame(prof)
     model = LensletModel(prof, geom, mom, 80_000)
     x, y = truth["position_mm"]
     q = frame.params(np.array([x, y, frame.z_front - truth["distance_mm"]]))
@@ -504,7 +504,7 @@ def test_line_jacobian_from_points_matches_differences(dist, turns):
     reg = _region(img, geom)
     mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
     fit = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
-    frame = ff._Frame(prof)
+    frame = ff.SourceFrame(prof)
     z = fit.ends_mm[0][2]
     along = frame.z_rim - z
     q = np.r_[math.log(frame.z_front - z), fit.ends_mm[0][:2] / along,

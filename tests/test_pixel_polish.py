@@ -71,7 +71,7 @@ def _draw(dim_point, seed: int = 3):
                  key=lambda r: r.energy)
     mom = fastfit.data_moments(geom, img, fastfit._region_box(geom, region, img.shape))
     noise = capture_noise(img, geom.lmap, geom.pitch_px)
-    frame = fastfit._Frame(used)
+    frame = fastfit.SourceFrame(used)
     start = frame.source(np.array([math.log(DISTANCE_MM * 0.99), 0.0, 0.0]))
     return used, geom, img, mom, noise, frame, start
 
@@ -141,7 +141,7 @@ def test_a_pixel_answer_far_from_the_lenslet_one_is_not_taken(dim_point, monkeyp
     clean, used, geom = dim_point
     img = _noisy(clean, np.random.default_rng(8))
     lenslet = _measure(img, used, geom, monkeypatch, False)
-    z_front = fastfit._Frame(used).z_front
+    z_front = fastfit.SourceFrame(used).z_front
     for k_sigma, taken in ((0.5 * fastfit.PIXEL_AGREE_SIGMAS, True),
                            (1.5 * fastfit.PIXEL_AGREE_SIGMAS, False)):
         d = lenslet.distance_mm * math.exp(k_sigma * lenslet.sigma_distance_mm

@@ -18,7 +18,7 @@ from lfcam.camera import load_profile
 from lfcam.io import load_capture
 from lfcam.measure import fastfit, find_regions, lenslet_stats, prepare_geometry
 from lfcam.measure import regions as regions_module
-from lfcam.measure.fastfit import _Frame, fit_lenslet_point, point_fit_stages
+from lfcam.measure.fastfit import SourceFrame, fit_lenslet_point, point_fit_stages
 from lfcam.measure.regions import _disc_means, lattice_coordinates
 from lfcam.robust import mad_sigma
 
@@ -118,7 +118,7 @@ def _capture(name, system):
 @pytest.mark.parametrize(("system", "dist", "dh"), [("system2", 1100, 5), ("system1", 900, 5)])
 def test_settled_fit_agrees_with_the_polished_one(system, dist, dh):
     img, prof, geom, region, truth = _capture(f"point_{system}_{dist}mm_dh{dh}", system)
-    z_front = _Frame(prof).z_front
+    z_front = SourceFrame(prof).z_front
     auto = fit_lenslet_point(prof, geom, img, region)
     full = fit_lenslet_point(prof, geom, img, region, polish_above=0.0)
     assert full.polished and auto.ok and full.ok
@@ -183,7 +183,7 @@ def test_compiled_moments_equal_the_numpy_chain(grid, lens):
     shape = (prof.sensor.height_px, prof.sensor.width_px)
     geom = truth_geometry(prof, shape)
     fast, ref = _model_pair(prof, geom, shape, 6000)
-    z = _Frame(prof).z_front
+    z = SourceFrame(prof).z_front
     rng = np.random.default_rng(1)
     sources = [np.array([dx, dy, z - d]) for d, dx, dy in
                zip((450.0, 700.0, 1600.0, 3000.0), rng.uniform(-3, 3, 4), rng.uniform(-3, 3, 4),
@@ -222,7 +222,7 @@ def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypat
     prof = prof.with_d_in(prof.d_in_mm)
     shape = (prof.sensor.height_px, prof.sensor.width_px)
     geom = truth_geometry(prof, shape)
-    z = _Frame(prof).z_front
+    z = SourceFrame(prof).z_front
     line = np.array([[0.2 * k, 0.1 * k, z - 2900.0] for k in range(4)])
     away = np.array([[40.0, 0.0, z - 2900.0]])  # another source, off the line
     lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # ~72° off axis: no ray passes
@@ -553,7 +553,7 @@ def test_a_point_is_polished_only_where_the_tolerance_needs_it():
     # to go to the polishing model's minimum in its σ. The seed's 900 mm point of system 1 is
     # polished by the settled test
     img, prof, geom, region, truth = _capture("point_system1_900mm_dh5", "system1")
-    z_front = _Frame(prof).z_front
+    z_front = SourceFrame(prof).z_front
     stages = list(point_fit_stages(prof, geom, img, region))
     fine, polished = stages[0], stages[-1]
     assert polished.polished

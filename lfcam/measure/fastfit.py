@@ -483,8 +483,10 @@ def keep_lattice(geom: Geometry, lattice: LocalLattice | None) -> None:
 
 
 @dataclass
-class _Moments:
-    """The region's lenslets and the data's moments (module docstring)."""
+class LensletMoments:
+    """A region's lenslets and their four moments (module docstring): the data's, or, with
+    ``data`` zero, the layout a model fills (:class:`LensletModel` writes its moments in this
+    order)."""
 
     box: tuple[int, int, int, int]
     labels: np.ndarray  # (h, w) compact lenslet index in the box, −1 none
@@ -528,7 +530,7 @@ def pedestal(image: np.ndarray) -> float:
 
 
 def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, int],
-                 kernel: str | None = None, exclude: np.ndarray | None = None) -> _Moments:
+                 kernel: str | None = None, exclude: np.ndarray | None = None) -> LensletMoments:
     """Moments of the data over the lenslets whose pixels lie in ``box`` (the dark pedestal
     removed, :func:`pedestal`), and their noise sums. ``kernel``: "compiled"
     (:func:`lfcam.measure.kernels.box_moments`, one pass) or "numpy" (the reference);
@@ -552,8 +554,8 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
             np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float64),
             np.ascontiguousarray(geom.lmap.centres_px, dtype=np.float64), int(x0), int(y0),
             float(geom.pitch_px), float(ped), int(geom.lmap.count))
-        return _Moments(box, compact, ids, geom.lmap.centres_px[ids], m,
-                        float(np.sqrt((m * m).sum())), (s0, s1))
+        return LensletMoments(box, compact, ids, geom.lmap.centres_px[ids], m,
+                              float(np.sqrt((m * m).sum())), (s0, s1))
     keep = lab >= 0
     present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0
     ids = np.flatnonzero(present)
@@ -567,14 +569,14 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     m = _moments_of(cen, geom.pitch_px, xx + x0, yy + y0, v, inv)
     dx = (xx + x0 - cen[inv, 0]) / geom.pitch_px
     dy = (yy + y0 - cen[inv, 1]) / geom.pitch_px
-    return _Moments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())),
-                    moment_noise_sums(dx, dy, v))
+    return LensletMoments(box, compact, ids, cen, m, float(np.sqrt((m * m).sum())),
+                          moment_noise_sums(dx, dy, v))
 
 
 class LensletModel:
     """Forward model of a region's lenslet moments for point (or line) sources."""
 
-    def __init__(self, profile: CameraProfile, geom: Geometry, mom: _Moments, n_rays: int,
+    def __init__(self, profile: CameraProfile, geom: Geometry, mom: LensletMoments, n_rays: int,
                  phase: float = 0.0, kernel: str | None = None, turn_every: int = 0,
                  cells: int = 0):
         from lfcam.measure.kernels import keep_large_buffers
@@ -1363,7 +1365,7 @@ def _two_cells(lattice: LocalLattice, x: np.ndarray, y: np.ndarray):
 # a dot product of ~10⁴ residuals, and their spinning cost more CPU than the fit itself
 # (2.4× a region's CPU time on a loaded 2-core machine).
 def region_moments(geom: Geometry, image: np.ndarray, region: Region,
-                   others: Sequence[Region] = ()) -> _Moments:
+                   others: Sequence[Region] = ()) -> LensletMoments:
     """:func:`data_moments` of a region's box as :func:`measure_lenslet` fits them: the
     lenslets its blur shares with a touching one (``region.shared``) and, with
     :data:`OTHERS_EXCLUDED`, ``others``' lenslets left out."""
@@ -1422,9 +1424,10 @@ def _at_far_bound(q: np.ndarray) -> bool:
     return bool(q[0] >= LOG_DISTANCE_RANGE[1] - 1e-6)
 
 
-class _Frame:
-    """Parameters ``q = (log distance, x/L, y/L)``, L the distance to the stop: changing the
-    distance keeps the line of sight through the stop centre, which decouples the three."""
+class SourceFrame:
+    """A point source's fit parameters ``q = (log distance, x/L, y/L)``, L the distance to
+    the stop: changing the distance keeps the line of sight through the stop centre, which
+    decouples the three."""
 
     def __init__(self, profile: CameraProfile):
         lens = profile.main_lens
@@ -1442,7 +1445,8 @@ class _Frame:
         return np.array([math.log(self.z_front - s[2]), s[0] / along, s[1] / along])
 
 
-def summary(profile: CameraProfile, geom: Geometry, mom: _Moments, m: np.ndarray) -> np.ndarray:
+def summary(profile: CameraProfile, geom: Geometry, mom: LensletMoments,
+            m: np.ndarray) -> np.ndarray:
     """Smooth low-dimensional summary of lenslet moments ``m`` (data or model), (4,).
 
     ``(b, x̄, ȳ, ρ)``: ``b`` is the isotropic gain of the slope field, spot offset ≈ a + b·(C − C̄)
@@ -1628,7 +1632,7 @@ def _accepted(accept: Callable[[float, float], bool], q: np.ndarray, sigma_log: 
     return bool(accept(d, d * math.sqrt(sigma_log ** 2 + shift_log ** 2 + floor_rel ** 2)))
 
 
-def lit_lenslets(mom: _Moments) -> int:
+def lit_lenslets(mom: LensletMoments) -> int:
     """The lenslets a region's blur lights: those with over 5 % of the brightest one's energy
     (what the ray budgets and :func:`point_steps` scale with)."""
     return int((mom.data[:, 0] > 0.05 * mom.data[:, 0].max()).sum())
@@ -1790,7 +1794,7 @@ def _profile_sigma(fun, fun_many, q: np.ndarray, n_res: int, sigma_rel: float,
 
 def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                       region: Region, polish_above: float = math.inf,
-                      mom: _Moments | None = None) -> LensletFit:
+                      mom: LensletMoments | None = None) -> LensletFit:
     """Fit a point source to the region's lenslet moments (:func:`point_fit_stages`, run to
     its end)."""
     *_, fit = point_fit_stages(profile, geom, image, region, polish_above, mom)
@@ -1799,7 +1803,7 @@ def fit_lenslet_point(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
 def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, polish_above: float = math.inf,
-                     mom: _Moments | None = None,
+                     mom: LensletMoments | None = None,
                      bound_above: float = math.inf,
                      gates: Callable[[float], tuple[float, float]] | None = None,
                      early: bool = False,
@@ -1864,7 +1868,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     n_lit = lit_lenslets(mom)
     n_rays = int(np.clip(RAYS_PER_LENSLET * n_lit, MIN_RAYS, MAX_RAYS))
     steps = point_steps(profile, geom, n_lit)
-    frame = _Frame(profile)
+    frame = SourceFrame(profile)
 
     def fun_of(model):
         return lambda q: model.residual(frame.source(q))
@@ -2055,7 +2059,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         yield LensletFit(source, misfit, sigma_d, evals, True, polished=polished)
 
 
-def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
+def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) -> np.ndarray:
     """``count`` equally bright points along the segment of ``q = (log d, a/L, b/L)``."""
     z = frame.z_front - math.exp(_log_distance(q))
     along = frame.z_rim - z
@@ -2065,7 +2069,7 @@ def _line_points(frame: _Frame, q: np.ndarray, count: int = LINE_POINTS) -> np.n
     return np.column_stack([xy, np.full(count, z)])
 
 
-def line_model(model: LensletModel, frame: _Frame, count: int, steps: np.ndarray):
+def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray):
     """The line model of ``count`` points (:func:`_line_points`): its residual function
     ``fun(q)`` and its Jacobian ``jac(q, r)`` (``r = fun(q)``), steps ``steps``.
 
@@ -2164,7 +2168,7 @@ def _frame_cut(region: Region, shape: tuple[int, ...], pitch_px: float) -> bool:
     return min(x0, y0, shape[1] - x1, shape[0] - y1) < pitch_px
 
 
-def cells_apply(profile: CameraProfile, geom: Geometry, mom: _Moments, n_lit: int,
+def cells_apply(profile: CameraProfile, geom: Geometry, mom: LensletMoments, n_lit: int,
                 points: np.ndarray) -> bool:
     """Whether a blur of ``n_lit`` lit lenslets is modelled on the lenslet cells
     (``LensletModel(cells=n)``): at least :data:`LINE_CELLS_MIN_LIT` lenslets, a lattice, and
@@ -2176,7 +2180,7 @@ def cells_apply(profile: CameraProfile, geom: Geometry, mom: _Moments, n_lit: in
             .invertible(points))
 
 
-def _footprint(geom: Geometry, mom: _Moments, energy: np.ndarray
+def _footprint(geom: Geometry, mom: LensletMoments, energy: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
     """Energy-weighted centre (2,) and covariance (2, 2) of the lenslet centres (MLA mm) of a
     region's lenslets that hold over 5 % of the brightest one's ``energy``."""
@@ -2190,7 +2194,7 @@ def _footprint(geom: Geometry, mom: _Moments, energy: np.ndarray
 
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
-                     useful_below: float = math.inf, mom: _Moments | None = None,
+                     useful_below: float = math.inf, mom: LensletMoments | None = None,
                      accept: Callable[[float, float], bool] | None = None) -> LensletFit:
     """Fit a line source (equally bright points half a pitch apart, 5 parameters) to the
     region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
@@ -2219,7 +2223,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         point = fit_lenslet_point(profile, geom, image, region, mom=mom)
     if not point.ok:
         return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
-    frame = _Frame(profile)
+    frame = SourceFrame(profile)
     cbar, cov = _footprint(geom, mom, mom.data[:, 0])
     # the line adds L²/12 along its axis to a point's footprint (MLA plane)
     evals, evecs = np.linalg.eigh(cov)
@@ -2601,7 +2605,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
 
 
-def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.ndarray,
+def _pixel_model(profile: CameraProfile, geom: Geometry, mom: LensletMoments, lit: np.ndarray,
                  n_rays: int) -> tuple[LensletModel, np.ndarray, np.ndarray]:
     """A :class:`LensletModel` whose "lenslets" are the box's pixels where ``lit`` (its first
     moment each pixel's light: the rays binned as the sensor bins them), and those pixels'
@@ -2611,8 +2615,8 @@ def _pixel_model(profile: CameraProfile, geom: Geometry, mom: _Moments, lit: np.
     labels[rows, cols] = np.arange(rows.size, dtype=np.int32)
     x0, y0 = mom.box[:2]
     centres = np.column_stack([cols + x0, rows + y0]).astype(np.float64)
-    pixels = _Moments(mom.box, labels, np.arange(rows.size), centres, np.zeros((rows.size, 4)),
-                      1.0)
+    pixels = LensletMoments(mom.box, labels, np.arange(rows.size), centres,
+                            np.zeros((rows.size, 4)), 1.0)
     return LensletModel(profile, geom, pixels, n_rays), rows, cols
 
 
@@ -2643,7 +2647,7 @@ def _log_sigma(jac: np.ndarray, f: float, n: int) -> float:
     return math.sqrt(var * max(1.0, chi2)) if var > 0 and math.isfinite(var) else 0.0
 
 
-def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom: _Moments,
+def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom: LensletMoments,
                  source_mm: np.ndarray, noise: NoiseModel) -> LensletFit | None:
     """A point's lenslet answer refitted on the region's lit pixels.
 
@@ -2680,7 +2684,7 @@ def pixel_polish(profile: CameraProfile, geom: Geometry, image: np.ndarray, mom:
     :data:`PIXEL_MAX_STRAY` of them are stray (``pixel_chi2`` then counts them) or their
     χ²/dof is over :data:`PIXEL_MAX_CHI2`; None where the model lights too few pixels.
     """
-    frame = _Frame(profile)
+    frame = SourceFrame(profile)
     source_mm = np.asarray(source_mm, dtype=np.float64)
     in_box = mom.labels >= 0
     if not in_box.any():

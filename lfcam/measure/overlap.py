@@ -188,7 +188,7 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
         return None
     nm = capture_noise(image, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
                                                                           mom.norm)
-    frame = ff._Frame(profile)
+    frame = ff.SourceFrame(profile)
     lobes = (_spread if starts == "spread" else _lobes)(geom.lens_centres_mm[mom.ids[lit]],
                                                          energy[lit])
 
@@ -338,7 +338,7 @@ def merged_region(a: Region, b: Region, stats: LensletStats, lmap: LensletMap,
 
 
 def neighbour_light(profile: CameraProfile, geom: Geometry, image: np.ndarray,
-                    mom: ff._Moments, sources: list[tuple[Region, tuple, Measurement]]
+                    mom: ff.LensletMoments, sources: list[tuple[Region, tuple, Measurement]]
                     ) -> np.ndarray:
     """The light that touching blurs' fitted sources put on a region's lenslets.
 
@@ -355,7 +355,7 @@ def neighbour_light(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     profile : CameraProfile
     geom : Geometry
     image : (H, W) float array
-    mom : fastfit._Moments
+    mom : fastfit.LensletMoments
         This region's moments as its fit reads them (:func:`fastfit.region_moments`).
     sources : list of (Region, tuple of Region, Measurement)
         Each touching neighbour's region, the regions left out of its box, and its lenslet
