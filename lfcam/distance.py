@@ -387,6 +387,7 @@ def run_distance(
 
 
 SPLIT_OVERLAPS = True  # a region two overlapping blurs explain is split (_split_overlaps)
+POINT_AND_LINE = True  # ... and one that only a point and a line explain (overlap.point_and_line)
 NEIGHBOURS_OUT = True  # touching regions refitted without their neighbours' light
 NEIGHBOURS_ABOVE = 0.2  # ... where that light is over this × the region's noise misfit
 _FAILED_FITS = (RegionStatus.POOR_FIT, RegionStatus.NO_SOLUTION)
@@ -401,7 +402,11 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
     two sources a tenth of a blur apart read as one short line). Where the blurs can be cut both
     parts are measured again, and a part whose own fit fails takes its source's answer from
     the joint two-point fit (:func:`lfcam.measure.overlap.joint_measurements`); where they
-    cannot (too nearly one blur), both answers are the joint fit's.
+    cannot (too nearly one blur), both answers are the joint fit's. A failed region that two
+    points do not explain either is tried as a point and a line fitted by turns
+    (:func:`lfcam.measure.overlap.point_and_line`, :data:`POINT_AND_LINE`): where both end
+    ``ok`` and explain it, it is split between them (a ``spot`` and a ``line`` region, each
+    lenslet to the source that lights it more) and the answers are those fits'.
 
     A failed region cut from touching blurs is tried together with the other side of its cut
     (the region sharing its band), whose answer the new split replaces: a cut misplaced at a
@@ -409,7 +414,13 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
     other fitted to both blurs' light. The first part keeps the region's id, and its time
     counts the region's first fit and the two-point fit; the second takes the other side's
     id, or a new one at the end."""
-    from lfcam.measure.overlap import joint_measurements, merged_region, split_overlap
+    from lfcam.measure.overlap import (
+        joint_measurements,
+        merged_region,
+        point_and_line,
+        point_and_line_parts,
+        split_overlap,
+    )
 
     model, _, tolerance_pct, _ = args
     regions, estimates = list(regions), list(estimates)
@@ -432,14 +443,22 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
         whole = (reg if not sides else
                  merged_region(reg, regions[sides[0]], stats, geom.lmap, geom.pitch_px))
         others = tuple(o for o in near[i] if not any(o is regions[j] for j in sides))
+        tried: list = []
         split = split_overlap(profile, geom, img, stats, whole, next_id, others,
-                              beat=math.inf if failed_fit else meas.misfit)
-        if split is None:  # (the two-point fit's time is the region's too; the other
-            #                  side, failed as well, would try the same union again)
+                              beat=math.inf if failed_fit else meas.misfit, tried=tried)
+        pl = None
+        if split is None and failed_fit and POINT_AND_LINE and tried:
+            # nothing one or two points explain: a point and a line, fitted by turns
+            pl = point_and_line(profile, geom, img, whole, noise,
+                                min(tried, key=lambda two: two.misfit), others)
+        if split is None and pl is None:  # (the two-point fit's time is the region's too;
+            #                                the other side, failed as well, would try the
+            #                                same union again)
             estimates[i] = (estimates[i][0], estimates[i][1] + time.process_time() - t)
             done.update(sides)
             continue
-        pair = split.parts
+        pair = (split.parts if pl is None else
+                point_and_line_parts(pl, whole, next_id, stats, geom.lmap, geom.pitch_px))
         if sides:
             pair = (pair[0], dataclasses.replace(pair[1], region_id=regions[sides[0]].region_id))
         else:
@@ -449,10 +468,12 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
         for k, (part, other) in enumerate(((pair[0], pair[1]), (pair[1], pair[0]))):
             nearby = (other,) + others
             est, secs = (None, 0.0)
-            if split.cut:
+            if pl is not None:  # (the answers are the fits by turns')
+                est = _estimate_of(profile, (pl.point, pl.line)[k], model, tolerance_pct)
+            elif split.cut:
                 est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
                                             nearby)
-            if est is None or est.status != RegionStatus.OK:
+            if pl is None and (est is None or est.status != RegionStatus.OK):
                 # the part's own fit failed (a crescent), or the blurs are not cut: the
                 # source's answer is the joint fit's (its first user carries its time)
                 t_joint = time.process_time()

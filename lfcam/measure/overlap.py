@@ -83,6 +83,9 @@ TWO_BEATS = 0.5  # where one source's fit explains a region, two must leave unde
 LIGHT_RAYS = 20000  # rays of a neighbour's point model (neighbour_light) ...
 LIGHT_LINE_POINTS = 24  # ... points of its line model ...
 LIGHT_LINE_RAYS = 2000  # ... and rays of each of them
+PL_TURNS = 5  # a point and a line in one region: at most this many turns of the two fits
+#               (point_and_line) ...
+PL_SETTLE_SIGMAS = 0.25  # ... ending where neither distance moved by this × its σ
 
 
 class TwoPoints(NamedTuple):
@@ -269,7 +272,8 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
 
 def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                   stats: LensletStats, region: Region, new_id: int,
-                  others: tuple[Region, ...] = (), beat: float = math.inf) -> Split | None:
+                  others: tuple[Region, ...] = (), beat: float = math.inf,
+                  tried: list | None = None) -> Split | None:
     """``region`` split between the two sources a two-point fit finds in it
     (:func:`two_points`), or None where two points do not explain it: their misfit over
     :data:`TWO_NOISE` × the region's noise misfit (or :data:`TWO_FLOOR`), over its poor-fit
@@ -282,11 +286,14 @@ def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     would keep fewer than :data:`TWO_MIN_PART` lenslets the blurs are too nearly one to be
     cut (``cut`` false): the parts are then the lenslets each source lights more, for the
     map, and the answers the joint fit's (:func:`joint_measurements`). The first part keeps
-    ``region``'s id, the second takes ``new_id``; both are ``spot`` regions."""
+    ``region``'s id, the second takes ``new_id``; both are ``spot`` regions. ``tried``: a
+    list to which each two-point fit made is appended."""
     for starts in TWO_STARTS:
         two = two_points(profile, geom, image, region, others, starts)
         if two is None:
             return None
+        if tried is not None:  # (the caller's: a point-and-line fit starts from them)
+            tried.append(two)
         limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
                     max(TWO_NOISE * two.noise_misfit, TWO_FLOOR), TWO_BEATS * beat)
         if two.misfit < limit:
@@ -368,18 +375,110 @@ def neighbour_light(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     """
     out = np.zeros_like(mom.data)
     for region, others, meas in sources:
-        ends = np.asarray(meas.fitted_mm, dtype=np.float64).reshape(-1, 3)
-        if len(ends) == 1:
-            pts, rays = ends, LIGHT_RAYS
-        else:  # a line: equally bright points along it, as the line fit models it
-            t = (np.arange(LIGHT_LINE_POINTS) + 0.5) / LIGHT_LINE_POINTS
-            pts = ends[0][None, :] + t[:, None] * (ends[1] - ends[0])[None, :]
-            rays = LIGHT_LINE_RAYS
         own = ff.region_moments(geom, image, region, others)
-        m_own = ff.LensletModel(profile, geom, own, rays).simulate(pts)
+        m_own = _source_moments(profile, geom, own, meas.fitted_mm)
         mm = float((m_own * m_own).sum())
         scale = float((m_own * own.data).sum()) / mm if mm > 0 else 0.0
         if scale > 0:
-            out += scale * ff.LensletModel(profile, geom, mom, rays).simulate(pts)
+            out += scale * _source_moments(profile, geom, mom, meas.fitted_mm)
     return out
+
+
+def _source_moments(profile: CameraProfile, geom: Geometry, mom: ff.LensletMoments,
+                    fitted_mm) -> np.ndarray:
+    """(K, 4) model moments on ``mom``'s lenslets of a fitted source (a point, or a line's
+    two ends: :attr:`Measurement.fitted_mm`), unscaled: a point on :data:`LIGHT_RAYS` rays,
+    a line as :data:`LIGHT_LINE_POINTS` equally bright points (as the line fit models it) on
+    :data:`LIGHT_LINE_RAYS` each. The same source on two layouts gives the same units."""
+    ends = np.asarray(fitted_mm, dtype=np.float64).reshape(-1, 3)
+    if len(ends) == 1:
+        pts, rays = ends, LIGHT_RAYS
+    else:
+        t = (np.arange(LIGHT_LINE_POINTS) + 0.5) / LIGHT_LINE_POINTS
+        pts = ends[0][None, :] + t[:, None] * (ends[1] - ends[0])[None, :]
+        rays = LIGHT_LINE_RAYS
+    return ff.LensletModel(profile, geom, mom, rays).simulate(pts)
+
+
+class PointAndLine(NamedTuple):
+    """A point and a line fitted to one region by turns (:func:`point_and_line`)."""
+
+    point: Measurement
+    line: Measurement
+    misfit: float  # the two models together, their brightnesses solved jointly
+    light: np.ndarray  # (2, K) the point's and the line's light on the box's lenslets
+    ids: np.ndarray  # (K,) the box's lenslets (indices into the lenslet list)
+
+
+def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: Region,
+                   noise: float, two: TwoPoints, others: tuple[Region, ...] = ()
+                   ) -> PointAndLine | None:
+    """A region that one point, one line and two points all leave ``poor-fit``, fitted as a
+    point and a line by turns.
+
+    The two-point fit (``two``) places the blurs; one of its points is taken for the point
+    source (each in turn). Then, up to :data:`PL_TURNS` times: the line is fitted
+    (:func:`fastfit.measure_lenslet`) on the region's moments less the point's light, and the
+    point on them less the line's, each light scaled with the other's model by least squares
+    (:func:`_amplitudes`), until neither distance moves by :data:`PL_SETTLE_SIGMAS` × its σ.
+    Each answer's σ is its own fit's, the other source's light held fixed. Returns the
+    assignment whose two models leave the lower misfit together, or None where neither ends
+    with an ``ok`` line and an ``ok`` point, or they leave over :data:`TWO_NOISE` × the
+    region's noise misfit (or :data:`TWO_FLOOR`), or over its poor-fit limit (a line
+    beside a point 4–10 ‰ of their distance apart: docs/distance.md, "A point and a line in
+    one region (stop 71)")."""
+    mom = ff.region_moments(geom, image, region, others)
+    limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
+                max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
+    best: PointAndLine | None = None
+    for k in (0, 1):
+        m_point = _source_moments(profile, geom, mom, two.sources_mm[k])
+        amp = _amplitudes(mom.data, m_point,
+                          _source_moments(profile, geom, mom, two.sources_mm[1 - k]))
+        line = point = None
+        for _ in range(PL_TURNS):
+            new_line = ff.measure_lenslet(profile, geom, image, region, noise, others=others,
+                                          light=amp[0] * m_point)
+            if new_line.status != RegionStatus.OK or new_line.kind != "line":
+                line = None
+                break
+            m_line = _source_moments(profile, geom, mom, new_line.fitted_mm)
+            amp = _amplitudes(mom.data, m_point, m_line)
+            new_point = ff.measure_lenslet(profile, geom, image, region, noise, others=others,
+                                           light=amp[1] * m_line)
+            if new_point.status != RegionStatus.OK or new_point.kind != "spot":
+                line = None
+                break
+            m_point = _source_moments(profile, geom, mom, new_point.fitted_mm)
+            amp = _amplitudes(mom.data, m_point, m_line)
+            settled = line is not None and all(
+                abs(new.distance_mm - old.distance_mm) < PL_SETTLE_SIGMAS * new.sigma_distance_mm
+                for new, old in ((new_line, line), (new_point, point)))
+            line, point = new_line, new_point
+            if settled:
+                break
+        if line is None:
+            continue
+        rest = (mom.data - amp[0] * m_point - amp[1] * m_line) / mom.norm
+        misfit = float(np.sqrt((rest * rest).sum()))
+        if misfit < limit and (best is None or misfit < best.misfit):
+            light = np.array([amp[0] * m_point[:, 0], amp[1] * m_line[:, 0]])
+            best = PointAndLine(point, line, misfit, light, mom.ids)
+    return best
+
+
+def point_and_line_parts(pl: PointAndLine, region: Region, new_id: int, stats: LensletStats,
+                         lmap: LensletMap, pitch_px: float) -> tuple[Region, Region]:
+    """``region``'s lenslets, each to the source of :func:`point_and_line` that lights it
+    more: a ``spot`` region with ``region``'s id and a ``line`` region with ``new_id``, each
+    placed at its source's light centroid."""
+    mine = np.isin(pl.ids, region.lenslets)
+    first = mine & (pl.light[0] >= pl.light[1])
+    masks = (first, mine & ~first) if first.any() and (mine & ~first).any() else (mine, mine)
+    centres = lmap.centres_px[pl.ids]
+    parts = [make_region(rid, kind, pl.ids[m], stats, lmap, pitch_px, 1, region.shared,
+                         (centres * pl.light[k, :, None]).sum(0) / pl.light[k].sum())
+             for k, (rid, kind, m) in enumerate(((region.region_id, "spot", masks[0]),
+                                                 (new_id, "line", masks[1])))]
+    return parts[0], parts[1]
 
