@@ -431,22 +431,28 @@ def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, re
     limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
                 max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
     best: PointAndLine | None = None
+
+    def turn(light: np.ndarray, kind: str) -> Measurement | None:
+        # one source's lenslet fit with the other's light taken out: None unless an ``ok``
+        # answer of that kind
+        got = ff.measure_lenslet(profile, geom, image, region, noise, others=others,
+                                 light=light)
+        return got if got.status == RegionStatus.OK and got.kind == kind else None
+
     for k in (0, 1):
         m_point = _source_moments(profile, geom, mom, two.sources_mm[k])
         amp = _amplitudes(mom.data, m_point,
                           _source_moments(profile, geom, mom, two.sources_mm[1 - k]))
         line = point = None
         for _ in range(PL_TURNS):
-            new_line = ff.measure_lenslet(profile, geom, image, region, noise, others=others,
-                                          light=amp[0] * m_point)
-            if new_line.status != RegionStatus.OK or new_line.kind != "line":
+            new_line = turn(amp[0] * m_point, "line")
+            if new_line is None:
                 line = None
                 break
             m_line = _source_moments(profile, geom, mom, new_line.fitted_mm)
             amp = _amplitudes(mom.data, m_point, m_line)
-            new_point = ff.measure_lenslet(profile, geom, image, region, noise, others=others,
-                                           light=amp[1] * m_line)
-            if new_point.status != RegionStatus.OK or new_point.kind != "spot":
+            new_point = turn(amp[1] * m_line, "spot")
+            if new_point is None:
                 line = None
                 break
             m_point = _source_moments(profile, geom, mom, new_point.fitted_mm)
