@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from twin_points import CAMERA, NOISE, render_pair
+from twin_points import CAMERA, NOISE, errors_by_source, render_pair
 
 from lfcam import distance
 from lfcam.camera import load_profile
@@ -53,16 +53,9 @@ def _run(apart: float, monkeypatch, split: bool, sensor: bool = True, **pair):
 
 
 def _check_both(run, truth, bound: float = 1e-3):
-    got = {}
-    for r in run.regions:
-        assert r.status == RegionStatus.OK, r
-        k = int(np.argmin([np.hypot(r.x_px - s["centroid_px"][0], r.y_px - s["centroid_px"][1])
-                           for s in truth["sources"]]))
-        d = truth["sources"][k]["distance_mm"]
-        # measured: −0.065 / −0.033 % (13, σ 0.094 / 0.052 %), −0.016 / +0.019 % (14, σ 0.03 %)
-        assert abs(r.distance_mm / d - 1) < min(3 * r.uncertainty_mm / d, bound), (k, r)
-        got[k] = r
-    assert set(got) == {0, 1}
+    # measured: −0.065 / −0.033 % (13, σ 0.094 / 0.052 %), −0.016 / +0.019 % (14, σ 0.03 %)
+    for k, (err, sigma) in errors_by_source(run, truth).items():
+        assert abs(err) < min(3 * sigma, bound), (k, err, sigma)
 
 
 def test_two_overlapping_blurs_are_cut_and_both_measured(monkeypatch):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from twin_points import render_pair
+from twin_points import errors_by_source, render_pair
 
 from lfcam import distance
 from lfcam.measure import fastfit, overlap
@@ -54,19 +54,6 @@ def test_touching_points_each_measured(apart, monkeypatch):
     assert [r.kind for r in find_regions(stats, geom.lmap, geom.pitch_px)] == ["multiple"]
 
 
-def _errors(run, truth) -> dict:
-    """{truth source index: (relative error, relative σ)} of a run's ``ok`` regions."""
-    out = {}
-    for r in run.regions:
-        assert r.status == RegionStatus.OK, r
-        k = int(np.argmin([np.hypot(r.x_px - s["centroid_px"][0], r.y_px - s["centroid_px"][1])
-                           for s in truth["sources"]]))
-        d = truth["sources"][k]["distance_mm"]
-        out[k] = (r.distance_mm / d - 1.0, r.uncertainty_mm / d)
-    assert set(out) == {0, 1}
-    return out
-
-
 @pytest.mark.parametrize("line_mm, apart, lit", [
     (0.0, 14.0, 1),  # a point pair (measured: the 1 500 mm point +0.348 → +0.054 %, σ 0.05 %)
     (10.0, 12.0, 0),  # a 14 mm line beside a point (the line +0.786 → −0.024 %, σ 0.12 %)
@@ -81,7 +68,7 @@ def test_a_touching_blurs_light_is_taken_out(line_mm, apart, lit, monkeypatch):
         monkeypatch.setattr(distance, "NEIGHBOURS_OUT", out)
         run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
                                     geometry=geom, jobs=1, white_value=white)
-        runs[out] = _errors(run, truth)
+        runs[out] = errors_by_source(run, truth)
     # source ``lit`` reads the other's light past the band as its own: long, by ~3σ
     err, sigma = runs[False][lit]
     assert err > max(3e-3, 2.5 * sigma), runs[False]
@@ -161,7 +148,7 @@ def test_a_point_and_a_line_in_one_region_are_both_measured(apart, monkeypatch):
     monkeypatch.setattr(distance, "POINT_AND_LINE", True)
     run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
                                 geometry=geom, jobs=1, white_value=white)
-    errors = _errors(run, truth)
+    errors = errors_by_source(run, truth)
     assert {r.kind for r in run.regions} == {"spot", "line"}
     # the line is source 0 (its region the `line` one), the point source 1
     assert next(r for r in run.regions if r.kind == "line").distance_mm < 1450.0

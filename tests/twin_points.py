@@ -14,6 +14,7 @@ from lfcam.measure.noise import capture_noise
 from lfcam.sim.capture import apply_overrides, simulate
 from lfcam.sim.geometry import truth_geometry
 from lfcam.sim.scene import scene_from_dict
+from lfcam.status import RegionStatus
 
 SIZE = 1024
 CAMERA = {"mla": {"focus_mm": 1000.0}, "sensor": {"width_px": SIZE, "height_px": SIZE}}
@@ -72,3 +73,19 @@ def render_pair(apart: float, sensor: bool = False, system: str = "system2",
         _CAPTURES[key] = (prof, geom, image, stats, distance.noise_sigma(image), truth,
                                     white)
     return _CAPTURES[key]
+
+
+def errors_by_source(run, truth) -> dict:
+    """{truth source index: (relative error, relative σ)} of a distance run whose regions
+    are all ``ok``, each region taken for the source whose light centroid is nearest its
+    own; both sources must be answered."""
+    out = {}
+    for r in run.regions:
+        assert r.status == RegionStatus.OK, r
+        k = int(np.argmin([np.hypot(r.x_px - s["centroid_px"][0], r.y_px - s["centroid_px"][1])
+                           for s in truth["sources"]]))
+        d = truth["sources"][k]["distance_mm"]
+        out[k] = (r.distance_mm / d - 1.0, r.uncertainty_mm / d)
+    assert set(out) == {0, 1}
+    return out
+

@@ -137,6 +137,22 @@ def _amplitudes(data: np.ndarray, m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
     return x
 
 
+def _two_rest(mom: ff.LensletMoments, m1: np.ndarray, m2: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The data's moments less two models at their best brightnesses (:func:`_amplitudes`),
+    over the data's norm (K, 4), and those brightnesses (2,)."""
+    a = _amplitudes(mom.data, m1, m2)
+    return (mom.data - a[0] * m1 - a[1] * m2) / mom.norm, a
+
+
+def _explained_below(noise_misfit: float, beat: float = math.inf) -> float:
+    """The misfit under which two sources explain a region: :data:`TWO_NOISE` × its noise
+    misfit (or :data:`TWO_FLOOR`), under its poor-fit limit, and under :data:`TWO_BEATS` ×
+    ``beat`` (the misfit of one source that already explains it)."""
+    return min(poor_fit_limit(noise_misfit, ff.POOR_FIT),
+               max(TWO_NOISE * noise_misfit, TWO_FLOOR), TWO_BEATS * beat)
+
+
 def _lobes(pos: np.ndarray, w: np.ndarray) -> np.ndarray:
     """The energy centroids (2, 2) of a footprint's two halves along its long axis: two
     means of the lenslets' positions ``pos`` (weights ``w``) on that axis."""
@@ -195,15 +211,11 @@ def two_points(profile: CameraProfile, geom: Geometry, image: np.ndarray, region
     lobes = (_spread if starts == "spread" else _lobes)(geom.lens_centres_mm[mom.ids[lit]],
                                                          energy[lit])
 
-    def residual(model: ff.LensletModel, m: np.ndarray) -> np.ndarray:
-        a = _amplitudes(mom.data, m[0], m[1])
-        return ((mom.data - a[0] * m[0] - a[1] * m[1]) / mom.norm).ravel()
-
     def pairs_of(model: ff.LensletModel, qs: list[np.ndarray]) -> list[np.ndarray]:
         pts = np.concatenate([[frame.source(q[:3]), frame.source(q[3:])] for q in qs])
         m = model.simulate_groups(pts, np.arange(len(pts), dtype=np.int64), len(pts),
                                   len(qs))
-        return [residual(model, m[2 * k:2 * k + 2]) for k in range(len(qs))]
+        return [_two_rest(mom, m[2 * k], m[2 * k + 1])[0].ravel() for k in range(len(qs))]
 
     def at(d1: float, d2: float, g1: float, g2: float) -> np.ndarray:
         q = []
@@ -294,9 +306,7 @@ def split_overlap(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             return None
         if tried is not None:  # (the caller's: a point-and-line fit starts from them)
             tried.append(two)
-        limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
-                    max(TWO_NOISE * two.noise_misfit, TWO_FLOOR), TWO_BEATS * beat)
-        if two.misfit < limit:
+        if two.misfit < _explained_below(two.noise_misfit, beat):
             break
     else:
         return None
@@ -428,8 +438,7 @@ def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, re
     beside a point 4–10 ‰ of their distance apart: docs/distance.md, "A point and a line in
     one region (stop 71)")."""
     mom = ff.region_moments(geom, image, region, others)
-    limit = min(poor_fit_limit(two.noise_misfit, ff.POOR_FIT),
-                max(TWO_NOISE * two.noise_misfit, TWO_FLOOR))
+    limit = _explained_below(two.noise_misfit)
     best: PointAndLine | None = None
 
     def turn(light: np.ndarray, kind: str) -> Measurement | None:
@@ -465,7 +474,7 @@ def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, re
                 break
         if line is None:
             continue
-        rest = (mom.data - amp[0] * m_point - amp[1] * m_line) / mom.norm
+        rest, amp = _two_rest(mom, m_point, m_line)
         misfit = float(np.sqrt((rest * rest).sum()))
         if misfit < limit and (best is None or misfit < best.misfit):
             light = np.array([amp[0] * m_point[:, 0], amp[1] * m_line[:, 0]])
