@@ -139,15 +139,16 @@ def ab_settings(ap: argparse.ArgumentParser, args) -> list[dict]:
 
 
 def _fit(profile, geom, image, region, noise, settings: dict,
-         others: tuple = ()) -> tuple[float, object]:
+         others: tuple = (), accept=None) -> tuple[float, object]:
     """One fit of the region with ``settings`` (fastfit constants) in force: its CPU (s) and
-    measurement (``others``: the capture's nearby regions, as ``run_distance`` passes them)."""
+    measurement (``others``: the capture's nearby regions, as ``run_distance`` passes them;
+    ``accept``: as ``run_distance`` passes it with a tolerance)."""
     saved = {name: getattr(ff, name) for name in settings}
     for name, value in settings.items():
         setattr(ff, name, value)
     try:
         c0 = time.process_time()
-        m = ff.measure_lenslet(profile, geom, image, region, noise, others=others)
+        m = ff.measure_lenslet(profile, geom, image, region, noise, accept, others=others)
         return time.process_time() - c0, m
     finally:
         for name, value in saved.items():
@@ -155,17 +156,17 @@ def _fit(profile, geom, image, region, noise, settings: dict,
 
 
 def alternate(profile, geom, image, region, noise, settings: list[dict],
-              repeats: int, others: tuple = ()) -> tuple[list[list[float]], list]:
+              repeats: int, others: tuple = (), accept=None) -> tuple[list[list[float]], list]:
     """Each of ``settings`` fitted once to warm up, then ``repeats`` rounds of one fit a
     setting in turn (the machine's drift falls on all alike): each setting's CPU (s) of
-    every round and its last measurement (``others``: as :func:`_fit`)."""
+    every round and its last measurement (``others``, ``accept``: as :func:`_fit`)."""
     for s in settings:
-        _fit(profile, geom, image, region, noise, s, others)  # warm up
+        _fit(profile, geom, image, region, noise, s, others, accept)  # warm up
     spent: list[list[float]] = [[] for _ in settings]
     answers: list = [None] * len(settings)
     for _ in range(max(1, repeats)):
         for k, s in enumerate(settings):
-            cpu, answers[k] = _fit(profile, geom, image, region, noise, s, others)
+            cpu, answers[k] = _fit(profile, geom, image, region, noise, s, others, accept)
             spent[k].append(cpu)
     return spent, answers
 

@@ -2,7 +2,7 @@
 
 Run: ``python benchmarks/many_sources.py --scene a|b [--workdir DIR] [--methods lenslet]
 [--jobs N] [--no-cli] [--seed N] [--lines-only]``, or ``… --per-region N [--ab
-NAME=VALUE,...]``
+NAME=VALUE,...] [--tolerance PCT]``
 
 * ``a``: a 1568² system-2 capture (focus 3.5 m) with 12 point sources, 600…3000 mm, spread
   over the field. Target: ``lfcam distance`` ≤ 5 s wall on the 2-core machine.
@@ -35,9 +35,10 @@ holds another draw is refused). Scene ``b``'s lines on other draws are in docs/d
 on one core (BLAS at one thread), once to warm up and then ``N`` times, least CPU, as
 ``line_regions.py`` times its regions (with ``--ab``, alternately as the code is and with
 those fastfit constants), each with its error against the one truth source its box holds (a
-region cut from touching blurs: the one nearest its light's centroid); a
-summary per kind: regions over issue 17's budgets (50 ms a point region, 100 ms a line
-region), the slowest, the errors. A region's time inside ``lfcam distance`` also carries
+region cut from touching blurs: the one nearest its light's centroid); a summary per kind:
+regions over issue 17's budgets (50 ms a point region, 100 ms a line region), the slowest,
+the errors. ``--tolerance PCT``: each fit with the tolerance ``lfcam distance --method
+lenslet --tolerance PCT`` gives it. A region's time inside ``lfcam distance`` also carries
 the process's first calls and, with ``--jobs``, two workers sharing the caches.
 """
 
@@ -271,14 +272,18 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool,
 
 
 def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
-               draw: dict | None = None) -> None:
+               draw: dict | None = None, tolerance_pct: float | None = None) -> None:
     """Every spot and line region's ``lenslet`` fit in this process (module docstring): a row
     each (region, the kind the fit answers, lenslets, error against the truth source its box
     holds, or for a region cut from touching blurs the nearest, least ms per setting) and a
-    summary per kind."""
+    summary per kind; ``tolerance_pct``: each fit with the tolerance ``lfcam distance
+    --method lenslet --tolerance`` gives it."""
+    from functools import partial
+
     import line_regions as lr
 
     from lfcam.measure.regions import nearby_regions
+    from lfcam.models import auto
 
     png, cal_path, truth = prepare(name, workdir, **(draw or {}))
     prof = load_profile(png.with_name(png.stem + ".profile.toml"))
@@ -292,7 +297,10 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
     for reg, near in zip(regions, nearby_regions(regions), strict=True):
         if reg.kind not in ("spot", "line"):
             continue
-        spent, answers = lr.alternate(prof, geom, img, reg, noise, settings, repeats, near)
+        spent, answers = lr.alternate(
+            prof, geom, img, reg, noise, settings, repeats, near,
+            None if tolerance_pct is None
+            else partial(auto.lenslet_answer_meets, tolerance_pct=tolerance_pct))
         x0, y0, x1, y1 = reg.box_px
         held = [src for src in truth["sources"]
                 if x0 <= src["centroid_px"][0] < x1 and y0 <= src["centroid_px"][1] < y1]
@@ -338,6 +346,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--seed", type=int, default=None,
                     help="render seed (rays and noise; default the scene's own), in a workdir "
                          "of its own")
+    ap.add_argument("--tolerance", type=float, default=None, metavar="PCT",
+                    help="with --per-region: each fit with this tolerance (as lfcam distance "
+                         "--method lenslet --tolerance PCT)")
     ap.add_argument("--lines-only", action="store_true",
                     help="scene b's 10 lines without its points, in a workdir of its own")
     args = ap.parse_args(argv)
@@ -353,7 +364,7 @@ def main(argv=None) -> list[dict]:
             ap.error(f"--ab: {exc}")
         kernels.warm_up()
         per_region(args.scene, args.workdir, args.per_region, [{}, other] if other else [{}],
-                   draw)
+                   draw, args.tolerance)
         return []
     recs = []
     for method in args.methods.split(","):

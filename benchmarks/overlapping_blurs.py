@@ -5,7 +5,7 @@ overlap without a waist (stop 68)").
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
 [--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
 [--renderer sim|independent] [--brightness 1] [--field-mm 0] [--first-line-mm 0]
-[--neighbours-in]`` (``--method lightfield``: ~20 s a capture)
+[--neighbours-in] [--refits N]`` (``--method lightfield``: ~20 s a capture)
 
 Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
 either side (with ``--first-line-mm L``, the first a line instead: L × its distance / 1000 mm
@@ -21,6 +21,13 @@ z (error / σ), and the region's CPU time. ``--neighbours-in``: both runs withou
 regions refitted on their moments less their neighbours' light (``NEIGHBOURS_OUT`` off:
 docs/distance.md, "A touching blur's light taken out (stop 71)"). A summary counts the
 answers within and over 3σ and the sources left unmeasured, each way.
+
+``--refits N``: instead, each touching region whose neighbour's fitted light is over the
+gate (``NEIGHBOURS_ABOVE``) refitted without it in this process, from scratch and from its
+first answer (``measure_lenslet(start=…)``) alternately, ``N`` times each: per refit the
+answer's error and z, the least CPU ms of the ``N`` and the model rays traced (a count that
+does not depend on the machine's load) (docs/distance.md, "A refit from the first answer
+(stop 72)").
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -72,6 +80,70 @@ def measure(image, prof, geom, white, truth, method: str, split: bool) -> list[t
         z = (r.distance_mm - d) / r.uncertainty_mm if ok else float("nan")
         out.append((k, str(r.status), err, z, 1e3 * t))
     return out
+
+
+def refits(image, prof, geom, truth, repeats: int) -> list[str]:
+    """Each touching region over the gate refitted from scratch and from its first answer
+    (module docstring): a cell each, ``source: kind error % (z), least ms, Mrays`` both ways."""
+    from lfcam.measure import fastfit
+    from lfcam.measure.overlap import neighbour_light
+    from lfcam.measure.regions import find_regions, nearby_regions
+
+    stats = lenslet_stats(image, geom.lmap)
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    near = nearby_regions(regions)
+    noise = distance.noise_sigma(image)
+    first = [fastfit.measure_lenslet(prof, geom, image, r, noise, others=n)
+             if r.touching and r.kind in ("spot", "line") else None
+             for r, n in zip(regions, near, strict=True)]
+    cs = np.array([s["centroid_px"] for s in truth["sources"]])
+    rays = [0]
+    simulate = fastfit.LensletModel._simulate
+
+    def counted(self, sources, group=None, groups=1):
+        rays[0] += len(np.atleast_2d(sources)) * self.rx.size
+        return simulate(self, sources, group, groups)
+
+    fastfit.LensletModel._simulate = counted
+    cells = []
+    try:
+        for i, reg in enumerate(regions):
+            own = first[i]
+            if own is None or own.status != "ok":
+                continue
+            sources = [(regions[j], near[j], first[j]) for j in range(len(regions))
+                       if j != i and first[j] is not None and first[j].status == "ok"
+                       and np.intersect1d(regions[j].shared, reg.shared).size]
+            if not sources:
+                continue
+            mom = fastfit.region_moments(geom, image, reg, near[i])
+            light = neighbour_light(prof, geom, image, mom, sources)
+            if not (float(np.sqrt((light * light).sum()))
+                    > distance.NEIGHBOURS_ABOVE * own.noise_misfit * mom.norm):
+                continue
+            k = int(np.argmin(np.hypot(*(cs - np.array(reg.centroid_px)).T)))
+            d = truth["sources"][k]["distance_mm"]
+            spent = {False: [], True: []}
+            got = {}
+            for _ in range(max(repeats, 1)):
+                for warm in (False, True):
+                    rays[0] = 0
+                    c0 = time.process_time()
+                    m = fastfit.measure_lenslet(prof, geom, image, reg, noise, others=near[i],
+                                                light=light, start=own if warm else None)
+                    spent[warm].append(time.process_time() - c0)
+                    got[warm] = (m, rays[0])
+            parts = []
+            for warm in (False, True):
+                m, n_rays = got[warm]
+                ans = (f"{m.kind} {100.0 * (m.distance_mm / d - 1.0):+.3f} % "
+                       f"({(m.distance_mm - d) / m.sigma_distance_mm:+.1f}σ)"
+                       if m.status == "ok" else str(m.status))
+                parts.append(f"{ans}, {1e3 * min(spent[warm]):.0f} ms, {n_rays / 1e6:.2f} Mrays")
+            cells.append(f"{k}: " + " → ".join(parts))
+    finally:
+        fastfit.LensletModel._simulate = simulate
+    return cells
 
 
 def render(base, prof, camera: dict, objects: list[dict], seed: int, renderer: str,
@@ -116,6 +188,9 @@ def main() -> None:
     ap.add_argument("--neighbours-in", action="store_true",
                     help="touching regions not refitted without their neighbours' light "
                          "(the code before stop 71)")
+    ap.add_argument("--refits", type=int, default=0, metavar="N",
+                    help="instead: touching regions' refits from scratch and from the first "
+                         "answer, least CPU of N each (module docstring)")
     args = ap.parse_args()
     distance.NEIGHBOURS_OUT = not args.neighbours_in
     if args.first_line_mm > 0 and args.renderer != "sim":
@@ -138,8 +213,12 @@ def main() -> None:
           + f"), {args.renderer} renderer, --method "
           f"{args.method}" + ("; neighbours' light left in" if args.neighbours_in else "")
           + "; each region: source, status, error, z = error/σ, CPU ms")
-    print("| apart | seed | centroids apart px | cut off | cut on |")
-    print("|---|---|---|---|---|")
+    if args.refits:
+        print("| apart | seed | refits: source: answer, least ms, rays from scratch → from the "
+              "first answer |\n|---|---|---|")
+    else:
+        print("| apart | seed | centroids apart px | cut off | cut on |")
+        print("|---|---|---|---|---|")
     tally = {False: [0, 0, 0], True: [0, 0, 0]}  # within 3σ, over 3σ, sources unmeasured
     for apart in _floats(args.aparts):
         for seed in [int(s) for s in args.seeds.split(",")]:
@@ -156,6 +235,11 @@ def main() -> None:
             capture_noise(image, geom.lmap, geom.pitch_px, stats,
                           sensor_gain=distance.sensor_gain(measuring, white))
             cs = [s["centroid_px"] for s in truth["sources"]]
+            if args.refits:
+                print(f"| {apart:g} | {seed} | "
+                      + ("; ".join(refits(image, measuring, geom, truth, args.refits))
+                         or "none over the gate") + " |", flush=True)
+                continue
             cells = []
             for split in (False, True):
                 res = measure(image, measuring, geom, white, truth, args.method, split)
@@ -170,7 +254,7 @@ def main() -> None:
                     + f", {ms:.0f} ms" for k, status, err, z, ms in res))
             print(f"| {apart:g} | {seed} | {np.hypot(*np.subtract(*cs)):.0f} | {cells[0]} | "
                   f"{cells[1]} |", flush=True)
-    for split in (False, True):
+    for split in (False, True) if not args.refits else ():
         within, over, missing = tally[split]
         print(f"# cut {'on' if split else 'off'}: {within} answers within 3σ, {over} over 3σ, "
               f"{missing} sources unmeasured")

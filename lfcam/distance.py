@@ -172,10 +172,10 @@ def _apply_model(profile: CameraProfile, meas: Measurement, model: str,
 def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, reg: Region,
               noise: float, model: str, method: str, tolerance_pct: float | None,
               fast: bool, nearby: tuple[Region, ...] = (),
-              light: np.ndarray | None = None) -> Estimate:
+              light: np.ndarray | None = None, start: Measurement | None = None) -> Estimate:
     """The :class:`Estimate` of one region (``nearby``: the regions whose blur may reach
     into its box; ``light``: touching sources' light taken from its lenslet moments,
-    :func:`_take_out_neighbours`)."""
+    :func:`_take_out_neighbours`, and ``start`` the lenslet answer its refit starts from)."""
     nan = float("nan")
     if reg.kind not in ("spot", "line"):
         return Estimate(reg.kind, model, nan, nan, nan, nan, unsupported(reg.kind), None)
@@ -207,7 +207,7 @@ def _estimate(profile: CameraProfile, geom: Geometry, img: np.ndarray, stats, re
             meas = measure_lightfield(profile, geom, img, reg, noise, fast, nearby)
         elif method == "lenslet":
             meas = measure_lenslet(profile, geom, img, reg, noise, accept, others=nearby,
-                                   light=light)
+                                   light=light, start=start)
         else:
             meas = measure_diameter(profile, geom, img, stats, reg, noise)
     return _estimate_of(profile, meas, model, tolerance_pct)
@@ -390,6 +390,7 @@ SPLIT_OVERLAPS = True  # a region two overlapping blurs explain is split (_split
 POINT_AND_LINE = True  # ... and one that only a point and a line explain (overlap.point_and_line)
 NEIGHBOURS_OUT = True  # touching regions refitted without their neighbours' light
 NEIGHBOURS_ABOVE = 0.2  # ... where that light is over this × the region's noise misfit
+NEIGHBOURS_WARM = True  # ... each refit started from the region's first answer
 _FAILED_FITS = (RegionStatus.POOR_FIT, RegionStatus.NO_SOLUTION)
 
 
@@ -543,7 +544,8 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
             continue
         model, _, tolerance_pct, fast = args
         est, secs = _timed_estimate(profile, geom, img, stats, reg, noise,
-                                    (model, "lenslet", tolerance_pct, fast), near[i], light)
+                                    (model, "lenslet", tolerance_pct, fast), near[i], light,
+                                    own if NEIGHBOURS_WARM else None)
         out[i] = ((est if est.status == RegionStatus.OK else estimates[i][0]), spent + secs)
     return out
 
@@ -569,14 +571,14 @@ def _estimate_of(profile: CameraProfile, meas: Measurement, model: str,
 
 
 def _timed_estimate(profile, geom, img, stats, reg, noise, args,
-                    nearby=(), light=None) -> tuple[Estimate, float]:
+                    nearby=(), light=None, start=None) -> tuple[Estimate, float]:
     """(:class:`Estimate` of :func:`_estimate` or its failure, CPU seconds of this
     region)."""
     model, method, tolerance_pct, fast = args
     t = time.process_time()
     try:
         est = _estimate(profile, geom, img, stats, reg, noise, model, method, tolerance_pct,
-                        fast, nearby, light)
+                        fast, nearby, light, start)
     except _REGION_FAILURES as exc:
         nan = float("nan")
         est = Estimate(reg.kind, model, nan, nan, nan, nan, failed(type(exc).__name__), None)

@@ -222,6 +222,11 @@ LINE_SCAN_RECENTRE = 1  # where the frame's edge cuts a region, the line's scan 
 #                          and poor-fit on 10 of 11 draws; docs/distance.md, "A line the frame's
 #                          edge cuts (stop 69)")
 LINE_RACE_ITERATIONS = 2  # several starts race this many coarse iterations; the leader goes on
+LINE_WARM_ITERATIONS = 0  # a line refitted from an earlier answer: coarse iterations, at most
+#                           (0: its coarse Jacobian alone, then the fine stage; 6, as a lone
+#                           start: a line touching a point, its regions 141-227 ms against
+#                           98-213, the answers within 0.03 % of these: docs/distance.md, "A
+#                           refit from the first answer (stop 72)")
 LINE_CELLS_RACE_ITERATIONS = 1  # ... on the cells, where the coarse stage's own Gauss–Newton
 #                                 steps go on from the leader (168 grid lines: the same answers
 #                                 but one, 3-10 ms less a line; docs/distance.md, "Cells
@@ -1808,7 +1813,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      gates: Callable[[float], tuple[float, float]] | None = None,
                      early: bool = False,
                      accept: Callable[[float, float], bool] | None = None,
-                     noise_misfit: float = math.nan) -> Iterator[LensletFit]:
+                     noise_misfit: float = math.nan,
+                     start_q: np.ndarray | None = None) -> Iterator[LensletFit]:
     """Fit a point source to the region's lenslet moments (module docstring).
 
     Stages: distance scan and summary matching with the coarse model (``COARSE_RAYS``),
@@ -1858,6 +1864,11 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     ``noise_misfit`` (optional): the region's noise misfit (:func:`measure_lenslet`'s), with
     which the polish runs on fewer rays where the photons' noise dwarfs the models' own
     (:func:`_polish_rays`); NaN: the full polish.
+
+    ``start_q`` (optional): the one start ``(log distance, x/L, y/L)``, an earlier answer of
+    the same region (a refit on its moments less a neighbour's light,
+    :func:`measure_lenslet`'s ``start``): no distance scan and no summary matching; the
+    stages from the coarse one on are the same.
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -1878,7 +1889,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                            for m in model.simulate_sets([frame.source(q) for q in qs])]
 
     scan = LensletModel(profile, geom, mom, SCAN_RAYS)
-    starts, t_data = _starts(profile, geom, mom, frame, scan)
+    if start_q is not None:
+        starts, t_data = [np.asarray(start_q, dtype=np.float64)], None
+    else:
+        starts, t_data = _starts(profile, geom, mom, frame, scan)
     # a large blur on the cells where they apply about its start: each start is matched on
     # them where they apply about it (a start on the caustic's side of focus, where they do
     # not, on the rays), and the best start's model goes on
@@ -1899,7 +1913,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                 and sq(scan.residual(frame.source(q0))) >= START_HOPELESS):
             continue  # its light misses the data's: no summary matching has brought one back
         model = coarse_of[int(cells_ok[k])]
-        if cells_ok[k] and SUMMARY_SCAN_FIRST:
+        if start_q is not None:
+            q = q0  # (an earlier answer: its summary matches the data's already)
+        elif cells_ok[k] and SUMMARY_SCAN_FIRST:
             # a line's blur, which a point's summary cannot match, stays where the scan's rays
             # leave it (its Broyden steps on the cells: 8-14 evaluations for nothing); a
             # point's goes on on the cells (with the scan's end alone, its coarse stage took
@@ -2195,7 +2211,8 @@ def _footprint(geom: Geometry, mom: LensletMoments, energy: np.ndarray
 def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                      region: Region, point: LensletFit | None = None,
                      useful_below: float = math.inf, mom: LensletMoments | None = None,
-                     accept: Callable[[float, float], bool] | None = None) -> LensletFit:
+                     accept: Callable[[float, float], bool] | None = None,
+                     start_q: np.ndarray | None = None) -> LensletFit:
     """Fit a line source (equally bright points half a pitch apart, 5 parameters) to the
     region's lenslet moments. Starts: the point fit's distance and centre, and the best node of
     a distance scan (centre from the chief ray through the light's centroid); both with the
@@ -2215,13 +2232,19 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     refit with more rays is not refitted when its σ, with the measured sampling shift and the
     line σ floor added in quadrature, is accepted; that σ is then the one it reports
     (docs/distance.md, "A line's refit only where the tolerance needs it").
+
+    ``start_q`` (optional): the one start ``(log distance, a/L, b/L)`` (:func:`_line_points`),
+    an earlier line answer of the same region (a refit on its moments less a neighbour's
+    light, :func:`measure_lenslet`'s ``start``): no point fit, no distance scan, no race
+    (docs/distance.md, "A refit from the first answer (stop 72)").
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
     nan3 = np.full(3, np.nan)
-    if point is None:
+    warm = start_q is not None
+    if point is None and not warm:
         point = fit_lenslet_point(profile, geom, image, region, mom=mom)
-    if not point.ok:
+    if not warm and not point.ok:
         return LensletFit(nan3, np.nan, np.nan, point.evaluations, False, point.reason)
     frame = SourceFrame(profile)
     cbar, cov = _footprint(geom, mom, mom.data[:, 0])
@@ -2240,7 +2263,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     n_lit = lit_lenslets(mom)
     stretched = False
     # (a footprint of a few lenslets is square or hexagonal, not round: 0.06-0.1 on axis)
-    if n_lit >= LINE_STRETCH_MIN_LIT:
+    if n_lit >= LINE_STRETCH_MIN_LIT and not warm:
         _, cov_point = _footprint(geom, mom, LensletModel(profile, geom, mom, COARSE_RAYS)
                                   .simulate(point.source_mm)[:, 0])
         ev_point, axes_point = np.linalg.eigh(cov_point)
@@ -2296,8 +2319,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         costs = [sq(r) for r in many_of(scan_model, n_scan)(cands)]
         return [cands[i] for i in np.argsort(costs)[:LINE_TURNED_STARTS]]
 
-    d0 = float(frame.z_front - point.source_mm[2])
-    q0 = segment(d0, point.source_mm[:2])
+    if warm:
+        q0 = np.asarray(start_q, dtype=np.float64)
+    else:
+        d0 = float(frame.z_front - point.source_mm[2])
+        q0 = segment(d0, point.source_mm[:2])
     # points along the segment at most LINE_SPACING_PITCH apart on the MLA: 12 points 2
     # pitches apart left lines behind focus up to 1.7 % long (their sum of blurs is combed
     # at the spacing); the rays a point shrink in proportion (the total stays) down to
@@ -2344,10 +2370,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     # Starts: the point fit's distance, and the best node of a distance scan of the line
     # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
     # for the local fit to come back from.
-    distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
+    distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4,
+                             0 if warm else SCAN_DISTANCES)
     gains_scan = chief_ray_gains(profile, geom.d_in_mm, distances)
     scan = [segment(float(d), g=float(g)) for d, g in zip(distances, gains_scan, strict=True)]
-    if (LINE_SCAN_RECENTRE and region is not None
+    if (LINE_SCAN_RECENTRE and region is not None and not warm
             and _frame_cut(region, image.shape, geom.pitch_px)):
         # the frame cuts the model's light on the region's lenslets as it cuts the data's: the
         # segment at each node moves by the chief-ray offset between the two centroids
@@ -2365,13 +2392,15 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                 _, along = mla_to_object(float(d), float(g))
                 moved.append(np.r_[q[0], q[1:3] + dxy / along, q[3:5] + dxy / along])
             scan = moved
-    costs = [sq(r) for r in many_of(scan_model, n_scan)(scan)]
-    best_scan = scan[int(np.argmin(costs))]
+    costs = [sq(r) for r in many_of(scan_model, n_scan)(scan)] if scan else []
+    best_scan = scan[int(np.argmin(costs))] if scan else q0
     # the scan's best node is a start of its own unless it lies in the point's basin (stopping
     # when the first start is already below the scan's best node put behind-focus lines 1.7 %
     # off on average: the scan's coarser model reads higher misfits, not a worse basin)
     starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
-    if LINE_FAR_POINT_START and _at_far_bound(q0):
+    if warm:
+        pass  # (the earlier answer alone)
+    elif LINE_FAR_POINT_START and _at_far_bound(q0):
         # a point fit run out to the far bound tells nothing of where the line is: the scan's
         # best node is the one start (the far bound and its turned copies raced too, and lost:
         # on the hexagonal 380 mm line at 80 % of the field three of them, ~17 ms)
@@ -2421,6 +2450,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         settling.append(race)
     race_iterations = (LINE_CELLS_RACE_ITERATIONS if coarse.cells
                        else LINE_RACE_ITERATIONS if len(starts) > 1 else COARSE_ITERATIONS)
+    if warm:
+        race_iterations = min(race_iterations, LINE_WARM_ITERATIONS)
     # the starts race from the best placed: one whose misfit² where it starts is over
     # LINE_RACE_START_RATIO × the best start's, or LINE_RACE_HOPELESS × the best race's end,
     # does not run (a far start, or an axis turned the wrong way)
@@ -2432,6 +2463,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         best_end = min((h[2] for h in heats), default=math.inf)  # the earlier heats' best
         if heats and (f_starts[k] > LINE_RACE_START_RATIO * best_start
                       or f_starts[k] > LINE_RACE_HOPELESS * best_end):
+            continue
+        if race_iterations == 0:  # (a warm start: its Jacobian alone)
+            heats.append((starts[k], r_starts[k], f_starts[k], race_j(starts[k], r_starts[k])))
             continue
         heats.append(levenberg_marquardt(race_c, starts[k], steps, race_iterations, 1e-3,
                                          r0=r_starts[k], jac_of=race_j,
@@ -2466,7 +2500,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     sampling_log = 0.0  # the fine sample's shift, kept in σ where its refit was not needed
 
     def evaluations() -> int:
-        return (point.evaluations + scan_model.evaluations + coarse.evaluations
+        return ((0 if point is None else point.evaluations) + scan_model.evaluations
+                + coarse.evaluations
                 + fine.evaluations
                 + sum(m.evaluations for m in settling))
 
@@ -2853,7 +2888,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                     region: Region, noise: float,
                     accept: Callable[[float, float], bool] | None = None,
                     others: Sequence[Region] = (),
-                    light: np.ndarray | None = None) -> Measurement:
+                    light: np.ndarray | None = None,
+                    start: Measurement | None = None) -> Measurement:
     """Lenslet-statistics fit of one region (module docstring).
 
     Parameters
@@ -2879,6 +2915,12 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         :func:`region_moments` (``region``, ``others``), taken from the data's moments before
         the fit: a touching blur's light past the band
         (:func:`lfcam.measure.overlap.neighbour_light`).
+    start : Measurement, optional
+        An earlier ``lenslet`` answer of this region (:attr:`Measurement.fitted_mm`), the
+        refit's one start: a line is refitted as a line from its ends, with no point fit,
+        distance scan or race (:func:`fit_lenslet_line`'s ``start_q``); a point's fit starts
+        from its source, with no scan or summary matching, and goes on as any point's
+        (docs/distance.md, "A refit from the first answer (stop 72)").
 
     Returns
     -------
@@ -2919,6 +2961,23 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def beats(point_misfit: float) -> float:  # the misfit a line must stay under to win
         return line_beats(point_misfit, nm, LINE_GAIN)
 
+    frame = SourceFrame(profile)
+    start_q = None
+    if start is not None and len(start.fitted_mm) == 2:
+        # a line stays a line: refitted from its ends, as useful as any fit under the limit
+        a, b = (np.asarray(v, dtype=np.float64) for v in start.fitted_mm)
+        along = frame.z_rim - a[2]
+        line = fit_lenslet_line(profile, geom, image, region, useful_below=limit, mom=mom,
+                                accept=accept,
+                                start_q=np.r_[math.log(frame.z_front - a[2]), a[:2] / along,
+                                              b[:2] / along])
+        if not line.ok:
+            return Measurement.failed(line.reason or RegionStatus.POOR_FIT, geom.d_in_mm,
+                                      kind="line")
+        return _line_answer(profile, geom, line, limit, nm, start.model_misfit)
+    if start is not None and len(start.fitted_mm) == 1:
+        start_q = frame.params(np.asarray(start.fitted_mm[0], dtype=np.float64))
+
     tried: list[LensletFit] = []
 
     def line_for(point: LensletFit) -> LensletFit:
@@ -2931,7 +2990,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return tried[0]
 
     stages = point_fit_stages(profile, geom, image, region, mom=mom, gates=gates,
-                              early=LINE_AT_COARSE, accept=accept, noise_misfit=nm)
+                              early=LINE_AT_COARSE, accept=accept, noise_misfit=nm,
+                              start_q=start_q)
     fit = next(stages)  # the fine fit, before its polish and σ profile (or the coarse one)
     if fit.coarse:
         # On the cells the point's coarse stage is read first. A line's blur leaves a point's
