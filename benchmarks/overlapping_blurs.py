@@ -5,11 +5,15 @@ overlap without a waist (stop 68)").
 Run: ``python benchmarks/overlapping_blurs.py [--system system2] [--distances 1400,1500]
 [--focus 1000] [--aparts 5,6,...,18] [--seeds 7,8] [--size 1024] [--method lenslet]
 [--renderer sim|independent] [--brightness 1] [--field-mm 0] [--first-line-mm 0]
-[--neighbours-in] [--refits N]`` (``--method lightfield``: ~20 s a capture)
+[--second-line-mm 0] [--second-along] [--neighbours-in] [--refits N]``
+(``--method lightfield``: ~20 s a capture)
 
 Each capture holds two point sources ``apart`` × 1/1000 of their distance off the axis on
 either side (with ``--first-line-mm L``, the first a line instead: L × its distance / 1000 mm
-long across the pair's line, centred where the point would be, as bright in all), rendered by
+long across the pair's line, centred where the point would be, as bright in all; with
+``--second-line-mm L``, the second a line too: L × its distance / 1000 mm long, across the
+pair's line or, with ``--second-along``, along it (a T), as bright per mm as a first line of
+that length), rendered by
 :mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer independent``, by
 ``benchmarks/render_independent.py`` (per-pixel irradiance of the exact ray map: no ray
 binning, no :mod:`lfcam.sim`), both with the focus grid's sensor noise (photon noise at a full
@@ -97,16 +101,8 @@ def refits(image, prof, geom, truth, repeats: int) -> list[str]:
              if r.touching and r.kind in ("spot", "line") else None
              for r, n in zip(regions, near, strict=True)]
     cs = np.array([s["centroid_px"] for s in truth["sources"]])
-    rays = [0]
-    simulate = fastfit.LensletModel._simulate
-
-    def counted(self, sources, group=None, groups=1):
-        rays[0] += len(np.atleast_2d(sources)) * self.rx.size
-        return simulate(self, sources, group, groups)
-
-    fastfit.LensletModel._simulate = counted
     cells = []
-    try:
+    with fastfit.counting_rays() as rays:
         for i, reg in enumerate(regions):
             own = first[i]
             if own is None or own.status != "ok":
@@ -141,8 +137,6 @@ def refits(image, prof, geom, truth, repeats: int) -> list[str]:
                        if m.status == "ok" else str(m.status))
                 parts.append(f"{ans}, {1e3 * min(spent[warm]):.0f} ms, {n_rays / 1e6:.2f} Mrays")
             cells.append(f"{k}: " + " → ".join(parts))
-    finally:
-        fastfit.LensletModel._simulate = simulate
     return cells
 
 
@@ -185,6 +179,11 @@ def main() -> None:
     ap.add_argument("--first-line-mm", type=float, default=0.0,
                     help="the first source a line this long at 1 m (its length × distance / "
                          "1000 mm, across the pair's line; sim renderer only); 0: a point")
+    ap.add_argument("--second-line-mm", type=float, default=0.0,
+                    help="the second source a line this long at 1 m (sim renderer only); "
+                         "0: a point")
+    ap.add_argument("--second-along", action="store_true",
+                    help="the second line along the pair's line (a T), not across it")
     ap.add_argument("--neighbours-in", action="store_true",
                     help="touching regions not refitted without their neighbours' light "
                          "(the code before stop 71)")
@@ -193,8 +192,8 @@ def main() -> None:
                          "answer, least CPU of N each (module docstring)")
     args = ap.parse_args()
     distance.NEIGHBOURS_OUT = not args.neighbours_in
-    if args.first_line_mm > 0 and args.renderer != "sim":
-        ap.error("--first-line-mm: with --renderer sim only")
+    if (args.first_line_mm > 0 or args.second_line_mm > 0) and args.renderer != "sim":
+        ap.error("--first-line-mm, --second-line-mm: with --renderer sim only")
     d1, d2 = _floats(args.distances)
     camera = {"mla": {"focus_mm": args.focus},
               "sensor": {"width_px": args.size, "height_px": args.size}}
@@ -210,6 +209,9 @@ def main() -> None:
           f"and {d2:.0f} mm (the second {args.brightness:g} × as bright, both "
           f"{args.field_mm:g} mm/m off the axis"
           + (f"; the first a {args.first_line_mm:g} mm/m line" if args.first_line_mm > 0 else "")
+          + (f"; the second a {args.second_line_mm:g} mm/m line "
+             + ("along" if args.second_along else "across") + " the pair's line"
+             if args.second_line_mm > 0 else "")
           + f"), {args.renderer} renderer, --method "
           f"{args.method}" + ("; neighbours' light left in" if args.neighbours_in else "")
           + "; each region: source, status, error, z = error/σ, CPU ms")
@@ -230,6 +232,15 @@ def main() -> None:
                 half = 0.5 * args.first_line_mm * d1 / 1000
                 objects[0] = {"type": "line", "distance_mm": d1, "intensity": 1.0 / (2 * half),
                               "start_mm": [x - half, y], "end_mm": [x + half, y]}
+            if args.second_line_mm > 0:
+                x, y = objects[1]["position_mm"]
+                half = 0.5 * args.second_line_mm * d2 / 1000
+                per_mm = 1000.0 * args.brightness / (args.second_line_mm * d1)
+                objects[1] = {"type": "line", "distance_mm": d2, "intensity": per_mm,
+                              "start_mm": ([x, y - half] if args.second_along
+                                           else [x - half, y]),
+                              "end_mm": ([x + 0.001, y + half] if args.second_along
+                                         else [x + half, y])}
             image, truth = render(base, prof, camera, objects, seed, args.renderer, top)
             stats = lenslet_stats(image, geom.lmap)
             capture_noise(image, geom.lmap, geom.pitch_px, stats,

@@ -387,7 +387,8 @@ def run_distance(
 
 
 SPLIT_OVERLAPS = True  # a region two overlapping blurs explain is split (_split_overlaps)
-POINT_AND_LINE = True  # ... and one that only a point and a line explain (overlap.point_and_line)
+POINT_AND_LINE = True  # ... and one that only a point and a line explain (overlap.by_turns)
+TWO_LINES = True  # ... or two lines (overlap.by_turns, second="line")
 NEIGHBOURS_OUT = True  # touching regions refitted without their neighbours' light
 NEIGHBOURS_ABOVE = 0.2  # ... where that light is over this × the region's noise misfit
 NEIGHBOURS_WARM = True  # ... each refit started from the region's first answer
@@ -405,9 +406,10 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
     the joint two-point fit (:func:`lfcam.measure.overlap.joint_measurements`); where they
     cannot (too nearly one blur), both answers are the joint fit's. A failed region that two
     points do not explain either is tried as a point and a line fitted by turns
-    (:func:`lfcam.measure.overlap.point_and_line`, :data:`POINT_AND_LINE`): where both end
-    ``ok`` and explain it, it is split between them (a ``spot`` and a ``line`` region, each
-    lenslet to the source that lights it more) and the answers are those fits'.
+    (:func:`lfcam.measure.overlap.by_turns`, :data:`POINT_AND_LINE`), and then as two lines
+    (:data:`TWO_LINES`): where both end ``ok`` and explain it, it is split between them (a
+    ``spot`` or ``line`` region and a ``line`` region, each lenslet to the source that lights
+    it more) and the answers are those fits'.
 
     A failed region cut from touching blurs is tried together with the other side of its cut
     (the region sharing its band), whose answer the new split replaces: a cut misplaced at a
@@ -416,10 +418,10 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
     counts the region's first fit and the two-point fit; the second takes the other side's
     id, or a new one at the end."""
     from lfcam.measure.overlap import (
+        by_turns,
+        by_turns_parts,
         joint_measurements,
         merged_region,
-        point_and_line,
-        point_and_line_parts,
         split_overlap,
     )
 
@@ -450,8 +452,10 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
         pl = None
         if split is None and failed_fit and POINT_AND_LINE and tried:
             # nothing one or two points explain: a point and a line, fitted by turns
-            pl = point_and_line(profile, geom, img, whole, noise,
-                                min(tried, key=lambda two: two.misfit), others)
+            two = min(tried, key=lambda t: t.misfit)
+            pl = by_turns(profile, geom, img, whole, noise, two, others)
+            if pl is None and TWO_LINES:  # (nor a point and a line: two lines)
+                pl = by_turns(profile, geom, img, whole, noise, two, others, second="line")
         if split is None and pl is None:  # (the two-point fit's time is the region's too;
             #                                the other side, failed as well, would try the
             #                                same union again)
@@ -459,7 +463,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
             done.update(sides)
             continue
         pair = (split.parts if pl is None else
-                point_and_line_parts(pl, whole, next_id, stats, geom.lmap, geom.pitch_px))
+                by_turns_parts(pl, whole, next_id, stats, geom.lmap, geom.pitch_px))
         if sides:
             pair = (pair[0], dataclasses.replace(pair[1], region_id=regions[sides[0]].region_id))
         else:
@@ -470,7 +474,7 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
             nearby = (other,) + others
             est, secs = (None, 0.0)
             if pl is not None:  # (the answers are the fits by turns')
-                est = _estimate_of(profile, (pl.point, pl.line)[k], model, tolerance_pct)
+                est = _estimate_of(profile, (pl.other, pl.line)[k], model, tolerance_pct)
             elif split.cut:
                 est, secs = _timed_estimate(profile, geom, img, stats, part, noise, args,
                                             nearby)

@@ -133,23 +133,29 @@ def test_a_side_the_band_took_is_no_blur(monkeypatch):
     assert sorted(r.status for r in run.regions) == [RegionStatus.NEAR_FOCUS, RegionStatus.OK]
 
 
+def _unmeasured_without(switch: str, capture: tuple, monkeypatch):
+    """The distance run of a capture of one region with ``lfcam.distance``'s ``switch`` on,
+    after checking that with it off the region is ``poor-fit``."""
+    prof, geom, image, stats, _, _, white = capture
+    assert len(find_regions(stats, geom.lmap, geom.pitch_px)) == 1
+    runs = []
+    for on in (False, True):
+        monkeypatch.setattr(distance, switch, on)
+        runs.append(distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                          geometry=geom, jobs=1, white_value=white))
+    assert [r.status for r in runs[0].regions] == [RegionStatus.POOR_FIT]
+    return runs[1]
+
+
 @pytest.mark.parametrize("apart", [4.0, 8.0])
 def test_a_point_and_a_line_in_one_region_are_both_measured(apart, monkeypatch):
     # a 14 mm line at 1 400 mm and a point at 1 500 mm, 4 and 8 ‰ of their distance from the
     # axis on either side: one region that no point, line or two points explain (poor-fit,
     # both sources unmeasured); fitted by turns as a point and a line, each source is
     # measured (seed 7: the line +0.014 / +0.025 %, the point +0.024 / -0.042 %)
-    prof, geom, image, stats, noise, truth, white = render_pair(apart, True,
-                                                                first_line_mm=10.0)
-    assert len(find_regions(stats, geom.lmap, geom.pitch_px)) == 1
-    monkeypatch.setattr(distance, "POINT_AND_LINE", False)
-    before = distance.run_distance(image, prof, None, model="exact", method="lenslet",
-                                   geometry=geom, jobs=1, white_value=white)
-    assert [r.status for r in before.regions] == [RegionStatus.POOR_FIT]
-    monkeypatch.setattr(distance, "POINT_AND_LINE", True)
-    run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
-                                geometry=geom, jobs=1, white_value=white)
-    errors = errors_by_source(run, truth)
+    capture = render_pair(apart, True, first_line_mm=10.0)
+    run = _unmeasured_without("POINT_AND_LINE", capture, monkeypatch)
+    errors = errors_by_source(run, capture[5])
     assert {r.kind for r in run.regions} == {"spot", "line"}
     # the line is source 0 (its region the `line` one), the point source 1
     assert next(r for r in run.regions if r.kind == "line").distance_mm < 1450.0
@@ -158,7 +164,7 @@ def test_a_point_and_a_line_in_one_region_are_both_measured(apart, monkeypatch):
         assert abs(err) < min(3 * sigma, 2e-3), (k, errors)
 
 
-def test_a_refit_starts_from_the_first_answer(monkeypatch):
+def test_a_refit_starts_from_the_first_answer():
     """The refit without the neighbour's light, started from the region's first answer (no
     point fit, scan or race for a line; no scan for a point), reads the truth as the refit
     from scratch does, and traces under half its rays (a count, not a time)."""
@@ -168,14 +174,6 @@ def test_a_refit_starts_from_the_first_answer(monkeypatch):
     first = [fastfit.measure_lenslet(prof, geom, image, r, noise, others=n)
              for r, n in zip(regions, near, strict=True)]
     centroids = np.array([s["centroid_px"] for s in truth["sources"]])
-    rays = [0]
-    simulate = fastfit.LensletModel._simulate
-
-    def counted(self, sources, group=None, groups=1):
-        rays[0] += len(np.atleast_2d(sources)) * self.rx.size
-        return simulate(self, sources, group, groups)
-
-    monkeypatch.setattr(fastfit.LensletModel, "_simulate", counted)
     for k, region in enumerate(regions):
         j = int(np.argmin(np.hypot(*(centroids - np.array(region.centroid_px)).T)))
         truth_mm = truth["sources"][j]["distance_mm"]
@@ -185,9 +183,9 @@ def test_a_refit_starts_from_the_first_answer(monkeypatch):
         spent = {}
         answers = {}
         for warm in (False, True):
-            rays[0] = 0
-            m = fastfit.measure_lenslet(prof, geom, image, region, noise, others=near[k],
-                                        light=light, start=first[k] if warm else None)
+            with fastfit.counting_rays() as rays:
+                m = fastfit.measure_lenslet(prof, geom, image, region, noise, others=near[k],
+                                            light=light, start=first[k] if warm else None)
             spent[warm], answers[warm] = rays[0], m
             err = m.distance_mm / truth_mm - 1.0
             assert m.status == "ok" and m.kind == first[k].kind, (k, warm, m.status)
@@ -197,3 +195,18 @@ def test_a_refit_starts_from_the_first_answer(monkeypatch):
         # measured: the line 1.94 -> 1.34 million rays (no point fit, scan or race; one coarse
         # Jacobian, then the fine stage), the point 1.23 -> 0.60 (no scan or summary matching)
         assert spent[True] < 0.75 * spent[False], (first[k].kind, spent)
+
+
+def test_two_lines_in_one_region_are_both_measured(monkeypatch):
+    # a 14 mm line at 1 400 mm across the pair's line and a 15 mm line at 1 500 mm along it (a
+    # T), 14 ‰ of their distance from the axis on either side: one region that no point, line,
+    # two points or point and line explain (poor-fit); fitted by turns as two lines, each first
+    # on the lenslets the other's light leaves nearly alone, both are measured (seed 7: the
+    # 1 400 mm line +0.008 %, the 1 500 mm one -0.005 %, sigma 0.11 %)
+    capture = render_pair(14.0, True, first_line_mm=10.0, second_line_mm=10.0)
+    run = _unmeasured_without("TWO_LINES", capture, monkeypatch)
+    assert [r.kind for r in run.regions] == ["line", "line"]
+    errors = errors_by_source(run, capture[5])
+    for k in (0, 1):
+        err, sigma = errors[k]
+        assert abs(err) < min(3 * sigma, 2e-3), (k, errors)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -578,6 +579,23 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
                           moment_noise_sums(dx, dy, v))
 
 
+_RAY_COUNTS: list[list[int]] = []  # the open counting_rays blocks' counts
+
+
+@contextmanager
+def counting_rays() -> Iterator[list[int]]:
+    """Count the rays every :class:`LensletModel` evaluation inside the block traces (its
+    points × its pupil sample): yields a one-item list holding the count so far. A cost that
+    does not depend on the machine's load, for benchmarks and tests
+    (``benchmarks/overlapping_blurs.py --refits``)."""
+    count = [0]
+    _RAY_COUNTS.append(count)
+    try:
+        yield count
+    finally:
+        _RAY_COUNTS.remove(count)
+
+
 class LensletModel:
     """Forward model of a region's lenslet moments for point (or line) sources."""
 
@@ -698,6 +716,8 @@ class LensletModel:
                   groups: int = 1) -> np.ndarray:
         """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
         points = np.atleast_2d(sources)
+        for count in _RAY_COUNTS:
+            count[0] += len(points) * self.rx.size
         out = np.zeros((groups * len(self.mom.data), 4))
         if self.cells:
             return self._simulate_cells(points, group, groups, out)

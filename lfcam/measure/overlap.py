@@ -31,6 +31,7 @@ models a fitted neighbour's light on a region's lenslets, which
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import NamedTuple
@@ -84,8 +85,10 @@ LIGHT_RAYS = 20000  # rays of a neighbour's point model (neighbour_light) ...
 LIGHT_LINE_POINTS = 24  # ... points of its line model ...
 LIGHT_LINE_RAYS = 2000  # ... and rays of each of them
 PL_TURNS = 5  # a point and a line in one region: at most this many turns of the two fits
-#               (point_and_line) ...
+#               (by_turns) ...
 PL_SETTLE_SIGMAS = 0.25  # ... ending where neither distance moved by this × its σ
+PL_PART_BAND = 0.5  # two lines: each first fitted on the lenslets where the other's light (the
+#                     two-point fit's) is under this × its own
 
 
 class TwoPoints(NamedTuple):
@@ -410,36 +413,38 @@ def _source_moments(profile: CameraProfile, geom: Geometry, mom: ff.LensletMomen
     return ff.LensletModel(profile, geom, mom, rays).simulate(pts)
 
 
-class PointAndLine(NamedTuple):
-    """A point and a line fitted to one region by turns (:func:`point_and_line`)."""
+class ByTurns(NamedTuple):
+    """A line and a second source (a point or a line) fitted to one region by turns
+    (:func:`by_turns`)."""
 
-    point: Measurement
+    other: Measurement  # the second source: a ``spot`` or a ``line``
     line: Measurement
     misfit: float  # the two models together, their brightnesses solved jointly
-    light: np.ndarray  # (2, K) the point's and the line's light on the box's lenslets
+    light: np.ndarray  # (2, K) the second source's and the line's light on the box's lenslets
     ids: np.ndarray  # (K,) the box's lenslets (indices into the lenslet list)
 
 
-def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: Region,
-                   noise: float, two: TwoPoints, others: tuple[Region, ...] = ()
-                   ) -> PointAndLine | None:
+def by_turns(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: Region,
+             noise: float, two: TwoPoints, others: tuple[Region, ...] = (),
+             second: str = "spot") -> ByTurns | None:
     """A region that one point, one line and two points all leave ``poor-fit``, fitted as a
-    point and a line by turns.
+    line and a second source (``second``: ``spot``, a point; ``line``, another line) by turns.
 
-    The two-point fit (``two``) places the blurs; one of its points is taken for the point
-    source (each in turn). Then, up to :data:`PL_TURNS` times: the line is fitted
-    (:func:`fastfit.measure_lenslet`) on the region's moments less the point's light, and the
-    point on them less the line's, each light scaled with the other's model by least squares
+    The two-point fit (``two``) places the blurs; one of its points is taken for the second
+    source (each in turn), the other for the line. Then, up to :data:`PL_TURNS` times: the
+    line is fitted (:func:`fastfit.measure_lenslet`) on the region's moments less the second
+    source's light (a point's model of it, the first time), and the second source on them
+    less the line's, each light scaled with the other's model by least squares
     (:func:`_amplitudes`), until neither distance moves by :data:`PL_SETTLE_SIGMAS` × its σ.
     Each answer's σ is its own fit's, the other source's light held fixed. Returns the
     assignment whose two models leave the lower misfit together, or None where neither ends
-    with an ``ok`` line and an ``ok`` point, or they leave over :data:`TWO_NOISE` × the
+    with two ``ok`` answers of those kinds, or they leave over :data:`TWO_NOISE` × the
     region's noise misfit (or :data:`TWO_FLOOR`), or over its poor-fit limit (a line
     beside a point 4–10 ‰ of their distance apart: docs/distance.md, "A point and a line in
-    one region (stop 71)")."""
+    one region (stop 71)"; two lines: "Two lines in one region (stop 72)")."""
     mom = ff.region_moments(geom, image, region, others)
     limit = _explained_below(two.noise_misfit)
-    best: PointAndLine | None = None
+    best: ByTurns | None = None
 
     def turn(light: np.ndarray, kind: str) -> Measurement | None:
         # one source's lenslet fit with the other's light taken out: None unless an ``ok``
@@ -448,52 +453,67 @@ def point_and_line(profile: CameraProfile, geom: Geometry, image: np.ndarray, re
                                  light=light)
         return got if got.status == RegionStatus.OK and got.kind == kind else None
 
+    placed = [_source_moments(profile, geom, mom, src) for src in two.sources_mm]
+    amp2 = _amplitudes(mom.data, placed[0], placed[1])
     for k in (0, 1):
-        m_point = _source_moments(profile, geom, mom, two.sources_mm[k])
-        amp = _amplitudes(mom.data, m_point,
-                          _source_moments(profile, geom, mom, two.sources_mm[1 - k]))
-        line = point = None
+        if second == "line" and best is not None:
+            break  # (two lines: the other order only where the first fails; on parallel
+            #        lines it ended at the same misfit, to 1 %, at twice the CPU)
+        m_other = placed[k]
+        if second == "line":
+            # a point's light taken from a line's blur leaves the rest of the line: the
+            # second line's first answer is its own fit on the lenslets the first line's
+            # light (as the two points place them) leaves nearly alone
+            own, near_light = amp2[k] * placed[k][:, 0], amp2[1 - k] * placed[1 - k][:, 0]
+            part = dataclasses.replace(region, shared=np.union1d(
+                region.shared, mom.ids[near_light > PL_PART_BAND * own]))
+            first = ff.measure_lenslet(profile, geom, image, part, noise, others=others)
+            if not (first.status == RegionStatus.OK and first.kind == "line"):
+                continue
+            m_other = _source_moments(profile, geom, mom, first.fitted_mm)
+        amp = _amplitudes(mom.data, m_other, placed[1 - k])
+        line = other = None
         for _ in range(PL_TURNS):
-            new_line = turn(amp[0] * m_point, "line")
+            new_line = turn(amp[0] * m_other, "line")
             if new_line is None:
                 line = None
                 break
             m_line = _source_moments(profile, geom, mom, new_line.fitted_mm)
-            amp = _amplitudes(mom.data, m_point, m_line)
-            new_point = turn(amp[1] * m_line, "spot")
-            if new_point is None:
+            amp = _amplitudes(mom.data, m_other, m_line)
+            new_other = turn(amp[1] * m_line, second)
+            if new_other is None:
                 line = None
                 break
-            m_point = _source_moments(profile, geom, mom, new_point.fitted_mm)
-            amp = _amplitudes(mom.data, m_point, m_line)
+            m_other = _source_moments(profile, geom, mom, new_other.fitted_mm)
+            amp = _amplitudes(mom.data, m_other, m_line)
             settled = line is not None and all(
                 abs(new.distance_mm - old.distance_mm) < PL_SETTLE_SIGMAS * new.sigma_distance_mm
-                for new, old in ((new_line, line), (new_point, point)))
-            line, point = new_line, new_point
+                for new, old in ((new_line, line), (new_other, other)))
+            line, other = new_line, new_other
             if settled:
                 break
         if line is None:
             continue
-        rest, amp = _two_rest(mom, m_point, m_line)
+        rest, amp = _two_rest(mom, m_other, m_line)
         misfit = float(np.sqrt((rest * rest).sum()))
         if misfit < limit and (best is None or misfit < best.misfit):
-            light = np.array([amp[0] * m_point[:, 0], amp[1] * m_line[:, 0]])
-            best = PointAndLine(point, line, misfit, light, mom.ids)
+            light = np.array([amp[0] * m_other[:, 0], amp[1] * m_line[:, 0]])
+            best = ByTurns(other, line, misfit, light, mom.ids)
     return best
 
 
-def point_and_line_parts(pl: PointAndLine, region: Region, new_id: int, stats: LensletStats,
-                         lmap: LensletMap, pitch_px: float) -> tuple[Region, Region]:
-    """``region``'s lenslets, each to the source of :func:`point_and_line` that lights it
-    more: a ``spot`` region with ``region``'s id and a ``line`` region with ``new_id``, each
-    placed at its source's light centroid."""
+def by_turns_parts(pl: ByTurns, region: Region, new_id: int, stats: LensletStats,
+                   lmap: LensletMap, pitch_px: float) -> tuple[Region, Region]:
+    """``region``'s lenslets, each to the source of :func:`by_turns` that lights it more: the
+    second source's region (``spot`` or ``line``, its answer's kind) with ``region``'s id and
+    the line's with ``new_id``, each placed at its source's light centroid."""
     mine = np.isin(pl.ids, region.lenslets)
     first = mine & (pl.light[0] >= pl.light[1])
     masks = (first, mine & ~first) if first.any() and (mine & ~first).any() else (mine, mine)
     centres = lmap.centres_px[pl.ids]
     parts = [make_region(rid, kind, pl.ids[m], stats, lmap, pitch_px, 1, region.shared,
                          (centres * pl.light[k, :, None]).sum(0) / pl.light[k].sum())
-             for k, (rid, kind, m) in enumerate(((region.region_id, "spot", masks[0]),
+             for k, (rid, kind, m) in enumerate(((region.region_id, pl.other.kind, masks[0]),
                                                  (new_id, "line", masks[1])))]
     return parts[0], parts[1]
 
