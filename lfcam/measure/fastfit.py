@@ -2940,7 +2940,8 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         refit's one start: a line is refitted as a line from its ends, with no point fit,
         distance scan or race (:func:`fit_lenslet_line`'s ``start_q``); a point's fit starts
         from its source, with no scan or summary matching, and goes on as any point's
-        (docs/distance.md, "A refit from the first answer (stop 72)").
+        (docs/distance.md, "A refit from the first answer (stop 72)"). A line's answer keeps
+        ``start``'s ``model_misfit`` (the point fit's, which the refit does not run).
 
     Returns
     -------
