@@ -388,7 +388,14 @@ def run_distance(
 
 SPLIT_OVERLAPS = True  # a region two overlapping blurs explain is split (_split_overlaps)
 POINT_AND_LINE = True  # ... and one that only a point and a line explain (overlap.by_turns)
-TWO_LINES = True  # ... or two lines (overlap.by_turns, second="line")
+TWO_LINES = True  # ... or two lines (overlap.by_turns, second="line"), tried only where the
+#                   region has this many lenslets and is this elongated: two lines 8-14 ‰
+#                   apart on system 2 make regions of 516-600 lenslets, elongation 1.36-2.03;
+#                   on system 1 of 51-59, where the try fails; two points 1 ‰ apart in front
+#                   of focus, where it fails too, 1.0 (docs/distance.md, "Two lines in one
+#                   region (stop 72)")
+TWO_LINES_MIN_LENSLETS = 150
+TWO_LINES_ELONGATION = 1.2
 NEIGHBOURS_OUT = True  # touching regions refitted without their neighbours' light
 NEIGHBOURS_ABOVE = 0.2  # ... where that light is over this × the region's noise misfit
 NEIGHBOURS_WARM = True  # ... each refit started from the region's first answer
@@ -454,7 +461,8 @@ def _split_overlaps(profile, geom, img, stats, regions, near, estimates, noise, 
             # nothing one or two points explain: a point and a line, fitted by turns
             two = min(tried, key=lambda t: t.misfit)
             pl = by_turns(profile, geom, img, whole, noise, two, others)
-            if pl is None and TWO_LINES:  # (nor a point and a line: two lines)
+            if (pl is None and TWO_LINES and len(whole.lenslets) >= TWO_LINES_MIN_LENSLETS
+                    and whole.elongation >= TWO_LINES_ELONGATION):  # (two lines)
                 pl = by_turns(profile, geom, img, whole, noise, two, others, second="line")
         if split is None and pl is None:  # (the two-point fit's time is the region's too;
             #                                the other side, failed as well, would try the

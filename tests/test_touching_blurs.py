@@ -210,3 +210,25 @@ def test_two_lines_in_one_region_are_both_measured(monkeypatch):
     for k in (0, 1):
         err, sigma = errors[k]
         assert abs(err) < min(3 * sigma, 2e-3), (k, errors)
+
+
+def test_two_lines_are_not_tried_on_a_round_region(monkeypatch):
+    # two points 1 ‰ of their distance apart in front of focus (300 and 320 mm): one round
+    # region (elongation 1.0) that no fit explains; two lines are not tried there (the try
+    # failed and cost ~0.3 s), as they are on the T's region (elongation 2.0)
+    prof, geom, image, stats, noise, truth, white = render_pair(1.0, True,
+                                                                distances=(300.0, 320.0))
+    regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    assert len(regions) == 1 and regions[0].elongation < distance.TWO_LINES_ELONGATION
+    seconds = []
+    by_turns = overlap.by_turns
+
+    def logged(*args, second="spot", **kwargs):
+        seconds.append(second)
+        return by_turns(*args, second=second, **kwargs)
+
+    monkeypatch.setattr(overlap, "by_turns", logged)
+    run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                geometry=geom, jobs=1, white_value=white)
+    assert [r.status for r in run.regions] == [RegionStatus.POOR_FIT]
+    assert seconds == ["spot"]
