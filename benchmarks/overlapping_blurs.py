@@ -90,7 +90,6 @@ def refits(image, prof, geom, truth, repeats: int) -> list[str]:
     """Each touching region over the gate refitted from scratch and from its first answer
     (module docstring): a cell each, ``source: kind error % (z), least ms, Mrays`` both ways."""
     from lfcam.measure import fastfit
-    from lfcam.measure.overlap import neighbour_light
     from lfcam.measure.regions import find_regions, nearby_regions
 
     stats = lenslet_stats(image, geom.lmap)
@@ -112,10 +111,8 @@ def refits(image, prof, geom, truth, repeats: int) -> list[str]:
                        and np.intersect1d(regions[j].shared, reg.shared).size]
             if not sources:
                 continue
-            mom = fastfit.region_moments(geom, image, reg, near[i])
-            light = neighbour_light(prof, geom, image, mom, sources)
-            if not (float(np.sqrt((light * light).sum()))
-                    > distance.NEIGHBOURS_ABOVE * own.noise_misfit * mom.norm):
+            light = distance.light_to_take_out(prof, geom, image, reg, near[i], own, sources)
+            if light is None:
                 continue
             k = int(np.argmin(np.hypot(*(cs - np.array(reg.centroid_px)).T)))
             d = truth["sources"][k]["distance_mm"]

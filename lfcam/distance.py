@@ -520,9 +520,6 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
     matter). A region whose refit is not ``ok`` keeps its first answer. The refit's time,
     and the light's, count in the region's. Only lenslet answers are refitted (the pixel
     fit models its neighbours' light itself; a joint two-point answer has no own fit)."""
-    from lfcam.measure.fastfit import region_moments
-    from lfcam.measure.overlap import neighbour_light
-
     def lenslet_answer(k: int) -> Measurement | None:
         meas = estimates[k][0].measurement
         ok = (estimates[k][0].status == RegionStatus.OK and meas is not None
@@ -547,11 +544,9 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
             warm_up()
             warm = True
         t = time.process_time()
-        mom = region_moments(geom, img, reg, near[i])
-        light = neighbour_light(profile, geom, img, mom, sources)
+        light = light_to_take_out(profile, geom, img, reg, near[i], own, sources)
         spent = estimates[i][1] + time.process_time() - t
-        if not (float(np.sqrt((light * light).sum())) > NEIGHBOURS_ABOVE * own.noise_misfit
-                * mom.norm):
+        if light is None:
             out[i] = (estimates[i][0], spent)
             continue
         model, _, tolerance_pct, fast = args
@@ -560,6 +555,23 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
                                     own if NEIGHBOURS_WARM else None)
         out[i] = ((est if est.status == RegionStatus.OK else estimates[i][0]), spent + secs)
     return out
+
+
+def light_to_take_out(profile: CameraProfile, geom: Geometry, img: np.ndarray, reg: Region,
+                      nearby: tuple[Region, ...], own: Measurement,
+                      sources: list[tuple[Region, tuple, Measurement]]) -> np.ndarray | None:
+    """The light touching ``sources`` (each its region, the regions left out of its box and
+    its lenslet answer) put on ``reg``'s lenslets (:func:`lfcam.measure.overlap.
+    neighbour_light`; ``nearby``: the regions left out of ``reg``'s box), or None where it is
+    not over :data:`NEIGHBOURS_ABOVE` × the noise misfit of ``reg``'s answer ``own`` (norms of
+    the moments): the gate of :func:`_take_out_neighbours`' refits."""
+    from lfcam.measure.fastfit import region_moments
+    from lfcam.measure.overlap import neighbour_light
+
+    mom = region_moments(geom, img, reg, nearby)
+    light = neighbour_light(profile, geom, img, mom, sources)
+    over = float(np.sqrt((light * light).sum())) > NEIGHBOURS_ABOVE * own.noise_misfit * mom.norm
+    return light if over else None
 
 
 def _unexplained(reg: Region, meas: Measurement | None) -> bool:

@@ -55,7 +55,7 @@ from lfcam.measure.geometry import Geometry
 from lfcam.measure.noise import NoiseModel, capture_noise, clipped_mean, moment_noise_sums
 from lfcam.measure.pointfit import LocalLattice, chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region
-from lfcam.measure.sampling import pixel_boxes, ray_share, vogel_disc
+from lfcam.measure.sampling import pixel_boxes, ray_share, segment_points, vogel_disc
 from lfcam.measure.solve import (
     fd_jacobian,
     gauss_newton_fixed,
@@ -2099,9 +2099,7 @@ def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) ->
     """``count`` equally bright points along the segment of ``q = (log d, a/L, b/L)``."""
     z = frame.z_front - math.exp(_log_distance(q))
     along = frame.z_rim - z
-    t = (np.arange(count) + 0.5) / count
-    a, b = q[1:3] * along, q[3:5] * along
-    xy = a[None, :] + t[:, None] * (b - a)[None, :]
+    xy = segment_points(q[1:3] * along, q[3:5] * along, count)
     return np.column_stack([xy, np.full(count, z)])
 
 
@@ -2387,55 +2385,57 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return lambda qs: [model.residual_of(m) for m in model.simulate_sets(
             [_line_points(frame, q, count) for q in qs])]
 
-    # Starts: the point fit's distance, and the best node of a distance scan of the line
-    # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
-    # for the local fit to come back from.
-    distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4,
-                             0 if warm else SCAN_DISTANCES)
-    gains_scan = chief_ray_gains(profile, geom.d_in_mm, distances)
-    scan = [segment(float(d), g=float(g)) for d, g in zip(distances, gains_scan, strict=True)]
-    if (LINE_SCAN_RECENTRE and region is not None and not warm
-            and _frame_cut(region, image.shape, geom.pitch_px)):
-        # the frame cuts the model's light on the region's lenslets as it cuts the data's: the
-        # segment at each node moves by the chief-ray offset between the two centroids
-        for _ in range(LINE_SCAN_RECENTRE):
-            models = scan_model.simulate_sets([_line_points(frame, q, n_scan) for q in scan])
-            moved = []
-            for q, m, d, g in zip(scan, models, distances, gains_scan, strict=True):
-                if not m[:, 0].max() > 0:
-                    moved.append(q)
-                    continue
-                c_model, _ = _footprint(geom, mom, m[:, 0])
-                dxy = (chief_ray_offset(profile, geom.d_in_mm, float(d), cbar, gain=float(g))
-                       - chief_ray_offset(profile, geom.d_in_mm, float(d), c_model,
-                                          gain=float(g)))
-                _, along = mla_to_object(float(d), float(g))
-                moved.append(np.r_[q[0], q[1:3] + dxy / along, q[3:5] + dxy / along])
-            scan = moved
-    costs = [sq(r) for r in many_of(scan_model, n_scan)(scan)] if scan else []
-    best_scan = scan[int(np.argmin(costs))] if scan else q0
-    # the scan's best node is a start of its own unless it lies in the point's basin (stopping
-    # when the first start is already below the scan's best node put behind-focus lines 1.7 %
-    # off on average: the scan's coarser model reads higher misfits, not a worse basin)
-    starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
-    if warm:
-        pass  # (the earlier answer alone)
-    elif LINE_FAR_POINT_START and _at_far_bound(q0):
-        # a point fit run out to the far bound tells nothing of where the line is: the scan's
-        # best node is the one start (the far bound and its turned copies raced too, and lost:
-        # on the hexagonal 380 mm line at 80 % of the field three of them, ~17 ms)
-        starts = [best_scan]
-    elif stretched:
-        # the footprint's axis is the field's: turned starts about the axis of the footprint
-        # less the point's, at that length and the footprint's own
-        starts += oriented(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1],
-                                   length=length_c), (length_mla,))
-    # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
-    # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
-    elif (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
-        # the footprint's own axis stays a start: on small blurs the scan model's few rays
-        # misjudge the turn (a seed line)
-        starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
+    def scanned_starts() -> list[np.ndarray]:
+        # Starts: the point fit's distance, and the best node of a distance scan of the line
+        # model. Behind focus a line's point fit lands 30-50 % off (docs/distance.md), too far
+        # for the local fit to come back from.
+        distances = np.geomspace(1.1 * profile.main_lens.focal_length_mm, 3e4, SCAN_DISTANCES)
+        gains_scan = chief_ray_gains(profile, geom.d_in_mm, distances)
+        scan = [segment(float(d), g=float(g)) for d, g in zip(distances, gains_scan, strict=True)]
+        if (LINE_SCAN_RECENTRE and region is not None
+                and _frame_cut(region, image.shape, geom.pitch_px)):
+            # the frame cuts the model's light on the region's lenslets as it cuts the data's: the
+            # segment at each node moves by the chief-ray offset between the two centroids
+            for _ in range(LINE_SCAN_RECENTRE):
+                models = scan_model.simulate_sets([_line_points(frame, q, n_scan) for q in scan])
+                moved = []
+                for q, m, d, g in zip(scan, models, distances, gains_scan, strict=True):
+                    if not m[:, 0].max() > 0:
+                        moved.append(q)
+                        continue
+                    c_model, _ = _footprint(geom, mom, m[:, 0])
+                    dxy = (chief_ray_offset(profile, geom.d_in_mm, float(d), cbar, gain=float(g))
+                           - chief_ray_offset(profile, geom.d_in_mm, float(d), c_model,
+                                              gain=float(g)))
+                    _, along = mla_to_object(float(d), float(g))
+                    moved.append(np.r_[q[0], q[1:3] + dxy / along, q[3:5] + dxy / along])
+                scan = moved
+        costs = [sq(r) for r in many_of(scan_model, n_scan)(scan)]
+        best_scan = scan[int(np.argmin(costs))]
+        # the scan's best node is a start of its own unless it lies in the point's basin (stopping
+        # when the first start is already below the scan's best node put behind-focus lines 1.7 %
+        # off on average: the scan's coarser model reads higher misfits, not a worse basin)
+        starts = [q0] if abs(best_scan[0] - q0[0]) < 0.05 else [q0, best_scan]
+        if LINE_FAR_POINT_START and _at_far_bound(q0):
+            # a point fit run out to the far bound tells nothing of where the line is: the scan's
+            # best node is the one start (the far bound and its turned copies raced too, and lost:
+            # on the hexagonal 380 mm line at 80 % of the field three of them, ~17 ms)
+            starts = [best_scan]
+        elif stretched:
+            # the footprint's axis is the field's: turned starts about the axis of the footprint
+            # less the point's, at that length and the footprint's own
+            starts += oriented(segment(d0, point.source_mm[:2], axis=evecs_c[:, 1],
+                                       length=length_c), (length_mla,))
+        # a footprint elongated by more than LINE_TURN_BELOW has an axis to trust (3 mm lines in
+        # a 5-7 mm blur: 9-17 %): the turned start is for the round ones (short lines: 0.2-0.5 %)
+        elif (evals[1] - evals[0]) < LINE_TURN_BELOW * (evals[1] + evals[0]):
+            # the footprint's own axis stays a start: on small blurs the scan model's few rays
+            # misjudge the turn (a seed line)
+            starts += [t for t in oriented(q0) if not np.array_equal(t, q0)]
+        return starts
+
+    # (a refit from an earlier answer: that answer alone)
+    starts = [q0] if warm else scanned_starts()
     # On the cells where they apply at every start, 11 % nearer and 25 % farther: in front of
     # focus, near the caustic, a fit that starts where the map is one to one may go where it
     # folds (and its models then turn to rays midway: 560 mm lines in front of a 1 m focus
@@ -2986,12 +2986,9 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     start_q = None
     if start is not None and len(start.fitted_mm) == 2:
         # a line stays a line: refitted from its ends, as useful as any fit under the limit
-        a, b = (np.asarray(v, dtype=np.float64) for v in start.fitted_mm)
-        along = frame.z_rim - a[2]
+        a, b = (frame.params(np.asarray(v, dtype=np.float64)) for v in start.fitted_mm)
         line = fit_lenslet_line(profile, geom, image, region, useful_below=limit, mom=mom,
-                                accept=accept,
-                                start_q=np.r_[math.log(frame.z_front - a[2]), a[:2] / along,
-                                              b[:2] / along])
+                                accept=accept, start_q=np.r_[a, b[1:]])
         if not line.ok:
             return Measurement.failed(line.reason or RegionStatus.POOR_FIT, geom.d_in_mm,
                                       kind="line")

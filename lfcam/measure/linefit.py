@@ -32,7 +32,7 @@ from lfcam.measure.pointfit import (
     chief_ray_offset,
     pupil_pattern,
 )
-from lfcam.measure.sampling import vogel_disc
+from lfcam.measure.sampling import segment_points, vogel_disc
 from lfcam.status import RegionStatus
 
 LINE_POINTS = 24
@@ -105,11 +105,8 @@ def fit_line_image(
     cen_px = _centroid_px(patch.data)
     ax, ay = profile.sensor.axis_xy_px
     target = np.array([(cen_px[0] + box[0] - ax) * pp, (cen_px[1] + box[1] - ay) * pp]) / mag
-    t = (np.arange(LINE_POINTS) + 0.5) / LINE_POINTS
-
     def points(q):
-        a, b = q[1:3], q[3:5]
-        xy = a[None, :] + t[:, None] * (b - a)[None, :]
+        xy = segment_points(q[1:3], q[3:5], LINE_POINTS)
         return np.column_stack([xy, np.full(LINE_POINTS, z_front - np.exp(q[0]))])
 
     model = PhysicalJacobian(lambda q: patch.residual(points(q), pattern))

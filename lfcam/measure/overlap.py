@@ -46,6 +46,7 @@ from lfcam.measure.lenslets import LensletMap, LensletStats
 from lfcam.measure.noise import capture_noise
 from lfcam.measure.pointfit import chief_ray_gains, chief_ray_offset
 from lfcam.measure.regions import Region, footprint_moments, make_region
+from lfcam.measure.sampling import segment_points
 from lfcam.measure.solve import (
     fd_jacobian,
     levenberg_marquardt,
@@ -407,9 +408,7 @@ def _source_moments(profile: CameraProfile, geom: Geometry, mom: ff.LensletMomen
     if len(ends) == 1:
         pts, rays = ends, LIGHT_RAYS
     else:
-        t = (np.arange(LIGHT_LINE_POINTS) + 0.5) / LIGHT_LINE_POINTS
-        pts = ends[0][None, :] + t[:, None] * (ends[1] - ends[0])[None, :]
-        rays = LIGHT_LINE_RAYS
+        pts, rays = segment_points(ends[0], ends[1], LIGHT_LINE_POINTS), LIGHT_LINE_RAYS
     return ff.LensletModel(profile, geom, mom, rays).simulate(pts)
 
 

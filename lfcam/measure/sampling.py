@@ -5,7 +5,8 @@ pixel binning and the share of a ray across a lenslet cell's border.
 (:mod:`lfcam.measure.pointfit`) and the lenslet model (:mod:`lfcam.measure.fastfit`);
 :func:`pixel_boxes` bins rays into pixels as a sensor integrates them, each ray a small box so
 that a model stays continuous in the source position; :func:`ray_share` shares a ray between
-the two lenslet cells it lies between, for the same reason.
+the two lenslet cells it lies between, for the same reason. :func:`segment_points` samples a
+line source as equally bright points (the lenslet, pixel and light models of a line).
 """
 
 from __future__ import annotations
@@ -89,3 +90,10 @@ def ray_share(gap: np.ndarray, spacing: np.ndarray | float,
         return one
     two = np.clip(0.5 - 0.5 * gap / spacing, 0.0, 0.5)
     return RICHARDSON_ONE * one - RICHARDSON_TWO * two
+
+
+def segment_points(a: np.ndarray, b: np.ndarray, count: int) -> np.ndarray:
+    """(count, len(a)) the middles of ``count`` equal parts of the segment ``a`` → ``b``: a
+    line source's equally bright points."""
+    t = (np.arange(count) + 0.5) / count
+    return a[None, :] + t[:, None] * (b - a)[None, :]
