@@ -16,8 +16,10 @@ pair's line or, with ``--second-along``, along it (a T), as bright per mm as a f
 that length), rendered by
 :mod:`lfcam.sim` (10⁶ rays a source) or, with ``--renderer independent``, by
 ``benchmarks/render_independent.py`` (per-pixel irradiance of the exact ray map: no ray
-binning, no :mod:`lfcam.sim`), both with the focus grid's sensor noise (photon noise at a full
-well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full scale),
+binning, no :mod:`lfcam.sim`; a line by the midpoint rule over point renders along it,
+``render_line``: ~1.5 min a 1 024² capture), both with the focus grid's sensor noise
+(photon noise at a full well of 20 000 e⁻, 3 e⁻ read noise, brightest pixel at half of full
+scale),
 on the profile's own lenslet lattice (truth geometry), the fits told the full well.
 :func:`lfcam.distance.run_distance` measures each capture twice on one core,
 ``SPLIT_OVERLAPS`` off and on: per region the nearest source, the status, the error and its
@@ -144,9 +146,8 @@ def render(base, prof, camera: dict, objects: list[dict], seed: int, renderer: s
     if renderer == "independent":
         from render_independent import render_capture
 
-        sources = [{"distance_mm": o["distance_mm"], "position_mm": o["position_mm"],
-                    "intensity": o["intensity"]} for o in objects]
-        img, truth = render_capture(prof, sources, seed=seed, peak=PEAK,
+        # (its schema is lfcam.sim's: points and lines alike)
+        img, truth = render_capture(prof, objects, seed=seed, peak=PEAK,
                                     full_well_e=NOISE["full_well_e"],
                                     read_noise_e=NOISE["read_noise_e"],
                                     bit_depth=prof.sensor.bit_depth)
@@ -175,10 +176,9 @@ def main() -> None:
                          "1/1000 of their distance each, mm at 1 m")
     ap.add_argument("--first-line-mm", type=float, default=0.0,
                     help="the first source a line this long at 1 m (its length × distance / "
-                         "1000 mm, across the pair's line; sim renderer only); 0: a point")
+                         "1000 mm, across the pair's line); 0: a point")
     ap.add_argument("--second-line-mm", type=float, default=0.0,
-                    help="the second source a line this long at 1 m (sim renderer only); "
-                         "0: a point")
+                    help="the second source a line this long at 1 m; 0: a point")
     ap.add_argument("--second-along", action="store_true",
                     help="the second line along the pair's line (a T), not across it")
     ap.add_argument("--neighbours-in", action="store_true",
@@ -189,8 +189,6 @@ def main() -> None:
                          "answer, least CPU of N each (module docstring)")
     args = ap.parse_args()
     distance.NEIGHBOURS_OUT = not args.neighbours_in
-    if (args.first_line_mm > 0 or args.second_line_mm > 0) and args.renderer != "sim":
-        ap.error("--first-line-mm, --second-line-mm: with --renderer sim only")
     d1, d2 = _floats(args.distances)
     camera = {"mla": {"focus_mm": args.focus},
               "sensor": {"width_px": args.size, "height_px": args.size}}

@@ -16,9 +16,10 @@ from scipy.stats import median_abs_deviation
 from lfcam.calibrate import load_calibration
 from lfcam.camera import load_profile
 from lfcam.io import load_capture
-from lfcam.measure import fastfit, find_regions, lenslet_stats, prepare_geometry
+from lfcam.measure import fastfit, find_regions, lenslet_stats, overlap, prepare_geometry, verify
 from lfcam.measure import regions as regions_module
 from lfcam.measure.fastfit import SourceFrame, fit_lenslet_point, point_fit_stages
+from lfcam.measure.noise import capture_noise
 from lfcam.measure.regions import _disc_means, lattice_coordinates
 from lfcam.robust import mad_sigma
 
@@ -113,6 +114,36 @@ def _capture(name, system):
     truth = json.loads((DATA / f"{name}.truth.json").read_text())["sources"][0]
     region = find_regions(lenslet_stats(img, geom.lmap), geom.lmap, geom.pitch_px)[0]
     return img, prof, geom, region, truth
+
+
+def test_a_point_is_polished_for_a_gate_only_over_it(monkeypatch):
+    # measure_lenslet's polish gate (POLISH_NEAR_GATE = 1): the lesser of the gates that read a
+    # point's misfit, the poor-fit limit and the line trigger, each as lfcam.measure.verify
+    # computes it from the region's noise misfit and the point models' own misfit. The polish
+    # only lowers a misfit, so a fit under both keeps every verdict unpolished; the
+    # two-source try (lfcam.distance) reads the misfit over a higher gate still
+    # (docs/distance.md, "A polish only where a gate could change (stop 73)")
+    img, prof, geom, region, _ = _capture("point_system2_1100mm_dh5", "system2")
+    img = img + np.random.default_rng(3).normal(0.0, 0.003 * float(img.max()), img.shape)
+    seen = []
+
+    def spy(*args, gates=None, **kw):
+        seen.append(gates)
+        return point_fit_stages(*args, gates=gates, **kw)
+
+    monkeypatch.setattr(fastfit, "point_fit_stages", spy)
+    assert fastfit.measure_lenslet(prof, geom, img, region, 0.0).status == "ok"
+    mom = fastfit.region_moments(geom, img, region)
+    nm = capture_noise(img, geom.lmap, geom.pitch_px).moments_misfit_of(mom.noise_sums,
+                                                                         mom.norm)
+    assert nm > 0.0
+    limit = verify.poor_fit_limit(nm, fastfit.POOR_FIT)
+    for model_misfit in (0.0, 0.001, 0.01, 0.05, 0.2):
+        trigger = max(verify.line_trigger(nm, fastfit.LINE_TRIGGER, fastfit.LINE_NOISE_FACTOR),
+                      fastfit.LINE_MODEL_FACTOR * model_misfit)
+        assert seen[0](model_misfit) == pytest.approx((min(limit, trigger), trigger),
+                                                      rel=1e-12)
+        assert overlap.TWO_TRY * math.hypot(nm, model_misfit) > trigger
 
 
 @pytest.mark.parametrize(("system", "dist", "dh"), [("system2", 1100, 5), ("system1", 900, 5)])
