@@ -156,19 +156,25 @@ def _fit(profile, geom, image, region, noise, settings: dict,
 
 
 def alternate(profile, geom, image, region, noise, settings: list[dict],
-              repeats: int, others: tuple = (), accept=None) -> tuple[list[list[float]], list]:
+              repeats: int, others: tuple = (), accept=None
+              ) -> tuple[list[list[float]], list, list[int]]:
     """Each of ``settings`` fitted once to warm up, then ``repeats`` rounds of one fit a
     setting in turn (the machine's drift falls on all alike): each setting's CPU (s) of
-    every round and its last measurement (``others``, ``accept``: as :func:`_fit`)."""
+    every round, its last measurement and the model rays its last fit traced
+    (:func:`lfcam.measure.fastfit.counting_rays`: a cost the machine's load does not move)
+    (``others``, ``accept``: as :func:`_fit`)."""
     for s in settings:
         _fit(profile, geom, image, region, noise, s, others, accept)  # warm up
     spent: list[list[float]] = [[] for _ in settings]
     answers: list = [None] * len(settings)
+    rays = [0] * len(settings)
     for _ in range(max(1, repeats)):
         for k, s in enumerate(settings):
-            cpu, answers[k] = _fit(profile, geom, image, region, noise, s, others, accept)
+            with ff.counting_rays() as count:
+                cpu, answers[k] = _fit(profile, geom, image, region, noise, s, others, accept)
             spent[k].append(cpu)
-    return spent, answers
+            rays[k] = count[0]
+    return spent, answers, rays
 
 
 def main() -> None:
@@ -187,7 +193,8 @@ def main() -> None:
         image, _, _ = cam.render([cam.line(distance_mm, angle, field, 1_000_000,
                                            fg.LINE_HALF_MM)], seed=3, rays=1_000_000)
         profile, geom, region, noise = prepare(cam, image)
-        spent, answers = alternate(profile, geom, image, region, noise, settings, args.repeats)
+        spent, answers, _ = alternate(profile, geom, image, region, noise, settings,
+                                      args.repeats)
         rows.append((f"{system}, {grid}, {distance_mm:.0f} mm, {100 * field:.0f} % of the "
                      f"field, {angle:.0f}°", len(region.lenslets),
                      [f"{m.kind} {100.0 * (m.distance_mm / distance_mm - 1.0):+.4f} %"

@@ -37,9 +37,11 @@ on one core (BLAS at one thread), once to warm up and then ``N`` times, least CP
 those fastfit constants), each with its error against the one truth source its box holds (a
 region cut from touching blurs: the one nearest its light's centroid); a summary per kind:
 regions over issue 17's budgets (50 ms a point region, 100 ms a line region), the slowest,
-the errors. ``--tolerance PCT``: each fit with the tolerance ``lfcam distance --method
-lenslet --tolerance PCT`` gives it. A region's time inside ``lfcam distance`` also carries
-the process's first calls and, with ``--jobs``, two workers sharing the caches.
+the model rays traced (``fastfit.counting_rays``: a cost the machine's load does not move,
+per region and summed), the errors. ``--tolerance PCT``: each fit with the tolerance
+``lfcam distance --method lenslet --tolerance PCT`` gives it. A region's time inside ``lfcam
+distance`` also carries the process's first calls and, with ``--jobs``, two workers sharing
+the caches.
 """
 
 from __future__ import annotations
@@ -291,13 +293,14 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
     geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
     regions, noise = lr.capture_regions(prof, geom, img, float(
         prof.sensor.white_level - prof.sensor.black_level))
-    rows = {}  # kind (setting A's answer) -> [(least ms per setting, error % per setting)]
+    rows = {}  # kind (setting A's answer) -> [(least ms, error %, model rays: per setting)]
     print("| region | lenslets | " + " | ".join(
-        f"{k} kind, status, error % | {k} least ms" for k in "AB"[:len(settings)]) + " |")
+        f"{k} kind, status, error % | {k} least ms | {k} model rays"
+        for k in "AB"[:len(settings)]) + " |")
     for reg, near in zip(regions, nearby_regions(regions), strict=True):
         if reg.kind not in ("spot", "line"):
             continue
-        spent, answers = lr.alternate(
+        spent, answers, rays = lr.alternate(
             prof, geom, img, reg, noise, settings, repeats, near,
             None if tolerance_pct is None
             else partial(auto.lenslet_answer_meets, tolerance_pct=tolerance_pct))
@@ -313,10 +316,11 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
         errs = [100.0 * (m.distance_mm / held[0]["distance_mm"] - 1.0)
                 if len(held) == 1 and m.status == "ok" else math.nan for m in answers]
         least = [1e3 * min(t) for t in spent]
-        rows.setdefault(answers[0].kind, []).append((least, errs))
+        rows.setdefault(answers[0].kind, []).append((least, errs, rays))
         print(f"| {reg.region_id} | {len(reg.lenslets)} | " + " | ".join(
-            f"{m.kind}, {m.status}, {e:+.4f} | {t:.1f}"
-            for m, e, t in zip(answers, errs, least, strict=True)) + " |", flush=True)
+            f"{m.kind}, {m.status}, {e:+.4f} | {t:.1f} | {n / 1e6:.2f} M"
+            for m, e, t, n in zip(answers, errs, least, rays, strict=True)) + " |",
+            flush=True)
     for kind, budget in (("spot", 50.0), ("line", 100.0)):
         got = rows.get(kind, [])
         if not got:
@@ -325,8 +329,10 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
         for k, name_k in enumerate("AB"[:len(settings)]):
             t = np.array([r[0][k] for r in got])
             e = np.abs([r[1][k] for r in got])
+            n = np.array([r[2][k] for r in got], dtype=np.float64)
             print(f"# {name_k} {kind}: {len(got)} regions, {int((t > budget).sum())} over "
                   f"{budget:.0f} ms, slowest {t.max(initial=0.0):.0f} ms, sum {t.sum():.0f} ms; "
+                  f"model rays sum {n.sum() / 1e6:.1f} M, most {n.max(initial=0.0) / 1e6:.2f} M; "
                   f"{int(np.isfinite(e).sum())} with an error, mean {np.nanmean(e):.4f} %, "
                   f"max {np.nanmax(e, initial=0.0):.3f} %")
 

@@ -153,8 +153,8 @@ def fit_row(label: str, args, settings: list[dict], profile, geom, image, region
     """One region fitted alternately with each of ``settings`` (``line_regions.alternate``;
     ``others``: the capture's nearby regions, as ``run_distance`` passes them), its table row
     printed: each setting's least CPU (ms), error (%) against ``ad`` and σ (%)."""
-    spent, answers = lr.alternate(profile, geom, image, region, noise, settings, args.repeats,
-                                  others)
+    spent, answers, _ = lr.alternate(profile, geom, image, region, noise, settings,
+                                     args.repeats, others)
     errors = [100.0 * (m.distance_mm / ad - 1.0) if m.status == "ok" else math.nan
               for m in answers]
     sigmas = [100.0 * m.sigma_distance_mm / ad if m.status == "ok" else math.nan
