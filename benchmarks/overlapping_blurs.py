@@ -101,16 +101,15 @@ def refits(image, prof, geom, truth, repeats: int) -> list[str]:
     first = [fastfit.measure_lenslet(prof, geom, image, r, noise, others=n)
              if r.touching and r.kind in ("spot", "line") else None
              for r, n in zip(regions, near, strict=True)]
+    answers = [m if m is not None and m.status == "ok" else None for m in first]
     cs = np.array([s["centroid_px"] for s in truth["sources"]])
     cells = []
     with fastfit.counting_rays() as rays:
         for i, reg in enumerate(regions):
-            own = first[i]
-            if own is None or own.status != "ok":
+            own = answers[i]
+            if own is None:
                 continue
-            sources = [(regions[j], near[j], first[j]) for j in range(len(regions))
-                       if j != i and first[j] is not None and first[j].status == "ok"
-                       and np.intersect1d(regions[j].shared, reg.shared).size]
+            sources = distance.touching_sources(i, regions, near, answers)
             if not sources:
                 continue
             light = distance.light_to_take_out(prof, geom, image, reg, near[i], own, sources)

@@ -526,16 +526,14 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
               and meas.method == "lenslet" and len(meas.fitted_mm) > 0)
         return meas if ok else None
 
-    index = {id(r): k for k, r in enumerate(regions)}
+    answers = [lenslet_answer(k) for k in range(len(regions))]
     out = list(estimates)
     warm = False
     for i, reg in enumerate(regions):
-        own = lenslet_answer(i)
+        own = answers[i]
         if own is None or not reg.touching:
             continue
-        sources = [(o, near[index[id(o)]], lenslet_answer(index[id(o)])) for o in near[i]
-                   if id(o) in index and o.touching and lenslet_answer(index[id(o)])
-                   and np.intersect1d(o.shared, reg.shared).size]
+        sources = touching_sources(i, regions, near, answers)
         if not sources:
             continue
         if not warm:  # (a pool ran the first fits: this process has not loaded the kernels)
@@ -555,6 +553,18 @@ def _take_out_neighbours(profile, geom, img, stats, regions, near, estimates, no
                                     own if NEIGHBOURS_WARM else None)
         out[i] = ((est if est.status == RegionStatus.OK else estimates[i][0]), spent + secs)
     return out
+
+
+def touching_sources(i: int, regions: list[Region], near: list[tuple[Region, ...]],
+                     answers: list[Measurement | None]
+                     ) -> list[tuple[Region, tuple[Region, ...], Measurement]]:
+    """The touching neighbours of ``regions[i]`` that share its cut's band and have an
+    answer (``answers[k]``: region ``k``'s, or None): each as its region, the regions left
+    out of its box (``near``) and its answer, as :func:`light_to_take_out` reads them."""
+    index = {id(r): k for k, r in enumerate(regions)}
+    return [(o, near[index[id(o)]], answers[index[id(o)]]) for o in near[i]
+            if id(o) in index and o.touching and answers[index[id(o)]] is not None
+            and np.intersect1d(o.shared, regions[i].shared).size]
 
 
 def light_to_take_out(profile: CameraProfile, geom: Geometry, img: np.ndarray, reg: Region,
