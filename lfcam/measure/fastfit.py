@@ -94,6 +94,17 @@ COARSE_CELLS_FTOL = 0.02  # ... on the cells it ends on an iteration that lowers
 COARSE_STEPS = np.array([0.01, 3e-4, 3e-4])  # log distance, x/L, y/L: difference steps, at most
 LATERAL_STEP_BLUR = 0.005  # a point's lateral difference step moves its blur on the MLA by at
 #                            most this × the blur's diameter (point_steps)
+COARSE_RECENTRE_MIN_LIT = 150  # on a blur lighting this many lenslets or more, the coarse
+#                                stage's end on the rays is moved sideways by one centroid step
+#                                (_recentre_coarse), kept where it lowers the coarse misfit: its
+#                                difference steps can leave a large blur 0.2 pitch aside, where
+#                                the misfit is 8 × its minimum's (the Illum-size scene's
+#                                1 533-lenslet point: only the polish left 0.23, 1.21 M rays;
+#                                with the step 0.61 M). On smaller blurs it moved 69 of 360
+#                                12-source answers with no gain: docs/distance.md, "A large
+#                                blur's coarse end moved onto its light (stop 74)")
+COARSE_RECENTRE_MIN_PITCH = 0.05  # ... where the light centroids lie this many pitches apart
+#                                   on the MLA or more (a step shorter is not evaluated)
 SUMMARY_ITERATIONS = 4
 SUMMARY_SCAN_FIRST = True  # a start on the cells is matched on the scan's rays first (4× cheaper
 #                           an evaluation than the coarse cells), and on the cells, from there
@@ -1602,16 +1613,12 @@ def _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err):
     ``t``: the model's moments and summary at ``q`` (the match's last evaluation).
 
     Returns the parameters and the summary's normalised misfit there (``err`` at ``q``)."""
-    d = math.exp(_log_distance(q))
-    gain = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
     best = (SUMMARY_RECENTRE_GAIN * sq(model.residual_of(m)), q, err)
     for _ in range(SUMMARY_RECENTRE_STEPS):
-        if gain == 0 or not np.isfinite(t).all():
+        q_next = _centroid_step(profile, geom, frame, q, t, t_data)
+        if q_next is None:
             break
-        along = frame.z_rim - frame.source(q)[2]
-        # (the chief ray's lateral offset at the object for the centroids' MLA offset)
-        shift = chief_ray_offset(profile, geom.d_in_mm, d, t_data[1:3] - t[1:3], gain=gain)
-        q = q + np.r_[0.0, shift / along]
+        q = q_next
         m = model.simulate(frame.source(q))
         t = summary(profile, geom, mom, m)
         f = sq(model.residual_of(m))
@@ -1619,6 +1626,46 @@ def _recentre(profile, geom, mom, frame, model, q, m, t, t_data, scale, err):
             best = (f, q, float(np.linalg.norm((t - t_data) / scale))
                     if np.isfinite(t).all() else math.inf)
     return best[1], best[2]
+
+
+def _centroid_step(profile: CameraProfile, geom: Geometry, frame: SourceFrame, q: np.ndarray,
+                   t: np.ndarray, t_data: np.ndarray) -> np.ndarray | None:
+    """``q`` moved sideways so that the model's light centroid (summary ``t`` at ``q``) lands
+    on the data's (``t_data``): the centroids' offset on the MLA taken back to the object by
+    the chief ray's gain at ``q``'s distance. None where that gain is 0 or ``t`` not finite."""
+    d = math.exp(_log_distance(q))
+    gain = float(chief_ray_gains(profile, geom.d_in_mm, d)[0])
+    if gain == 0 or not np.isfinite(t).all():
+        return None
+    along = frame.z_rim - frame.source(q)[2]
+    # (the chief ray's lateral offset at the object for the centroids' MLA offset)
+    shift = chief_ray_offset(profile, geom.d_in_mm, d, t_data[1:3] - t[1:3], gain=gain)
+    return q + np.r_[0.0, shift / along]
+
+
+def _recentre_coarse(profile: CameraProfile, geom: Geometry, mom: LensletMoments,
+                     frame: SourceFrame, model: LensletModel, q: np.ndarray, r: np.ndarray,
+                     f: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The coarse stage's end ``q`` (``model``'s residual ``r``, misfit² ``f``) moved by one
+    :func:`_centroid_step`, where that lowers the misfit² (else as it was).
+
+    On a large blur the coarse stage's lateral difference steps (:data:`COARSE_STEPS`, about
+    a pitch on the MLA) span the range over which the rim lenslets' moments are linear in
+    the source's place, and its Levenberg–Marquardt can end a fifth of a pitch aside at 8 ×
+    its minimum's misfit, a place that the fine steps, which take its Jacobian, do not leave.
+    The light centroid of a thousand lenslets places the blur to a few hundredths of a pitch
+    (docs/distance.md, "A large blur's coarse end moved onto its light (stop 74)").
+    Returns ``(q, r, f)``."""
+    t_data = summary(profile, geom, mom, mom.data)
+    t = summary(profile, geom, mom, model.simulate(frame.source(q)))
+    if not (np.hypot(*(t_data[1:3] - t[1:3])) >= COARSE_RECENTRE_MIN_PITCH * profile.mla.pitch_mm):
+        return q, r, f  # (on its light already, or no centroid: no step to try)
+    q2 = _centroid_step(profile, geom, frame, q, t, t_data)
+    if q2 is None:
+        return q, r, f
+    r2 = model.residual(frame.source(q2))
+    f2 = sq(r2)
+    return (q2, r2, f2) if f2 < f else (q, r, f)
 
 
 def _polish_rays(n_fine: int, model_misfit: float, noise_misfit: float) -> int:
@@ -1965,6 +2012,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     q, r, f, jac = levenberg_marquardt(fun_of(coarse), best[0], COARSE_STEPS,
                                        COARSE_ITERATIONS, 1e-3, many_of(coarse), r0=best[2],
                                        ftol=COARSE_CELLS_FTOL if on_cells else 0.0)
+    if n_lit >= COARSE_RECENTRE_MIN_LIT and not on_cells:
+        q, r, f = _recentre_coarse(profile, geom, mom, frame, coarse, q, r, f)
     fun = fun_of(fine)
     q_c = q
     r = fun(q_c)
