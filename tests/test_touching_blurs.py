@@ -231,3 +231,41 @@ def test_two_lines_are_not_tried_on_a_round_region(monkeypatch):
                                 geometry=geom, jobs=1, white_value=white)
     assert [r.status for r in run.regions] == [RegionStatus.POOR_FIT]
     assert seconds == ["spot"]
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.9])
+def test_marginal_over_own_is_the_widening_a_correlation_gives(rho):
+    # two parameters whose Jacobian columns correlate by ρ, each in a block with a nuisance
+    # column orthogonal to everything: the σ of each with both free is its σ with the other
+    # held fixed over √(1 − ρ²) (the Schur complement of a 2 × 2 normal matrix)
+    rng = np.random.default_rng(5)
+    basis, _ = np.linalg.qr(rng.normal(size=(400, 4)))
+    a, b, n1, n2 = basis.T
+    jac = np.c_[3.0 * a, 0.5 * (rho * a + np.sqrt(1.0 - rho * rho) * b), n1, 2.0 * n2]
+    f = overlap.marginal_over_own(jac, [[0, 2], [1, 3]])
+    assert f == pytest.approx((1.0 / np.sqrt(1.0 - rho * rho),) * 2, rel=1e-9)
+    # a singular problem (one column twice) widens nothing it cannot state
+    assert overlap.marginal_over_own(np.c_[a, a], [[0], [1]]) == (1.0, 1.0)
+
+
+def test_a_point_and_a_line_by_turns_state_their_coupling(monkeypatch):
+    # system 1's point beside a line 12 ‰ apart (34 px in ~106 px blurs), fitted by turns:
+    # each fit's own σ holds the other's light fixed, but the two trade light (the line reads
+    # long where the point reads short); with both free each σ is 1.2-1.4 × wider
+    # (docs/distance.md, "Two sources' σ with both free (stop 74)")
+    capture = render_pair(12.0, True, system="system1", first_line_mm=10.0)
+    prof, geom, image, stats, noise, truth, white = capture
+    sigmas = []
+    for on in (False, True):
+        monkeypatch.setattr(overlap, "PL_COUPLED_SIGMA", on)
+        run = distance.run_distance(image, prof, None, model="exact", method="lenslet",
+                                    geometry=geom, jobs=1, white_value=white)
+        assert sorted(r.kind for r in run.regions) == ["line", "spot"]
+        errors = errors_by_source(run, truth)
+        sigmas.append([errors[k][1] for k in (0, 1)])
+        if on:
+            for k in (0, 1):
+                err, sigma = errors[k]
+                assert abs(err) < min(3 * sigma, 4e-3), (k, errors)
+    ratio = np.array(sigmas[1]) / np.array(sigmas[0])
+    assert np.all((ratio > 1.1) & (ratio < 1.6)), ratio

@@ -90,6 +90,8 @@ PL_TURNS = 5  # a point and a line in one region: at most this many turns of the
 PL_SETTLE_SIGMAS = 0.25  # ... ending where neither distance moved by this × its σ
 PL_PART_BAND = 0.5  # two lines: each first fitted on the lenslets where the other's light (the
 #                     two-point fit's) is under this × its own
+PL_COUPLED_SIGMA = True  # each answer's σ × the two sources' coupling (coupling_factors: its
+#                          σ with both sources free over its σ with the other held fixed)
 
 
 class TwoPoints(NamedTuple):
@@ -498,7 +500,87 @@ def by_turns(profile: CameraProfile, geom: Geometry, image: np.ndarray, region: 
         if misfit < limit and (best is None or misfit < best.misfit):
             light = np.array([amp[0] * m_other[:, 0], amp[1] * m_line[:, 0]])
             best = ByTurns(other, line, misfit, light, mom.ids)
-    return best
+    if best is None or not PL_COUPLED_SIGMA:
+        return best
+    # each turn's σ holds the other source's light fixed; the two trade light
+    f_other, f_line = coupling_factors(profile, geom, mom,
+                                       (best.other.fitted_mm, best.line.fitted_mm))
+    return best._replace(other=_sigma_times(best.other, f_other),
+                         line=_sigma_times(best.line, f_line))
+
+
+def _sigma_times(m: Measurement, factor: float) -> Measurement:
+    """``m`` with its σ (distance and rim heights) × ``factor``."""
+    return dataclasses.replace(m, sigma_distance_mm=m.sigma_distance_mm * factor,
+                               sigma_y_mm=m.sigma_y_mm * factor)
+
+
+def coupling_factors(profile: CameraProfile, geom: Geometry, mom: ff.LensletMoments,
+                     fitted: tuple) -> tuple[float, ...]:
+    """How much two sources that share a region's light widen each other's σ: for each
+    source (a point's or a line's :attr:`Measurement.fitted_mm`), the σ of its log distance
+    with every parameter of both free (both places, distances and brightnesses), over its σ
+    with the other source held fixed (:func:`marginal_over_own`). The Jacobian is taken by
+    differences of :func:`_source_moments` at the answers (the fits' difference steps,
+    :func:`fastfit.point_steps`), in the units of the fits' residual (the data's moments less
+    the two models, over the data's norm). 1 where that Jacobian is singular.
+
+    Turns of two fits, each on the data less the other's light, end where both settle, but each
+    fit's σ is conditional on the other's light: on system 1's point beside a line 12-16 ‰
+    apart the point and the line err in opposite directions (docs/distance.md, "Two sources'
+    σ with both free (stop 74)")."""
+    frame = ff.SourceFrame(profile)
+    steps = ff.point_steps(profile, geom, ff.lit_lenslets(mom))
+    qs = [_params(frame, f) for f in fitted]
+    base = [_source_moments(profile, geom, mom, _ends(frame, q)) for q in qs]
+    amp = _amplitudes(mom.data, base[0], base[1])
+    cols: list[np.ndarray] = []
+    blocks: list[list[int]] = []
+    for k, q in enumerate(qs):
+        h = np.r_[steps, steps[1:]] if len(q) == 5 else steps
+        shifted = [q + h[j] * np.eye(len(q))[j] for j in range(len(q))]
+        block = []
+        for j, qj in enumerate(shifted):
+            m = _source_moments(profile, geom, mom, _ends(frame, qj))
+            block.append(len(cols))
+            cols.append((amp[k] * (m - base[k]) / h[j] / mom.norm).ravel())
+        block.append(len(cols))  # (its brightness)
+        cols.append((base[k] / mom.norm).ravel())
+        blocks.append(block)
+    return marginal_over_own(np.array(cols).T, blocks)
+
+
+def marginal_over_own(jac: np.ndarray, blocks: list[list[int]]) -> tuple[float, ...]:
+    """For each block of columns of ``jac`` (a least-squares problem's Jacobian), the σ of
+    its first parameter with all parameters free over its σ with only its own block free:
+    √([(JᵀJ)⁻¹]₀₀ / [(J_bᵀJ_b)⁻¹]₀₀), at least 1 (1 where a matrix is singular). For two
+    parameters of correlation ρ: 1/√(1 − ρ²)."""
+    jtj = jac.T @ jac
+    try:
+        cov = np.linalg.inv(jtj)
+        out = []
+        for b in blocks:
+            own = np.linalg.inv(jtj[np.ix_(b, b)])
+            ratio = cov[b[0], b[0]] / own[0, 0]
+            out.append(math.sqrt(ratio) if math.isfinite(ratio) and ratio > 1.0 else 1.0)
+    except np.linalg.LinAlgError:
+        return tuple(1.0 for _ in blocks)
+    return tuple(out)
+
+
+def _params(frame: ff.SourceFrame, fitted_mm) -> np.ndarray:
+    """A fitted source's parameters: a point's ``(log distance, x/L, y/L)``, a line's
+    ``(log distance, a/L, b/L)`` of its two ends (one distance, as the line fit's)."""
+    ends = np.asarray(fitted_mm, dtype=np.float64).reshape(-1, 3)
+    qs = [frame.params(e) for e in ends]
+    return qs[0] if len(qs) == 1 else np.r_[qs[0], qs[1][1:]]
+
+
+def _ends(frame: ff.SourceFrame, q: np.ndarray) -> np.ndarray:
+    """The source of :func:`_params`' parameters: a point (3,) or a line's ends (2, 3)."""
+    if len(q) == 3:
+        return frame.source(q)
+    return np.array([frame.source(q[:3]), frame.source(np.r_[q[0], q[3:]])])
 
 
 def by_turns_parts(pl: ByTurns, region: Region, new_id: int, stats: LensletStats,
