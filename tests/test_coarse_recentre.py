@@ -12,49 +12,29 @@ the fit there. Truth: the renderer's source.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from crops import ILLUM_LIKE, illum_crop_capture
 
-from lfcam import distance
 from lfcam.camera import load_profile
-from lfcam.measure import fastfit, find_regions, lenslet_stats
-from lfcam.measure.noise import capture_noise
-from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.geometry import truth_geometry
-from lfcam.sim.scene import scene_from_dict
+from lfcam.measure import fastfit
 
-ROOT = Path(__file__).resolve().parents[1]
 DISTANCE_MM = 906.6673828110515
 POSITION_MM = [-15.799636702190657, -18.108248214110123]
-NOISE = {"photon_noise": True, "full_well_e": 20000.0, "read_noise_e": 3.0}
 # where scene (b)'s coarse stage ended, from the truth: log distance, x/L, y/L
 COARSE_END = np.array([0.0025, 7e-5, 8e-5])
 
 
 @pytest.fixture(scope="module")
 def large_point():
-    base = load_profile(ROOT / "benchmarks" / "profiles" / "illum_like.toml")
+    base = load_profile(ILLUM_LIKE)
     x0, y0 = 4582 - 512, 3507 - 384  # (the crop about the blur's centroid on the full sensor)
     axis = [0.5 * base.sensor.width_px - 0.5 - x0, 0.5 * base.sensor.height_px - 0.5 - y0]
-    camera = {"sensor": {"width_px": 1024, "height_px": 768, "axis_px": axis}}
-    prof = apply_overrides(base, camera)
-    prof = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
-    scene = {"seed": 12, "rays_per_source": 200_000, "camera": camera, "sensor": NOISE,
-             "exposure": {"peak": 0.8},
-             "objects": [{"type": "point", "distance_mm": DISTANCE_MM,
-                          "position_mm": POSITION_MM}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    image = raw.astype(np.float64) - used.sensor.black_level
-    geom = truth_geometry(prof, image.shape)
-    stats = lenslet_stats(image, geom.lmap)
-    white = float(used.sensor.white_level - used.sensor.black_level)
-    capture_noise(image, geom.lmap, geom.pitch_px, stats,
-                  sensor_gain=distance.sensor_gain(prof, white))
-    (region,) = find_regions(stats, geom.lmap, geom.pitch_px)
-    return prof, geom, image, region
+    return illum_crop_capture(
+        1024, 768, axis,
+        [{"type": "point", "distance_mm": DISTANCE_MM, "position_mm": POSITION_MM}], seed=12,
+        rays_per_source=200_000)[:4]
 
 
 def _fit_from(prof, geom, image, region, start_q):

@@ -12,46 +12,23 @@ edge cuts (stop 69)").
 
 from __future__ import annotations
 
-from dataclasses import replace
-from pathlib import Path
-
-import numpy as np
 import pytest
+from crops import illum_crop_capture
 
-from lfcam import distance
-from lfcam.camera import load_profile
-from lfcam.measure import fastfit, find_regions, lenslet_stats
-from lfcam.measure.noise import capture_noise
-from lfcam.sim.capture import apply_overrides, simulate
-from lfcam.sim.geometry import truth_geometry
-from lfcam.sim.scene import scene_from_dict
+from lfcam.measure import fastfit
 from lfcam.status import RegionStatus
 
-ROOT = Path(__file__).resolve().parents[1]
 DISTANCE_MM = 1131.4944225535191
-NOISE = {"photon_noise": True, "full_well_e": 20000.0, "read_noise_e": 3.0}
 
 
 @pytest.fixture(scope="module")
 def cut_line():
-    base = load_profile(ROOT / "benchmarks" / "profiles" / "illum_like.toml")
-    camera = {"sensor": {"width_px": 1024, "height_px": 768, "axis_px": [511.5, 2683.5]}}
-    prof = apply_overrides(base, camera)
-    prof = replace(prof, sensor=replace(prof.sensor, full_well_e=NOISE["full_well_e"]))
-    scene = {"seed": 7, "rays_per_source": 1_000_000, "camera": camera, "sensor": NOISE,
-             "exposure": {"peak": 0.8},
-             "objects": [{"type": "line", "distance_mm": DISTANCE_MM,
-                          "start_mm": [-0.44753421223058815, 65.81645799890462],
-                          "end_mm": [0.44753421223058815, 69.71502857227283]}]}
-    raw, used, _ = simulate(base, scene_from_dict(scene))
-    image = raw.astype(np.float64) - used.sensor.black_level
-    geom = truth_geometry(prof, image.shape)
-    stats = lenslet_stats(image, geom.lmap)
-    white = float(used.sensor.white_level - used.sensor.black_level)
-    capture_noise(image, geom.lmap, geom.pitch_px, stats,
-                  sensor_gain=distance.sensor_gain(prof, white))
-    (region,) = find_regions(stats, geom.lmap, geom.pitch_px)
-    return prof, geom, image, region, distance.noise_sigma(image)
+    return illum_crop_capture(
+        1024, 768, [511.5, 2683.5],
+        [{"type": "line", "distance_mm": DISTANCE_MM,
+          "start_mm": [-0.44753421223058815, 65.81645799890462],
+          "end_mm": [0.44753421223058815, 69.71502857227283]}], seed=7,
+        rays_per_source=1_000_000)
 
 
 def test_the_frame_cuts_the_region(cut_line):
