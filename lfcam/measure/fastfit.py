@@ -1484,6 +1484,20 @@ class SourceFrame:
         along = self.z_rim - s[2]
         return np.array([math.log(self.z_front - s[2]), s[0] / along, s[1] / along])
 
+    def fitted_params(self, fitted_mm) -> np.ndarray:
+        """A fitted source's parameters (:attr:`Measurement.fitted_mm`): a point's ``(log
+        distance, x/L, y/L)``, a line's ``(log distance, a/L, b/L)`` of its two ends (one
+        distance, the first end's, as the line fit's)."""
+        qs = [self.params(e) for e in np.asarray(fitted_mm, dtype=np.float64).reshape(-1, 3)]
+        return qs[0] if len(qs) == 1 else np.r_[qs[0], qs[1][1:]]
+
+    def fitted_source(self, q: np.ndarray) -> np.ndarray:
+        """The source of :meth:`fitted_params`' parameters: a point (3,) or a line's two
+        ends (2, 3)."""
+        if len(q) == 3:
+            return self.source(q)
+        return np.array([self.source(q[:3]), self.source(np.r_[q[0], q[3:]])])
+
 
 def summary(profile: CameraProfile, geom: Geometry, mom: LensletMoments,
             m: np.ndarray) -> np.ndarray:
@@ -3039,15 +3053,14 @@ def measure_lenslet(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     start_q = None
     if start is not None and len(start.fitted_mm) == 2:
         # a line stays a line: refitted from its ends, as useful as any fit under the limit
-        a, b = (frame.params(np.asarray(v, dtype=np.float64)) for v in start.fitted_mm)
         line = fit_lenslet_line(profile, geom, image, region, useful_below=limit, mom=mom,
-                                accept=accept, start_q=np.r_[a, b[1:]])
+                                accept=accept, start_q=frame.fitted_params(start.fitted_mm))
         if not line.ok:
             return Measurement.failed(line.reason or RegionStatus.POOR_FIT, geom.d_in_mm,
                                       kind="line")
         return _line_answer(profile, geom, line, limit, nm, start.model_misfit)
     if start is not None and len(start.fitted_mm) == 1:
-        start_q = frame.params(np.asarray(start.fitted_mm[0], dtype=np.float64))
+        start_q = frame.fitted_params(start.fitted_mm)
 
     tried: list[LensletFit] = []
 

@@ -531,8 +531,8 @@ def coupling_factors(profile: CameraProfile, geom: Geometry, mom: ff.LensletMome
     σ with both free (stop 74)")."""
     frame = ff.SourceFrame(profile)
     steps = ff.point_steps(profile, geom, ff.lit_lenslets(mom))
-    qs = [_params(frame, f) for f in fitted]
-    base = [_source_moments(profile, geom, mom, _ends(frame, q)) for q in qs]
+    qs = [frame.fitted_params(f) for f in fitted]
+    base = [_source_moments(profile, geom, mom, frame.fitted_source(q)) for q in qs]
     amp = _amplitudes(mom.data, base[0], base[1])
     cols: list[np.ndarray] = []
     blocks: list[list[int]] = []
@@ -541,7 +541,7 @@ def coupling_factors(profile: CameraProfile, geom: Geometry, mom: ff.LensletMome
         shifted = [q + h[j] * np.eye(len(q))[j] for j in range(len(q))]
         block = []
         for j, qj in enumerate(shifted):
-            m = _source_moments(profile, geom, mom, _ends(frame, qj))
+            m = _source_moments(profile, geom, mom, frame.fitted_source(qj))
             block.append(len(cols))
             cols.append((amp[k] * (m - base[k]) / h[j] / mom.norm).ravel())
         block.append(len(cols))  # (its brightness)
@@ -566,21 +566,6 @@ def marginal_over_own(jac: np.ndarray, blocks: list[list[int]]) -> tuple[float, 
     except np.linalg.LinAlgError:
         return tuple(1.0 for _ in blocks)
     return tuple(out)
-
-
-def _params(frame: ff.SourceFrame, fitted_mm) -> np.ndarray:
-    """A fitted source's parameters: a point's ``(log distance, x/L, y/L)``, a line's
-    ``(log distance, a/L, b/L)`` of its two ends (one distance, as the line fit's)."""
-    ends = np.asarray(fitted_mm, dtype=np.float64).reshape(-1, 3)
-    qs = [frame.params(e) for e in ends]
-    return qs[0] if len(qs) == 1 else np.r_[qs[0], qs[1][1:]]
-
-
-def _ends(frame: ff.SourceFrame, q: np.ndarray) -> np.ndarray:
-    """The source of :func:`_params`' parameters: a point (3,) or a line's ends (2, 3)."""
-    if len(q) == 3:
-        return frame.source(q)
-    return np.array([frame.source(q[:3]), frame.source(np.r_[q[0], q[3:]])])
 
 
 def by_turns_parts(pl: ByTurns, region: Region, new_id: int, stats: LensletStats,
