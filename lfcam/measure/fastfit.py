@@ -561,22 +561,26 @@ def data_moments(geom: Geometry, image: np.ndarray, box: tuple[int, int, int, in
     lenslets left out of a box (stop 60)")."""
     x0, y0, x1, y1 = box
     lab = geom.lmap.labels[y0:y1, x0:x1]
+    drop = np.zeros(0, dtype=bool)  # a flag per lenslet left out (none: empty)
     if exclude is not None and len(exclude):
         drop = np.zeros(geom.lmap.count + 1, dtype=bool)  # (label −1 reads the last: kept)
         drop[exclude] = True
-        lab = np.where(drop[lab], -1, lab)
     ped = pedestal(image)
     if (KERNEL if kernel is None else kernel) == "compiled":
         from lfcam.measure.kernels import box_moments  # numba
 
-        # contiguous copies of the box: one argument signature (compiled once, cached)
+        # the box's slices as they lie (no copy); other types than these as float64 / int32
+        view = image[y0:y1, x0:x1]
+        if view.dtype not in (np.float32, np.float64):
+            view = view.astype(np.float64)
         ids, compact, m, s0, s1 = box_moments(
-            np.ascontiguousarray(lab, dtype=np.int32),
-            np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float64),
+            lab if lab.dtype == np.int32 else lab.astype(np.int32), view, drop,
             np.ascontiguousarray(geom.lmap.centres_px, dtype=np.float64), int(x0), int(y0),
             float(geom.pitch_px), float(ped), int(geom.lmap.count))
         return LensletMoments(box, compact, ids, geom.lmap.centres_px[ids], m,
                               float(np.sqrt((m * m).sum())), (s0, s1))
+    if drop.size:
+        lab = np.where(drop[lab], -1, lab)
     keep = lab >= 0
     present = np.bincount(lab[keep], minlength=geom.lmap.count) > 0
     ids = np.flatnonzero(present)

@@ -6,7 +6,8 @@ Loops that numpy can only express as chains of frame- or ray-sized temporaries:
   (:func:`lfcam.measure.lenslets.lenslet_stats`): one pass over the frame instead of four
   ``bincount`` and two weighted copies of it (41 Mpx: 1.6 s → 0.1 s).
 * :func:`box_moments`: a region's data moments and their noise sums in one pass over its
-  box (numpy: ``nonzero``, fancy indexing and four ``bincount``; Illum-size blurs 10 → 2 ms).
+  box (numpy: ``nonzero``, fancy indexing and four ``bincount``; Illum-size blurs 10 → 2 ms),
+  read in place with the other regions' lenslets dropped in the pass.
 * :func:`trace_model_rays`: the lenslet fit's rays from point sources through the main lens
   (any :class:`~lfcam.optics.lens.Prescription`: conics, flats, ideal surfaces) to the MLA
   plane, with the rules and arithmetic of :func:`lfcam.optics.raytrace.trace_components`.
@@ -411,8 +412,10 @@ def warm_up() -> None:
     keep_large_buffers()
     one = np.zeros(1)
     eye = np.eye(2)
-    box_moments(np.zeros((1, 1), dtype=np.int32), np.zeros((1, 1)), np.zeros((1, 2)), 0, 0, 1.0,
-                0.0, 1)
+    labels = np.zeros((2, 2), dtype=np.int32)[:1, :1]  # (a slice of the frame: any layout)
+    for image in (np.zeros((2, 2))[:1, :1], np.zeros((2, 2), dtype=np.float32)[:1, :1]):
+        box_moments(labels, image, np.zeros(0, dtype=np.bool_), np.zeros((1, 2)), 0, 0, 1.0,
+                    0.0, 1)
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
@@ -534,14 +537,18 @@ def lenslet_sums(labels, image, n):
 
 
 @njit(cache=True, nogil=True)
-def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslets):
+def box_moments(labels, image, drop, centres_px, x0, y0, pitch_px, pedestal, n_lenslets):
     """:func:`lfcam.measure.fastfit.data_moments` of a box in one pass: ``labels`` and
-    ``image`` are the box's slices (corner ``(x0, y0)``), ``centres_px`` every lenslet's
-    micro-image centre. Returns (ids of the lenslets present, in increasing order; the box's
-    labels as compact indices into ``ids``, −1 none, ``int32``: the deposits read it for
-    every ray; their moments ``(K, 4)``; the noise sums
-    of :func:`lfcam.measure.noise.moment_noise_sums`), summed in a row-major pass as
-    ``np.bincount`` does."""
+    ``image`` are the box's slices (corner ``(x0, y0)``; views of the frame's arrays, any
+    layout, the image float32 or float64), ``drop`` a flag per lenslet left out of the box
+    (as label −1; empty: none), ``centres_px`` every lenslet's micro-image centre. Returns
+    (ids of the lenslets present, in increasing order; the box's labels as compact indices
+    into ``ids``, −1 none, ``int32``: the deposits read it for every ray; their moments
+    ``(K, 4)``; the noise sums of :func:`lfcam.measure.noise.moment_noise_sums`), summed in a
+    row-major pass as ``np.bincount`` does. The slices are read where they lie and the
+    lenslets left out are dropped here: no copy of the box, nor a pass over it for the
+    exclusion (an Illum-size box of 10⁶ px: 10 → 4 ms, docs/distance.md, "The data's
+    moments read in place (stop 75)")."""
     h, w = labels.shape
     present = np.zeros(n_lenslets + 1, dtype=np.int64)
     for row in range(h):
@@ -549,6 +556,9 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
             k = labels[row, col]
             if k >= 0:
                 present[k] = 1
+    for k in range(min(drop.size, n_lenslets)):
+        if drop[k]:
+            present[k] = 0
     count = 0
     for k in range(n_lenslets):
         if present[k]:
@@ -558,17 +568,17 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
     for k in range(n_lenslets):
         if present[k]:
             ids[present[k] - 1] = k
-    compact = np.full((h, w), -1, dtype=np.int32)
+    compact = np.empty((h, w), dtype=np.int32)
     out = np.zeros((count, 4))
     s0 = 0.0
     s1 = 0.0
     for row in range(h):
         for col in range(w):
             k = labels[row, col]
-            if k < 0:
-                continue
-            c = present[k] - 1
+            c = present[k] - 1 if k >= 0 else -1
             compact[row, col] = c
+            if c < 0:
+                continue
             v = image[row, col] - pedestal
             dx = (col + x0 - centres_px[k, 0]) / pitch_px
             dy = (row + y0 - centres_px[k, 1]) / pitch_px
@@ -579,8 +589,7 @@ def box_moments(labels, image, centres_px, x0, y0, pitch_px, pedestal, n_lenslet
             out[c, 3] += v * r2
             f2 = 1.0 + r2 + r2 * r2
             s0 += f2
-            if v > 0.0:
-                s1 += v * f2
+            s1 += (v if v > 0.0 else 0.0) * f2  # (no branch: the sign is noise's coin toss)
     return ids, compact, out, s0, s1
 
 
