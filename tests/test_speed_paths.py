@@ -275,6 +275,47 @@ def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypat
     np.testing.assert_array_equal(want[1], want[0][0])
 
 
+@pytest.mark.parametrize(("grid", "lens"), [("rect", "system1"), ("hex", "double_gauss")])
+def test_line_weighted_sums_in_the_deposit_equal_each_points_own(grid, lens, monkeypatch):
+    # LensletModel.simulate_weighted: a line's points summed per group and summed with each
+    # point's moments times its weight, added in the fused kernel's one pass, against each
+    # point's own moments (the path it replaced: per-point groups, numpy sums); the plain
+    # sums equal simulate_groups' bit for bit, both to rounding; a point the lens stops adds
+    # nothing to either
+    from lfcam.measure import fastfit
+    from lfcam.sim.capture import apply_overrides
+    from lfcam.sim.geometry import truth_geometry
+
+    base = load_profile(Path(__file__).resolve().parents[1] / "calibration" / f"{lens}.toml")
+    prof = apply_overrides(base, {"mla": {"focus_mm": 1000.0, "grid": grid},
+                                  "sensor": {"width_px": 400, "height_px": 400}})
+    prof = prof.with_d_in(prof.d_in_mm)
+    shape = (prof.sensor.height_px, prof.sensor.width_px)
+    geom = truth_geometry(prof, shape)
+    z = SourceFrame(prof).z_front
+    line = np.array([[0.25 * k - 0.5, 0.1 * k, z - 2900.0] for k in range(5)])
+    lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # no ray passes
+    pts = np.vstack([line, line + [0.02, 0.0, 0.0], lost])
+    group = np.array([0] * 5 + [1] * 5 + [1])
+    w = np.r_[np.linspace(0.1, 0.9, 5), np.linspace(0.9, 0.1, 5), 7.0]
+    model = _model_pair(prof, geom, shape, 4000, turn_every=5)[0]
+    s, sw = model.simulate_weighted(pts, group, 2, w, 2)
+    assert model.evaluations == 2
+    np.testing.assert_array_equal(s, model.simulate_groups(pts, group, 2, 1))
+    monkeypatch.setattr(fastfit, "LINE_WEIGHTED_SUMS", False)  # each point's own, then summed
+    s_ref, sw_ref = model.simulate_weighted(pts, group, 2, w, 2)
+    each = model.simulate_groups(pts, np.arange(len(pts)), len(pts), 1)
+    assert not each[-1].any() and each[:5, :, 0].sum() > 0
+    for g in (0, 1):
+        mine = group == g
+        np.testing.assert_allclose(sw_ref[g], np.tensordot(w[mine], each[mine], 1), rtol=0,
+                                   atol=1e-13 * np.abs(sw_ref[g]).max())
+    np.testing.assert_allclose(s, s_ref, rtol=0, atol=1e-12 * np.abs(s_ref).max())
+    np.testing.assert_allclose(sw, sw_ref, rtol=0, atol=1e-12 * np.abs(sw_ref).max())
+    # the weights matter: the weighted sums are not the plain sums scaled
+    assert not np.allclose(sw[0] / sw[0][:, 0].sum(), s[0] / s[0][:, 0].sum())
+
+
 def test_compiled_trace_drops_the_rays_the_lens_stops():
     # vignetting, a source behind the lens and a ray that misses a steep surface: the compiled
     # trace keeps exactly the rays lfcam.optics.trace passes, and their positions

@@ -10,7 +10,8 @@ for it; docs/distance.md, "A kernel signature the warm-up missed (stop 52)").
 
 The check runs in a fresh interpreter, where the kernels' signatures are exactly what it has
 called: after the warm-up, the models of both lattices (rays, the cells at n = 2, 4 and 6 with
-their whole-cell rules and the rim, a point and a line's points in groups) may add none.
+their whole-cell rules and the rim, a point and a line's points in groups and weighted, the
+data's moments of a float64 and a float32 frame) may add none.
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ SCRIPT = textwrap.dedent("""
         c = size // 2
         image = np.random.default_rng(1).random((size, size))
         mom = ff.data_moments(geom, image, (c - 260, c - 260, c + 260, c + 260))
+        ff.data_moments(geom, image.astype(np.float32), (c - 260, c - 260, c + 260, c + 260),
+                        exclude=mom.ids[:5])
         for distance in (380.0, 3400.0):  # in front of a 1 m focus (rays), behind (cells)
             a = chief_ray_offset(prof, prof.d_in_mm, distance, np.array([-1.5, 0.0]))
             b = chief_ray_offset(prof, prof.d_in_mm, distance, np.array([1.5, 0.0]))
@@ -52,6 +55,7 @@ SCRIPT = textwrap.dedent("""
                 model = ff.LensletModel(prof, geom, mom, 2000, cells=cells, turn_every=12)
                 model.residual_of(model.simulate(pts))
                 model.simulate_sets([pts, pts + [0.01, 0.0, 0.0]])
+                model.simulate_weighted(pts, np.zeros(12, dtype=np.int64), 1, t, 1)
                 ff.LensletModel(prof, geom, mom, 2000, cells=cells).simulate(pts[:1])
     added = {n: sorted(set(map(str, d.signatures)) - before[n]) for n, d in kernels.items()}
     print(json.dumps({n: s for n, s in added.items() if s}))

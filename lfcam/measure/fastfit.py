@@ -480,6 +480,8 @@ PIXEL_MAX_CHI2 = 4.0  # χ²/dof over this: the pixel model does not explain the
 #                       lenslet answer stands)
 KERNEL = "compiled"  # rays → moments: lfcam.measure.kernels; "numpy" = the reference chain
 OTHERS_EXCLUDED = True  # measure_lenslet leaves its ``others``' lenslets out of the box
+LINE_WEIGHTED_SUMS = True  # a ray-sampled line's weighted sums added in the deposit, not from
+#                            each point's own moments (LensletModel.simulate_weighted)
 TRACE_DEPOSIT_FUSED = True  # the compiled ray models trace and deposit a point's rays in one
 #                             pass (kernels.trace_deposit_moments; False: the two calls, the
 #                             same sums bit for bit: docs/distance.md, "The trace and the
@@ -490,6 +492,7 @@ _PEDESTAL = ObjectCache(1)
 _EMPTY_BOX = np.array([1.0, 0.0, 1.0, 0.0])  # cell_samples: no sample for this point
 _NO_POLYGON = np.zeros((0, 2))  # cell_centres without the rim's cut cells
 _ONE_BOX = np.empty(0)  # deposit_moments' per-ray box sizes where one is for all rays
+_NO_WEIGHTS = np.empty(0)  # trace_deposit_moments' second sums: none
 
 
 def lattice_of(geom: Geometry, pitch_mm: float) -> LocalLattice | None:
@@ -722,6 +725,30 @@ class LensletModel:
             out = self._simulate(np.ascontiguousarray(points, dtype=np.float64), group, groups)
         return out.reshape(groups, -1, 4)
 
+    def simulate_weighted(self, points: np.ndarray, group: np.ndarray, groups: int,
+                          weights: np.ndarray, evaluations: int
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`simulate_groups`' (groups, K, 4) moments, and the same sums with each
+        point's moments times its ``weights`` (M,): on the rays both in one pass of the
+        compiled kernel (no moments of each point apart: 24 points' own moments of a
+        2 900-lenslet box cost 35 % more than their sum, docs/distance.md, "A line's
+        weighted sums in the deposit (stop 75)"); elsewhere from each point's own."""
+        self.evaluations += evaluations
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        w = np.ascontiguousarray(weights, dtype=np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            if (LINE_WEIGHTED_SUMS and not self.cells and self.kernel == "compiled"
+                    and TRACE_DEPOSIT_FUSED):
+                out = self._simulate(pts, group, groups, second=w).reshape(2, groups, -1, 4)
+                return out[0], out[1]
+            each = self._simulate(pts, np.arange(len(pts)), len(pts)).reshape(len(pts), -1, 4)
+        sums = np.zeros((2, groups, *each.shape[1:]))
+        for g in range(groups):
+            mine = group == g
+            sums[0, g] = each[mine].sum(0)
+            sums[1, g] = np.tensordot(w[mine], each[mine], 1)
+        return sums[0], sums[1]
+
     def turns(self, m: int) -> np.ndarray:
         """(m, 2) cos and sin of each of ``m`` stacked points' pupil-sample turn."""
         out = np.zeros((m, 2))
@@ -732,16 +759,18 @@ class LensletModel:
         return out
 
     def _simulate(self, sources: np.ndarray, group: np.ndarray | None = None,
-                  groups: int = 1) -> np.ndarray:
-        """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4)."""
+                  groups: int = 1, second: np.ndarray | None = None) -> np.ndarray:
+        """Moments of ``sources`` summed per ``group`` (one group without it): (groups·K, 4);
+        with ``second`` (the compiled rays only, :meth:`simulate_weighted`), then the same
+        sums with each point's moments times ``second``: (2·groups·K, 4)."""
         points = np.atleast_2d(sources)
         for count in _RAY_COUNTS:
             count[0] += len(points) * self.rx.size
+        if second is not None or (not self.cells and self.kernel == "compiled"):
+            return self._simulate_compiled(points, group, groups, None, second)
         out = np.zeros((groups * len(self.mom.data), 4))
         if self.cells:
             return self._simulate_cells(points, group, groups, out)
-        if self.kernel == "compiled":
-            return self._simulate_compiled(points, group, groups, out)
         p = self.profile
         lens = p.main_lens
         fx = p.mla.focal_length_mm
@@ -795,10 +824,13 @@ class LensletModel:
                            tag[ray[known]] if group is not None else None, groups)
 
     def _simulate_compiled(self, points: np.ndarray, group: np.ndarray | None, groups: int,
-                           out: np.ndarray) -> np.ndarray:
+                           out: np.ndarray | None, second: np.ndarray | None = None
+                           ) -> np.ndarray:
         """:meth:`_simulate` through the compiled trace and deposit, in one pass a point
         (:func:`lfcam.measure.kernels.trace_deposit_moments`): the same rays, weights,
-        spacings and sums as the trace (``trace_model_rays``) and :meth:`_deposit`."""
+        spacings and sums as the trace (``trace_model_rays``) and :meth:`_deposit`.
+        ``out``: the zeros returned where no ray passes (the two calls' path only);
+        ``second``: the kernel's weighted sums as well (the fused kernel's only)."""
         from lfcam.measure.kernels import trace_deposit_moments, trace_model_rays  # numba
 
         lens = self.profile.main_lens
@@ -807,17 +839,19 @@ class LensletModel:
         # the real stop's image on the aperture plane, per point (identity for the singlet)
         rays = (pts, compiled_pupil_maps(lens, pts, self.packed), self.turns(len(pts)),
                 self.rx, self.ry, *lens_args)
-        if not TRACE_DEPOSIT_FUSED:  # the two calls (the reference the tests compare with)
+        if not TRACE_DEPOSIT_FUSED and second is None:  # the two calls (the reference the
+            #                                               tests compare with)
             x, y, sx, sy, wt, rows, _, foot = trace_model_rays(*rays)
             if rows.size == 0:
-                return out
+                return np.zeros((groups * len(self.mom.data), 4)) if out is None else out
             spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
             return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
                                  self.s_px, RAY_SHARE_RICHARDSON)
         return trace_deposit_moments(
             *rays, float(self.spacing), float(lens.pupil_diameter_mm),
             *self._lattice_args(group, groups, len(points)), float(self.s_px), self.mom.labels,
-            self.mom.centres_px, float(self.geom.pitch_px), bool(RAY_SHARE_RICHARDSON))
+            self.mom.centres_px, float(self.geom.pitch_px), bool(RAY_SHARE_RICHARDSON),
+            _NO_WEIGHTS if second is None else second)
 
     def _trace_args(self) -> tuple:
         """The compiled trace's lens arguments (:func:`lfcam.measure.kernels.trace_model_rays`
@@ -2188,26 +2222,34 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
     columns along it come from the line's two end points: two traces of the line and two
     points.
     """
-    kept: dict[bytes, np.ndarray] = {}
+    t = (np.arange(count) + 0.5) / count  # each point's place along the line
+    kept: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
-    def moments(q: np.ndarray) -> np.ndarray:  # (count, K, 4), each point's own
+    def moments(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # the points' moments summed (K, 4), and summed with each one's weighted by its place
+        # t along the line (its share of the far end; 1 − t of the near end's)
         key = q.tobytes()
         if key not in kept:
             if len(kept) >= 4:
                 kept.pop(next(iter(kept)))
-            kept[key] = model.simulate_groups(_line_points(frame, q, count), each, count, 1)
+            s, st = model.simulate_weighted(_line_points(frame, q, count), one, 1, t, 1)
+            kept[key] = (s[0], st[0])
         return kept[key]
 
-    t = (np.arange(count) + 0.5) / count
-    shares = (1.0 - t, t)
-    each = np.arange(count, dtype=np.int64)  # every point its own group
-    shifted = np.r_[each, count + each, np.full(count, 2 * count, dtype=np.int64)]
+    one = np.zeros(count, dtype=np.int64)  # every point in one group
+    # the points shifted along x, then y, and the line at the distance step (each set of
+    # points at the same place in the stack as the base's: the same pupil turns)
+    shifted = np.repeat(np.arange(3, dtype=np.int64), count)
     # across and ends: the points shifted across the line, the distance step, the two ends
-    # (each set of points at the same place in the stack as the base's: the same pupil turns)
-    ends_groups = np.r_[each, np.full(count, count, dtype=np.int64), count + 1, count + 2]
+    ends_groups = np.r_[shifted[:2 * count], 2, 3]
+
+    def lateral(s: np.ndarray, st: np.ndarray, m0: np.ndarray, t0: np.ndarray) -> tuple:
+        # the points' changes from the base's, each weighted by its share of the near end
+        # (1 − t) and of the far one (t): Σ (1 − tᵢ)·Δmᵢ = ΔS − ΔT, Σ tᵢ·Δmᵢ = ΔT
+        return (s - m0) - (st - t0), st - t0
 
     def traced_ends(q: np.ndarray, pts: np.ndarray, shift: float, qd: np.ndarray,
-                    base: np.ndarray, m0: np.ndarray) -> tuple | None:
+                    m0: np.ndarray, t0: np.ndarray) -> tuple | None:
         # The lateral changes from the points shifted across the line and the line's two end
         # points: along the line the points' weighted sums of derivatives telescope,
         # Σ (1 − tᵢ)·∂mᵢ/∂s ≈ (M/N − m(a))/h and Σ tᵢ·∂mᵢ/∂s ≈ (m(b) − M/N)/h (h the points'
@@ -2221,49 +2263,48 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
             return None
         e = (b - a) / length
         nv = np.array([-e[1], e[0]])
-        m = model.simulate_groups(
+        m, mt = model.simulate_weighted(
             np.concatenate([pts + [shift * nv[0], shift * nv[1], 0.0],
                             _line_points(frame, qd, count),
                             [[a[0], a[1], pts[0, 2]], [b[0], b[1], pts[0, 2]]]]),
-            ends_groups, count + 3, 3)
+            ends_groups, 4, np.r_[t, np.zeros(count + 2)], 3)
         mean = m0 / count
         h = length / count
-        slide = (shift / h * (mean - m[count + 1]), shift / h * (m[count + 2] - mean))
+        slide = (shift / h * (mean - m[2]), shift / h * (m[3] - mean))
         moved = []
-        for w, ds in zip(shares, slide, strict=True):
-            across = np.tensordot(w, m[:count] - base, 1)
+        for across, ds in zip(lateral(m[0], mt[0], m0, t0), slide, strict=True):
             moved.append([m0 + e[k] * ds + nv[k] * across for k in (0, 1)])
-        return m[count], moved
+        return m[1], moved
 
-    def traced_points(pts: np.ndarray, shift: float, qd: np.ndarray, base: np.ndarray,
-                      m0: np.ndarray) -> tuple:
+    def traced_points(pts: np.ndarray, shift: float, qd: np.ndarray, m0: np.ndarray,
+                      t0: np.ndarray) -> tuple:
         # every point shifted along x, then y; each one's change weighted by its share of
-        # either end
-        m = model.simulate_groups(np.concatenate([pts + [shift, 0.0, 0.0],
-                                                  pts + [0.0, shift, 0.0],
-                                                  _line_points(frame, qd, count)]),
-                                  shifted, 2 * count + 1, 3)
-        return m[-1], [[m0 + np.tensordot(w, m[k * count:(k + 1) * count] - base, 1)
-                        for k in (0, 1)] for w in shares]
+        # either end (the weighted sums added in the deposit: docs/distance.md, "A line's
+        # weighted sums in the deposit (stop 75)")
+        m, mt = model.simulate_weighted(np.concatenate([pts + [shift, 0.0, 0.0],
+                                                        pts + [0.0, shift, 0.0],
+                                                        _line_points(frame, qd, count)]),
+                                        shifted, 3, np.tile(t, 3), 3)
+        moves = [lateral(m[k], mt[k], m0, t0) for k in (0, 1)]
+        return m[2], [[m0 + moves[k][end] for k in (0, 1)] for end in (0, 1)]
 
     def jac(q: np.ndarray, r: np.ndarray) -> np.ndarray:
         pts = _line_points(frame, q, count)
         shift = steps[1] * (frame.z_rim - pts[0, 2])
         qd = q.copy()
         qd[0] += steps[0]
-        base = moments(q)
-        m0 = base.sum(0)
+        m0, t0 = moments(q)
         r0 = model.residual_of(m0)  # = r
         # the moments at the distance step, and with either end moved along x and y (from
         # the ends on the cells only: a cells model that folded samples rays from then on)
-        got = (traced_ends(q, pts, shift, qd, base, m0)
+        got = (traced_ends(q, pts, shift, qd, m0, t0)
                if LINE_JACOBIAN_ENDS and model.cells and not model.folded else None)
-        far, moved = got if got is not None else traced_points(pts, shift, qd, base, m0)
+        far, moved = got if got is not None else traced_points(pts, shift, qd, m0, t0)
         return np.column_stack([(model.residual_of(far) - r0) / steps[0],
                                 *[(model.residual_of(mk) - r0) / steps[1]
                                   for end in moved for mk in end]])
 
-    return (lambda q: model.residual_of(moments(q).sum(0))), jac
+    return (lambda q: model.residual_of(moments(q)[0])), jac
 
 
 def _frame_cut(region: Region, shape: tuple[int, ...], pitch_px: float) -> bool:

@@ -297,17 +297,20 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             ray[6, b] = s_ray[r] if each else s_px
             bases[b] = group[rows[r]] * n_k
         _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la, lb,
-                       seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch)
+                       seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch,
+                       -1, 0.0)
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la, lb, seps,
-                   richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch):
+                   richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch, base2,
+                   f2):
     """The first ``k`` rays of a block (``ray`` rows as :func:`deposit_moments` fills them;
     ray ``b``'s moments at rows ``bases[b]`` + lenslet of ``out``) added to the moments: the
     passes with no branch on the ray (:func:`_block_cells`, :func:`_block_landings`), then
-    the sums in the rays' order."""
+    the sums in the rays' order. ``base2`` ≥ 0: every ray's moments times ``f2`` are added
+    at rows ``base2`` + lenslet as well (the first rows' sums unchanged, bit for bit)."""
     _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson)
     for c in range(2):
         _block_landings(ray, cell, land[c], k, c, origin, basis, inv_pp, ax, ay, float(x0),
@@ -341,11 +344,20 @@ def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect,
                     dy0 = (ir + y0 - cyk) * inv_pitch
                     dy1 = (iny + y0 - cyk) * inv_pitch
                     n = base + kk
+                    e1 = w * ((1 - ex) * dx0 + ex * dx1)
+                    e2 = w * ((1 - ey) * dy0 + ey * dy1)
+                    e3 = w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
+                              + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
                     out[n, 0] += w
-                    out[n, 1] += w * ((1 - ex) * dx0 + ex * dx1)
-                    out[n, 2] += w * ((1 - ey) * dy0 + ey * dy1)
-                    out[n, 3] += w * ((1 - ex) * dx0 * dx0 + ex * dx1 * dx1
-                                      + (1 - ey) * dy0 * dy0 + ey * dy1 * dy1)
+                    out[n, 1] += e1
+                    out[n, 2] += e2
+                    out[n, 3] += e3
+                    if base2 >= 0:
+                        n = base2 + kk
+                        out[n, 0] += f2 * w
+                        out[n, 1] += f2 * e1
+                        out[n, 2] += f2 * e2
+                        out[n, 3] += f2 * e3
                     continue
                 if ((kk < 0) & (labels[ir, inx] < 0) & (labels[iny, ic] < 0)
                         & (labels[iny, inx] < 0)):
@@ -357,17 +369,20 @@ def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect,
             # scan's and 11 % of a 380 mm line's: the early exits above, 80 -> 29 and
             # 40 -> 28 ns a ray: docs/distance.md, "Landings with nothing to add (stop
             # 52)")
-            _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir,
-                   w * (1 - ex) * (1 - ey))
-            if ex > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, ir,
-                       w * ex * (1 - ey))
-            if ey > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, iny,
-                       w * (1 - ex) * ey)
-            if ex > 0 and ey > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, iny,
-                       w * ex * ey)
+            for bb, ww in ((base, w), (base2, f2 * w)):
+                if bb < 0:
+                    break
+                _pixel(out, labels, centres_px, inv_pitch, x0, y0, bb, ic, ir,
+                       ww * (1 - ex) * (1 - ey))
+                if ex > 0:
+                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, bb, inx, ir,
+                           ww * ex * (1 - ey))
+                if ey > 0:
+                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, bb, ic, iny,
+                           ww * (1 - ex) * ey)
+                if ex > 0 and ey > 0:
+                    _pixel(out, labels, centres_px, inv_pitch, x0, y0, bb, inx, iny,
+                           ww * ex * ey)
 
 
 # glibc's mallopt parameters (malloc.h) and the values keep_large_buffers sets
@@ -412,10 +427,12 @@ def warm_up() -> None:
     keep_large_buffers()
     one = np.zeros(1)
     eye = np.eye(2)
-    labels = np.zeros((2, 2), dtype=np.int32)[:1, :1]  # (a slice of the frame: any layout)
-    for image in (np.zeros((2, 2))[:1, :1], np.zeros((2, 2), dtype=np.float32)[:1, :1]):
-        box_moments(labels, image, np.zeros(0, dtype=np.bool_), np.zeros((1, 2)), 0, 0, 1.0,
-                    0.0, 1)
+    # a box's slices of the frame (strided; contiguous where the box spans the frame's width)
+    # of its int32 labels and a float32 or float64 image
+    for cut in (np.s_[:, :1], np.s_[:1, :]):
+        for dtype in (np.float64, np.float32):
+            box_moments(np.zeros((2, 2), dtype=np.int32)[cut], np.zeros((2, 2), dtype=dtype)[cut],
+                        np.zeros(0, dtype=np.bool_), np.zeros((1, 2)), 0, 0, 1.0, 0.0, 1)
     deposit_moments(one, one, one, one, one, np.zeros(1, dtype=np.int64), np.ones(1),
                     np.zeros(1, dtype=np.int64), 1,
                     np.zeros(2), eye, eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
@@ -426,7 +443,8 @@ def warm_up() -> None:
                           np.array([[1.0, 0.0]]), one, one, table, np.zeros((1, 1)), 0.0, 0.0,
                           1.0, 1.0, 1.0, 1.0, np.zeros(1, dtype=np.int64), 1, np.zeros(2), eye,
                           eye, True, 1.0, 1.0, 1.0, 0.0, 0.0, 0, 0, 0.5,
-                          np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, True)
+                          np.zeros((1, 1), dtype=np.int32), np.zeros((1, 2)), 1.0, True,
+                          np.empty(0))
     trace_model_rays(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0, 1.0]]),
                      np.array([[1.0, 0.0]]), one, one,
                      table, np.zeros((1, 1)), 0.0, 0.0, 1.0, 1.0)
@@ -935,20 +953,25 @@ def _land(scratch, ok, k, zp, fx, dest, count, rays, lo, extent) -> int:
 def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim_z, z_plane,
                           fx, spacing_scale, pupil_mm, group, groups, origin, basis, inverse,
                           rect, la, lb, pp, ax, ay, x0, y0, s_px, labels, centres_px,
-                          pitch_px, richardson):
+                          pitch_px, richardson, second):
     """:func:`trace_model_rays` and :func:`deposit_moments` in one pass a point: the moments
     ``(groups·K, 4)`` of the rays from ``points`` through the aperture points ``(rx, ry)``
     (arguments up to ``fx`` as :func:`trace_model_rays`'), point ``p``'s rays
     ``max(spacing_scale · foot_p / pupil_mm, 1e-12)`` apart on the MLA (``foot_p`` its
     footprint's extent) and spread as ``s_px`` boxes into group ``group[p]`` (the rest as
-    :func:`deposit_moments`' arguments). The same sums as the two calls, bit for bit; a
+    :func:`deposit_moments`' arguments). ``second`` (a weight a point, or empty): the
+    moments ``(2·groups·K, 4)``, the groups' sums and then each group's sum with point ``p``'s
+    moments times ``second[p]`` (a line's Jacobian weights its points by their place along
+    it: docs/distance.md, "A line's weighted sums in the deposit (stop 75)"); the first rows'
+    sums are those without it, bit for bit. The same sums as the two calls, bit for bit; a
     point's traced rays land straight in the deposit's blocks and are deposited while they
     are still in cache, and no ray-sized array of the whole call is made (the two calls wrote
     and read back ~56 bytes a ray: 44 → 35 ns a ray on system 1's far lines,
     docs/distance.md, "The trace and the deposit in one pass (stop 59)")."""
     m = points.shape[0]
     n_k = centres_px.shape[0]
-    out = np.zeros((groups * n_k, 4))
+    weighted = second.size > 0
+    out = np.zeros(((2 if weighted else 1) * groups * n_k, 4))
     block = min(TRACE_BLOCK, max(rx.size, 1))
     scratch = np.empty((7, block))
     ok = np.empty(block, dtype=np.uint8)
@@ -977,12 +1000,14 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
         spacing = max(spacing_scale * max(extent[1] - extent[0], extent[3] - extent[2])
                       / pupil_mm, 1e-12)
         bases[:] = group[p] * n_k
+        base2 = (groups + group[p]) * n_k if weighted else -1
+        f2 = second[p] if weighted else 0.0
         for lo in range(0, count, DEPOSIT_BLOCK):
             ray = blocks[lo // DEPOSIT_BLOCK]
             ray[5, :] = spacing
             _deposit_block(out, ray, cell, land, bases, min(DEPOSIT_BLOCK, count - lo), origin,
                            basis, inverse, rect, la, lb, seps, richardson, inv_pp, ax, ay, x0,
-                           y0, labels, centres_px, inv_pitch)
+                           y0, labels, centres_px, inv_pitch, base2, f2)
     return out
 
 
