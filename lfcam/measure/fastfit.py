@@ -731,8 +731,9 @@ class LensletModel:
         """:meth:`simulate_groups`' (groups, K, 4) moments, and the same sums with each
         point's moments times its ``weights`` (M,): on the rays both in one pass of the
         compiled kernel (no moments of each point apart: 24 points' own moments of a
-        2 900-lenslet box cost 35 % more than their sum, docs/distance.md, "A line's
-        weighted sums in the deposit (stop 75)"); elsewhere from each point's own."""
+        2 900-lenslet box took 4.6–4.9 ms against their sum's 3.8, and numpy's sums 0.2–0.3
+        ms more; docs/distance.md, "A line's weighted sums in the deposit (stop 75)");
+        elsewhere from each point's own, then summed."""
         self.evaluations += evaluations
         pts = np.ascontiguousarray(points, dtype=np.float64)
         w = np.ascontiguousarray(weights, dtype=np.float64)
