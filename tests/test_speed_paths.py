@@ -237,13 +237,9 @@ def test_compiled_moments_equal_the_numpy_chain(grid, lens):
     assert not np.allclose(a[0], fast.__class__(prof, fast.geom, fast.mom, 6000).simulate(three))
 
 
-@pytest.mark.parametrize(("grid", "lens"), [("rect", "system1"), ("hex", "double_gauss")])
-def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypatch):
-    # kernels.trace_deposit_moments (a point's rays deposited as it is traced) against the
-    # trace and the deposit it fuses (TRACE_DEPOSIT_FUSED=0): the same sums bit for bit, for
-    # a line's points in groups with their own pupil turns, stacked sets, and a source the
-    # lens stops altogether
-    from lfcam.measure import fastfit
+def _small_camera(lens: str, grid: str) -> tuple:
+    """``lens``'s profile on a ``grid`` MLA focused at 1 m, a 400² sensor: the profile, its
+    truth geometry, the frame's shape and the lens's front vertex z."""
     from lfcam.sim.capture import apply_overrides
     from lfcam.sim.geometry import truth_geometry
 
@@ -252,8 +248,18 @@ def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypat
                                   "sensor": {"width_px": 400, "height_px": 400}})
     prof = prof.with_d_in(prof.d_in_mm)
     shape = (prof.sensor.height_px, prof.sensor.width_px)
-    geom = truth_geometry(prof, shape)
-    z = SourceFrame(prof).z_front
+    return prof, truth_geometry(prof, shape), shape, SourceFrame(prof).z_front
+
+
+@pytest.mark.parametrize(("grid", "lens"), [("rect", "system1"), ("hex", "double_gauss")])
+def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypatch):
+    # kernels.trace_deposit_moments (a point's rays deposited as it is traced) against the
+    # trace and the deposit it fuses (TRACE_DEPOSIT_FUSED=0): the same sums bit for bit, for
+    # a line's points in groups with their own pupil turns, stacked sets, and a source the
+    # lens stops altogether
+    from lfcam.measure import fastfit
+
+    prof, geom, shape, z = _small_camera(lens, grid)
     line = np.array([[0.2 * k, 0.1 * k, z - 2900.0] for k in range(4)])
     away = np.array([[40.0, 0.0, z - 2900.0]])  # another source, off the line
     lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # ~72° off axis: no ray passes
@@ -283,16 +289,8 @@ def test_line_weighted_sums_in_the_deposit_equal_each_points_own(grid, lens, mon
     # sums equal simulate_groups' bit for bit, both to rounding; a point the lens stops adds
     # nothing to either
     from lfcam.measure import fastfit
-    from lfcam.sim.capture import apply_overrides
-    from lfcam.sim.geometry import truth_geometry
 
-    base = load_profile(Path(__file__).resolve().parents[1] / "calibration" / f"{lens}.toml")
-    prof = apply_overrides(base, {"mla": {"focus_mm": 1000.0, "grid": grid},
-                                  "sensor": {"width_px": 400, "height_px": 400}})
-    prof = prof.with_d_in(prof.d_in_mm)
-    shape = (prof.sensor.height_px, prof.sensor.width_px)
-    geom = truth_geometry(prof, shape)
-    z = SourceFrame(prof).z_front
+    prof, geom, shape, z = _small_camera(lens, grid)
     line = np.array([[0.25 * k - 0.5, 0.1 * k, z - 2900.0] for k in range(5)])
     lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # no ray passes
     pts = np.vstack([line, line + [0.02, 0.0, 0.0], lost])
