@@ -768,7 +768,7 @@ class LensletModel:
         for count in _RAY_COUNTS:
             count[0] += len(points) * self.rx.size
         if second is not None or (not self.cells and self.kernel == "compiled"):
-            return self._simulate_compiled(points, group, groups, None, second)
+            return self._simulate_compiled(points, group, groups, second)
         out = np.zeros((groups * len(self.mom.data), 4))
         if self.cells:
             return self._simulate_cells(points, group, groups, out)
@@ -825,12 +825,10 @@ class LensletModel:
                            tag[ray[known]] if group is not None else None, groups)
 
     def _simulate_compiled(self, points: np.ndarray, group: np.ndarray | None, groups: int,
-                           out: np.ndarray | None, second: np.ndarray | None = None
-                           ) -> np.ndarray:
+                           second: np.ndarray | None = None) -> np.ndarray:
         """:meth:`_simulate` through the compiled trace and deposit, in one pass a point
         (:func:`lfcam.measure.kernels.trace_deposit_moments`): the same rays, weights,
         spacings and sums as the trace (``trace_model_rays``) and :meth:`_deposit`.
-        ``out``: the zeros returned where no ray passes (the two calls' path only);
         ``second``: the kernel's weighted sums as well (the fused kernel's only)."""
         from lfcam.measure.kernels import trace_deposit_moments, trace_model_rays  # numba
 
@@ -844,7 +842,7 @@ class LensletModel:
             #                                               tests compare with)
             x, y, sx, sy, wt, rows, _, foot = trace_model_rays(*rays)
             if rows.size == 0:
-                return np.zeros((groups * len(self.mom.data), 4)) if out is None else out
+                return np.zeros((groups * len(self.mom.data), 4))
             spacing = np.maximum(self.spacing * foot / lens.pupil_diameter_mm, 1e-12)
             return self._deposit(x, y, sx, sy, wt, rows, spacing, group, groups, len(points),
                                  self.s_px, RAY_SHARE_RICHARDSON)
@@ -1056,7 +1054,7 @@ class LensletModel:
         got = None if self.folded else self._cell_samples(points)
         if got is None:
             self.folded = True
-            return self._simulate_compiled(points, group, groups, out)
+            return self._simulate_compiled(points, group, groups)
         u, v, w, srows, _, maps, trace_args, whole, (tx, ty) = got
         p = self.profile
         lens = p.main_lens
@@ -1115,7 +1113,7 @@ class LensletModel:
                 # a rule's ray stopped inside the lens (a cell lit whole is not): the cells do
                 # not apply, as where a pupil is vignetted
                 self.folded = True
-                return self._simulate_compiled(points, group, groups, np.zeros_like(out))
+                return self._simulate_compiled(points, group, groups)
             ax, ay = p.sensor.axis_xy_px
             x0, y0 = self.mom.box[:2]
             deposit_cells(out, rows_c, ci, cj, lx, ly, weight, sides,
