@@ -4,6 +4,7 @@ settled (unpolished) lenslet fit against the always-polished one and the truth."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -741,3 +742,46 @@ def test_a_photon_limited_point_is_polished_on_the_fine_models_rays(monkeypatch)
         assert abs(fast.distance_mm - full.distance_mm) < 0.5 * full.sigma_distance_mm
         for m in (fast, full):
             assert abs(m.distance_mm - truth["distance_mm"]) < 3.0 * m.sigma_distance_mm
+
+
+@pytest.mark.parametrize(("grid", "lens"), [("rect", "system1"), ("hex", "double_gauss")])
+def test_super_cells_sum_the_lenslets_of_each_k_by_k_lattice_block(grid, lens):
+    # fastfit.CellBins: each lenslet's super-cell is its lattice indices floor-divided by k,
+    # the indices read here from the lattice's own basis by a least-squares solve of every
+    # centre (not the code's inverse); each block of the lattice interior holds k² lenslets,
+    # the data's moments are the block's sums, and the binned residual is the residual of
+    # the summed moments (zero for a scaled copy of the data)
+    from lfcam.measure.fastfit import CellBins, LensletModel, data_moments, lattice_of
+
+    prof, geom, shape, _ = _small_camera(lens, grid)
+    h, w = shape
+    mom = data_moments(geom, np.zeros(shape), (w // 2 - 120, h // 2 - 120, w // 2 + 120,
+                                               h // 2 + 120))
+    rng = np.random.default_rng(3)
+    mom = dataclasses.replace(mom, data=rng.random(mom.data.shape))
+    mom = dataclasses.replace(mom, norm=float(np.linalg.norm(mom.data)))
+    lattice = lattice_of(geom, prof.mla.pitch_mm)
+    centres = geom.lens_centres_mm[mom.ids]
+    ij = np.linalg.lstsq(lattice.basis, (centres - lattice.origin).T, rcond=None)[0].T
+    np.testing.assert_allclose(ij, np.round(ij), atol=1e-6)  # (a lattice: whole indices)
+    for k in (2, 3):
+        bins = CellBins.of(geom, mom, lattice, k)
+        blocks: dict[tuple[int, int], list[int]] = {}
+        for n, (i, j) in enumerate(np.round(ij).astype(int)):
+            blocks.setdefault((i // k, j // k), []).append(n)
+        assert bins.count == len(blocks)
+        sizes = sorted(len(v) for v in blocks.values())
+        assert sizes[-1] == k * k and sizes.count(k * k) > len(sizes) // 3  # (the box cuts some)
+        for members in blocks.values():
+            assert len(set(bins.index[members])) == 1  # one block, one super-cell
+            np.testing.assert_allclose(bins.data[bins.index[members[0]]],
+                                       mom.data[members].sum(axis=0), rtol=1e-12)
+        assert bins.norm == pytest.approx(np.linalg.norm(bins.data), rel=1e-12)
+        model = LensletModel(prof, geom, mom, 1000)
+        m = rng.random(mom.data.shape)
+        summed = np.stack([np.bincount(bins.index, m[:, c]) for c in range(4)], axis=1)
+        scale = float((summed * bins.data).sum() / (summed * summed).sum())
+        np.testing.assert_allclose(model.residual_of(m, bins),
+                                   ((bins.data - scale * summed) / bins.norm).ravel(),
+                                   rtol=1e-10, atol=1e-14)
+        assert np.abs(model.residual_of(2.5 * mom.data, bins)).max() < 1e-14

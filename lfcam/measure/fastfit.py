@@ -38,6 +38,7 @@ import math
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import cv2
@@ -133,6 +134,10 @@ SUMMARY_RECENTRE_GAIN = 0.5  # ... where its misfit² is under this × the start
 #                              blur, which no point's summary matches (380 mm lines: 2.0), is
 #                              left where it was (misfit 0.667 → 0.665 there; the caustic-cut
 #                              point: 0.82 → 0.17)
+SUMMARY_LARGE_RAYS = COARSE_RAYS  # a ray-sampled blur lighting LINE_BIN_MIN_LIT lenslets or
+#                                   more matches its summary on this many rays, not on the
+#                                   coarse model's (docs/distance.md, "A large line's coarse
+#                                   stage on super-cells (stop 76)"); 0: the coarse model's
 FINE_ITERATIONS = 4
 FINE_MIN_TRIAL_LOG = 1e-4  # ... and no step (nor halving of a failed one) under this log
 #                            distance is tried (a third of SIGMA_FLOOR_REL): the fine model's
@@ -291,6 +296,15 @@ LINE_REFINE = 4.0  # ... it is refitted with this × the fine model's rays a poi
 #                      without the box's variance (stop 53)") ...
 LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line's settled test",
 #                               "A line's points, each with its own turn of the pupil sample")
+LINE_BIN = 2  # a ray-sampled line blur lighting LINE_BIN_MIN_LIT lenslets or more: its coarse
+#                stage (race and leader) fits the moments summed over super-cells of this ×
+#                this lattice cells (:class:`CellBins`) on LINE_BIN_RAYS × fewer rays, and the
+#                fine stage's Gauss–Newton steps (the coarse Jacobian's) read them too; the
+#                fine stage's Levenberg–Marquardt, the settled test and the refit read every
+#                lenslet (docs/distance.md, "A large line's coarse stage on super-cells (stop
+#                76)"); 1: no super-cells
+LINE_BIN_MIN_LIT = 400
+LINE_BIN_RAYS = 4.0
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
 LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log distances from
@@ -616,6 +630,41 @@ def counting_rays() -> Iterator[list[int]]:
         yield count
     finally:
         _RAY_COUNTS.remove(count)
+
+
+@dataclass(frozen=True)
+class CellBins:
+    """A region's lenslets grouped into super-cells of ``k`` × ``k`` lattice cells (the
+    lattice's own indices floor-divided by ``k``), and the data's moments summed over each: a
+    residual on them (:meth:`LensletModel.residual_of`) is the same fit on ``k²`` × fewer
+    cells, whose sums a model with ``k²`` × fewer rays samples as well as it samples a
+    lenslet's. The four moments are sums (each relative to its own lenslet's centre), so a
+    super-cell's are its lenslets' added."""
+
+    index: np.ndarray  # (K,) each lenslet's super-cell
+    count: int  # super-cells
+    data: np.ndarray  # (count, 4) the data's moments, summed
+    norm: float  # their norm
+
+    @classmethod
+    def of(cls, geom: Geometry, mom: LensletMoments, lattice: LocalLattice,
+           k: int) -> CellBins:
+        """The super-cells of ``k`` × ``k`` cells of ``lattice`` over ``mom``'s lenslets."""
+        d = geom.lens_centres_mm[mom.ids] - lattice.origin
+        ij = np.rint(d @ lattice.inverse.T).astype(np.int64)
+        _, index = np.unique(np.floor_divide(ij, k), axis=0, return_inverse=True)
+        index = index.ravel()
+        count = int(index.max()) + 1 if index.size else 0
+        data = _bin_sums(mom.data, index, count)
+        return cls(index, count, data, float(np.sqrt((data * data).sum())))
+
+
+def _bin_sums(m: np.ndarray, index: np.ndarray, count: int) -> np.ndarray:
+    """(K, 4) moments summed per super-cell ``index``: (count, 4)."""
+    out = np.empty((count, 4))
+    for c in range(4):
+        out[:, c] = np.bincount(index, m[:, c], minlength=count)
+    return out
 
 
 class LensletModel:
@@ -1128,11 +1177,15 @@ class LensletModel:
         """Data minus the best-scaled model moments, over the data's norm."""
         return self.residual_of(self.simulate(sources))
 
-    def residual_of(self, m: np.ndarray) -> np.ndarray:
-        """Data minus the best-scaled moments ``m``, over the data's norm."""
+    def residual_of(self, m: np.ndarray, bins: CellBins | None = None) -> np.ndarray:
+        """Data minus the best-scaled moments ``m``, over the data's norm; with ``bins``, both
+        summed over its super-cells first."""
+        data, norm = self.mom.data, self.mom.norm
+        if bins is not None:
+            m, data, norm = _bin_sums(m, bins.index, bins.count), bins.data, bins.norm
         mm = float((m * m).sum())
-        a = float((m * self.mom.data).sum()) / mm if mm > 0 else 0.0
-        return ((self.mom.data - a * m) / self.mom.norm).ravel()
+        a = float((m * data).sum()) / mm if mm > 0 else 0.0
+        return ((data - a * m) / norm).ravel()
 
 
 class _PackedLens(NamedTuple):
@@ -2028,6 +2081,10 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if any(cells_ok):
             coarse_of.append(LensletModel(profile, geom, mom, coarse_rays,
                                           cells=LINE_CELLS_COARSE))
+    # (a large blur's summary matched on the rays: on fewer of them than its coarse model's)
+    summary_model = (LensletModel(profile, geom, mom, SUMMARY_LARGE_RAYS)
+                     if 0 < SUMMARY_LARGE_RAYS < coarse_rays and n_lit >= LINE_BIN_MIN_LIT
+                     else None)
     best = None
     scan_ends: list[np.ndarray] = []  # where the starts matched on the cells had their scan match
     for k, q0 in enumerate(starts):
@@ -2051,7 +2108,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             if err < SUMMARY_MATCHED and jac_s is not None:
                 q = _match_summary(profile, geom, mom, frame, model, q, t_data, jac0=jac_s)[0]
         else:
-            q = _match_summary(profile, geom, mom, frame, model, q0, t_data)[0]
+            q = _match_summary(profile, geom, mom, frame, summary_model or model, q0,
+                               t_data)[0]
         r = model.residual(frame.source(q))
         f = sq(r)
         if best is None or f < best[1]:
@@ -2085,6 +2143,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                           cells=LINE_CELLS_SETTLE if on_cells else 0)
     fun_p = fun_of(polish)
     counted = [scan, *coarse_of, fine, turned, polish]  # the models whose evaluations count
+    if summary_model is not None:
+        counted.append(summary_model)
 
     def evaluations() -> int:
         return sum(m.evaluations for m in counted)
@@ -2209,7 +2269,9 @@ def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) ->
 
 def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray):
     """The line model of ``count`` points (:func:`_line_points`): its residual function
-    ``fun(q)`` and its Jacobian ``jac(q, r)`` (``r = fun(q)``), steps ``steps``.
+    ``fun(q, bins=None)`` and its Jacobian ``jac(q, r, bins=None)`` (``r = fun(q, bins)``),
+    steps ``steps``; with ``bins`` (:class:`CellBins`) both on its super-cells, from the same
+    moments (the last few kept: a residual read both ways costs one evaluation).
 
     The Jacobian is built from the points' own moments: every point shifted at once along x
     (then y) by the lateral step, each point's change weighted by its share of either
@@ -2287,23 +2349,26 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
         moves = [lateral(m[k], mt[k], m0, t0) for k in (0, 1)]
         return m[2], [[m0 + moves[k][end] for k in (0, 1)] for end in (0, 1)]
 
-    def jac(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    def jac(q: np.ndarray, r: np.ndarray, bins: CellBins | None = None) -> np.ndarray:
         pts = _line_points(frame, q, count)
         shift = steps[1] * (frame.z_rim - pts[0, 2])
         qd = q.copy()
         qd[0] += steps[0]
         m0, t0 = moments(q)
-        r0 = model.residual_of(m0)  # = r
+        r0 = model.residual_of(m0, bins)  # = r
         # the moments at the distance step, and with either end moved along x and y (from
         # the ends on the cells only: a cells model that folded samples rays from then on)
         got = (traced_ends(q, pts, shift, qd, m0, t0)
                if LINE_JACOBIAN_ENDS and model.cells and not model.folded else None)
         far, moved = got if got is not None else traced_points(pts, shift, qd, m0, t0)
-        return np.column_stack([(model.residual_of(far) - r0) / steps[0],
-                                *[(model.residual_of(mk) - r0) / steps[1]
+        return np.column_stack([(model.residual_of(far, bins) - r0) / steps[0],
+                                *[(model.residual_of(mk, bins) - r0) / steps[1]
                                   for end in moved for mk in end]])
 
-    return (lambda q: model.residual_of(moments(q)[0])), jac
+    def fun(q: np.ndarray, bins: CellBins | None = None) -> np.ndarray:
+        return model.residual_of(moments(q)[0], bins)
+
+    return fun, jac
 
 
 def _frame_cut(region: Region, shape: tuple[int, ...], pitch_px: float) -> bool:
@@ -2563,10 +2628,20 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # settled test's model has them all (LINE_CELLS_POINTS_SHARE, LINE_CELLS_COARSE_SHARE)
         n_fine = max(LINE_POINTS, math.ceil(LINE_CELLS_POINTS_SHARE * n_pts))
         n_coarse = max(LINE_CELLS_COARSE_POINTS, math.ceil(LINE_CELLS_COARSE_SHARE * n_pts))
+    # a large ray-sampled blur's coarse stage on super-cells, with as many rays a super-cell
+    # as a lenslet had (LINE_BIN)
+    lattice = None if on_cells or LINE_BIN < 2 or n_lit < LINE_BIN_MIN_LIT else lattice_of(
+        geom, profile.mla.pitch_mm)
+    bins = None if lattice is None else CellBins.of(geom, mom, lattice, LINE_BIN)
+    if bins is not None:
+        coarse_rays = max(int(coarse_rays / LINE_BIN_RAYS), COARSE_RAYS // LINE_COARSE_SHARE)
     coarse = model(coarse_rays, share_c, n_coarse, LINE_CELLS_COARSE)
     # (its Gauss–Newton steps and the gate after them on the fine model too)
     fine = model(LINE_FINE_RAYS, count=n_fine, cells=coarse.fine_cells())
-    fun_c, jac_c = line_model(coarse, frame, n_coarse, steps)
+    fun_every, jac_c = line_model(coarse, frame, n_coarse, steps)
+    fun_c = fun_every
+    if bins is not None:
+        fun_c, jac_c = partial(fun_every, bins=bins), partial(jac_c, bins=bins)
     # the starts race: LINE_RACE_ITERATIONS coarse iterations each, then the leader alone runs
     # the rest (docs/distance.md, "A line's Jacobian from its points")
     settling: list[LensletModel] = []  # more models whose evaluations count (the race's on
@@ -2641,8 +2716,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                           RegionStatus.POOR_FIT)
 
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
-    if math.sqrt(f) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
-        return stopped(math.sqrt(f))
+    # (on super-cells, the misfit over every lenslet: the same moments)
+    f_stop = f if bins is None else sq(fun_every(q))
+    if math.sqrt(f_stop) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
+        return stopped(math.sqrt(f_stop))
     fun, jac_f = line_model(fine, frame, n_fine, steps)
     r = fun(q)
     if fine.cells:
@@ -2651,8 +2728,17 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    q, r, f = gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
-                                 skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
+    if bins is None:
+        q, r, f = gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
+                                     skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
+    else:
+        # the coarse Jacobian is the super-cells': the fine model's steps read them too (a
+        # Jacobian over every lenslet taken again on the coarse rays: refits in 3 of scene
+        # (b)'s 10 lines, errors up by half)
+        q = gauss_newton_fixed(partial(fun, bins=bins), q, fun(q, bins), jac,
+                               FINE_ITERATIONS)[0]
+        r = fun(q)
+        f = sq(r)
     if math.sqrt(f) > LINE_STOP_FINE * useful_below:
         return stopped(math.sqrt(f))
     probe: list = []  # the settled test's residual function (its turned model's), once made
