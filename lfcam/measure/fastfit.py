@@ -303,7 +303,7 @@ LINE_BIN = 2  # a ray-sampled line blur lighting LINE_BIN_MIN_LIT lenslets or mo
 #                fine stage's Levenberg–Marquardt, the settled test and the refit read every
 #                lenslet (docs/distance.md, "A large line's coarse stage on super-cells (stop
 #                76)"); 1: no super-cells
-LINE_BIN_MIN_LIT = 400
+LINE_BIN_MIN_LIT = 200
 LINE_BIN_RAYS = 4.0
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
