@@ -195,6 +195,7 @@ POLISH_CONFIRM_NOISE = 1.5  # a polish that its secant (Broyden) Jacobian calls 
 #                             distance.md, "A polish that a stale secant stopped (stop 67)")
 POLISH_CONFIRM_BELOW = 1e-3  # ... where its σ (log distance) is under this: a dim point's
 #                              polish confirmed moves within its σ and its pixel polish's start
+POLISH_NEAR_GATE_FINE_JAC = True  # a polish near a gate starts from the fine model's Jacobian
 POLISH_BY_TOLERANCE = True  # with a tolerance, a point is polished only where the fine fit's
 #                             answer does not meet it (point_fit_stages' ``accept``; the 108
 #                             points at 1 %: 26.6 -> 23.0 ms a region, docs/distance.md, "A
@@ -2149,6 +2150,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def evaluations() -> int:
         return sum(m.evaluations for m in counted)
 
+    fine_jacobians: dict[bytes, np.ndarray] = {}  # the fine model's Jacobians first_look took
+
     def first_look(q: np.ndarray, r: np.ndarray, jac_q: np.ndarray | None,
                    coarse_stage: bool) -> tuple[LensletFit, np.ndarray]:
         # the fit at q (the fine model's residual r there) as the polishing model reads it,
@@ -2161,6 +2164,9 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         if gates is not None:
             polish_above, bound_above = gates(model_misfit)
         far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
+        if jac_q is None and math.sqrt(sq(r_p)) > bound_above:
+            # (the floor's Jacobian, the fine model's at q: kept for a polish near a gate)
+            jac_q = fine_jacobians[q.tobytes()] = fd_jacobian(fun, many_of(fine), q, r, steps)
         return LensletFit(frame.source(q), math.sqrt(sq(r_p)), math.nan, evaluations(),
                           not far, RegionStatus.NO_SOLUTION if far else "",
                           polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p,
@@ -2193,12 +2199,25 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             polish_above, bound_above = gates(math.sqrt(sq(r - r_p)))
     # a misfit near a gate is polished whatever the settled test says: do not run it then
     near_gate = not math.sqrt(sq(r_p)) <= polish_above
-    settled, jac_q = (False, None) if near_gate else (
-        _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac, steps))
+    if near_gate:
+        # polished whatever. Near a gate that measure_lenslet set (not where the caller asks
+        # for every polish: polish_above 0, the lens calibration), its Levenberg–Marquardt
+        # starts from the fine model's Jacobian at q, as a polish the settled test asks for
+        # does (first_look's, when it took it), not from the polishing model's own (3 ×
+        # POLISH_RAYS; docs/distance.md, "A polish near a gate from the fine model's
+        # Jacobian (stop 76)")
+        from_fine = POLISH_NEAR_GATE_FINE_JAC and gates is not None
+        settled, jac_q = False, fine_jacobians.get(q.tobytes()) if from_fine else None
+        if jac_q is None and from_fine:
+            jac_q = fd_jacobian(fun, many_of(fine), q, r, steps)
+    else:
+        settled, jac_q = _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac,
+                                  steps)
     polished = not settled
     to_go = 0.0  # the linear step still to go to the polishing model's minimum (log distance),
     #              kept in σ where the caller accepts the fine fit with it
-    if polished and accept is not None and jac_q is not None and POLISH_BY_TOLERANCE:
+    if (polished and not near_gate and accept is not None and jac_q is not None
+            and POLISH_BY_TOLERANCE):
         linear = linear_step(jac_q, r_p)
         if linear is not None:
             s_log, step_log = log_distance_sigma(jac_q, r_p), abs(float(linear[0][0]))
@@ -2231,7 +2250,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                                 min_trial=0.0 if near_gate
                                                 else POLISH_MIN_TRIAL_LOG,
                                                 trial_gain=SETTLED_GAIN,
-                                                first_or_stop=POLISH_FIRST_OR_STOP,
+                                                first_or_stop=(POLISH_FIRST_OR_STOP
+                                                               and not near_gate),
                                                 confirm_above=confirm_above,
                                                 confirm_below=POLISH_CONFIRM_BELOW,
                                                 confirm_jac=lambda qq: fd_jacobian(
@@ -2426,6 +2446,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     refit with more rays is not refitted when its σ, with the measured sampling shift and the
     line σ floor added in quadrature, is accepted; that σ is then the one it reports
     (docs/distance.md, "A line's refit only where the tolerance needs it").
+
+    A ray-sampled blur lighting :data:`LINE_BIN_MIN_LIT` lenslets or more runs its race, its
+    coarse stage and the fine model's Gauss–Newton steps on 2 × 2 super-cells
+    (:class:`CellBins`, :data:`LINE_BIN`), the coarse model on :data:`LINE_BIN_RAYS` × fewer
+    rays.
 
     ``start_q`` (optional): the one start ``(log distance, a/L, b/L)`` (:func:`_line_points`),
     an earlier line answer of the same region (a refit on its moments less a neighbour's
