@@ -289,7 +289,7 @@ def test_trace_and_deposit_in_one_pass_equal_the_two_calls(grid, lens, monkeypat
     lost = np.array([[3.0 * 2900.0, 0.0, z - 2900.0]])  # ~72° off axis: no ray passes
     sets = [line, np.vstack([line, lost]), away, line + [0.3, -0.2, 40.0]]
 
-    def moments() -> list[np.ndarray]:  # (a new model each time: simulate keeps its last)
+    def moments() -> list[np.ndarray]:  # (a new model for each kernel path)
         model = _model_pair(prof, geom, shape, 5000, turn_every=4)[0]
         return [model.simulate_sets(sets), model.simulate(line), model.simulate(lost)]
 

@@ -713,7 +713,6 @@ class LensletModel:
         self.whole = self.whole_at(self.cells)
         self.packed = None  # the lens as the compiled trace reads it (on first use)
         self.evaluations = 0
-        self.last: tuple = (b"", None)  # (source bytes, moments) of the last simulation
 
     def whole_at(self, n: int) -> bool:
         """Whether a model on the cells with ``n`` × ``n`` samples a cell integrates the cells
@@ -742,11 +741,8 @@ class LensletModel:
         finite-difference Jacobians with small steps are meaningful.
         """
         self.evaluations += 1
-        key = np.asarray(sources, dtype=np.float64).tobytes()
         with np.errstate(over="ignore", invalid="ignore"):  # rays that miss: ok = False
-            out = self._simulate(sources)
-        self.last = (key, out)
-        return out
+            return self._simulate(sources)
 
     def simulate_each(self, sources: np.ndarray) -> np.ndarray:
         """(M, K, 4) moments of each of ``M`` sources separately, in one pass."""
