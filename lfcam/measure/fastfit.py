@@ -651,8 +651,8 @@ class CellBins:
     def of(cls, geom: Geometry, mom: LensletMoments, lattice: LocalLattice,
            k: int) -> CellBins:
         """The super-cells of ``k`` × ``k`` cells of ``lattice`` over ``mom``'s lenslets."""
-        d = geom.lens_centres_mm[mom.ids] - lattice.origin
-        ij = np.rint(d @ lattice.inverse.T).astype(np.int64)
+        c = geom.lens_centres_mm[mom.ids]
+        ij = np.column_stack(lattice.cell_indices(c[:, 0], c[:, 1]))
         _, index = np.unique(np.floor_divide(ij, k), axis=0, return_inverse=True)
         index = index.ravel()
         count = int(index.max()) + 1 if index.size else 0
@@ -2146,7 +2146,15 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     def evaluations() -> int:
         return sum(m.evaluations for m in counted)
 
-    fine_jacobians: dict[bytes, np.ndarray] = {}  # the fine model's Jacobians first_look took
+    fine_jacobians: dict[bytes, np.ndarray] = {}  # the fine model's, by q (fine_jacobian)
+
+    def fine_jacobian(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        # the fine model's Jacobian at q (its residual r there) by differences, taken once: the
+        # polish floor's (first_look) is the one a polish near a gate starts from
+        key = q.tobytes()
+        if key not in fine_jacobians:
+            fine_jacobians[key] = fd_jacobian(fun, many_of(fine), q, r, steps)
+        return fine_jacobians[key]
 
     def first_look(q: np.ndarray, r: np.ndarray, jac_q: np.ndarray | None,
                    coarse_stage: bool) -> tuple[LensletFit, np.ndarray]:
@@ -2161,8 +2169,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             polish_above, bound_above = gates(model_misfit)
         far = _at_far_bound(q)  # the fit fails here, with the final fit's reason
         if jac_q is None and math.sqrt(sq(r_p)) > bound_above:
-            # (the floor's Jacobian, the fine model's at q: kept for a polish near a gate)
-            jac_q = fine_jacobians[q.tobytes()] = fd_jacobian(fun, many_of(fine), q, r, steps)
+            jac_q = fine_jacobian(q, r)  # (the floor reads it only over bound_above)
         return LensletFit(frame.source(q), math.sqrt(sq(r_p)), math.nan, evaluations(),
                           not far, RegionStatus.NO_SOLUTION if far else "",
                           polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p,
@@ -2183,6 +2190,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # with the cells' Jacobian (the coarse one's; the fine one's on a hexagonal
         # lattice); then the settled test and the polish as below.
         fine = LensletModel(profile, geom, mom, n_rays)
+        fine_jacobians.clear()  # (the cells' fine model's, not this one's)
         polish = LensletModel(profile, geom, mom, POLISH_RAYS)
         counted += [fine, polish]
         fun, fun_p = fun_of(fine), fun_of(polish)
@@ -2203,9 +2211,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # POLISH_RAYS; docs/distance.md, "A polish near a gate from the fine model's
         # Jacobian (stop 76)")
         from_fine = POLISH_NEAR_GATE_FINE_JAC and gates is not None
-        settled, jac_q = False, fine_jacobians.get(q.tobytes()) if from_fine else None
-        if jac_q is None and from_fine:
-            jac_q = fd_jacobian(fun, many_of(fine), q, r, steps)
+        settled, jac_q = False, fine_jacobian(q, r) if from_fine else None
     else:
         settled, jac_q = _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac,
                                   steps)

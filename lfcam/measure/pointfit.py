@@ -467,11 +467,11 @@ class LocalLattice:
 
     def node(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Centre of the lattice cell (Voronoi) holding each point, in or beyond the set."""
-        bi, bj = self._cell(x, y)
+        bi, bj = self.cell_indices(x, y)
         return (self.origin[0] + self.basis[0, 0] * bi + self.basis[0, 1] * bj,
                 self.origin[1] + self.basis[1, 0] * bi + self.basis[1, 1] * bj)
 
-    def _cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def cell_indices(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lattice indices (i, j) of the nearest node of each point."""
         u = self.inverse @ np.vstack([x - self.origin[0], y - self.origin[1]])
         fu, fv = np.floor(u[0]), np.floor(u[1])
@@ -491,7 +491,7 @@ class LocalLattice:
 
     def nearest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Index of the lenslet whose Voronoi cell holds each point (−1: not in the set)."""
-        bi, bj = self._cell(x, y)
+        bi, bj = self.cell_indices(x, y)
         ti, tj = bi - self.i0, bj - self.j0
         inside = (ti >= 0) & (ti < self.table.shape[0]) & (tj >= 0) & (tj < self.table.shape[1])
         out = np.full(x.shape, -1, dtype=np.int64)
