@@ -273,6 +273,21 @@ def run(name: str, workdir: Path, method: str, jobs: int | None, cli: bool,
     return rec
 
 
+def scene_regions(name: str, workdir: Path, draw: dict | None = None) -> tuple:
+    """The scene (:func:`prepare`; ``draw``: its keyword arguments) loaded as ``lfcam
+    distance`` reads it, and its regions: (profile, geometry, grey image, regions, pixel
+    noise, truth)."""
+    import line_regions as lr
+
+    png, cal_path, truth = prepare(name, workdir, **(draw or {}))
+    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
+    img = load_capture(png, prof).grey()
+    geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
+    regions, noise = lr.capture_regions(prof, geom, img, float(
+        prof.sensor.white_level - prof.sensor.black_level))
+    return prof, geom, img, regions, noise, truth
+
+
 def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
                draw: dict | None = None, tolerance_pct: float | None = None) -> None:
     """Every spot and line region's ``lenslet`` fit in this process (module docstring): a row
@@ -287,12 +302,7 @@ def per_region(name: str, workdir: Path, repeats: int, settings: list[dict],
     from lfcam.measure.regions import nearby_regions
     from lfcam.models import auto
 
-    png, cal_path, truth = prepare(name, workdir, **(draw or {}))
-    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
-    img = load_capture(png, prof).grey()
-    geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
-    regions, noise = lr.capture_regions(prof, geom, img, float(
-        prof.sensor.white_level - prof.sensor.black_level))
+    prof, geom, img, regions, noise, truth = scene_regions(name, workdir, draw)
     rows = {}  # kind (setting A's answer) -> [(least ms, error %, model rays: per setting)]
     print("| region | lenslets | " + " | ".join(
         f"{k} kind, status, error % | {k} least ms | {k} model rays"

@@ -35,14 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import line_regions as lr  # noqa: E402
 import many_sources as ms  # noqa: E402
 
-from lfcam.calibrate import load_calibration  # noqa: E402
-from lfcam.camera import load_profile  # noqa: E402
-from lfcam.io import load_capture  # noqa: E402
 from lfcam.measure import fastfit as ff  # noqa: E402
-from lfcam.measure import prepare_geometry  # noqa: E402
 from lfcam.measure.regions import nearby_regions  # noqa: E402
 
 FITS = {"point_fit_stages": "point", "fit_lenslet_line": "line"}
@@ -94,12 +89,7 @@ def main() -> None:
     for name, value in settings.items():
         setattr(ff, name, value)
 
-    png, cal_path, _ = ms.prepare(args.scene, args.workdir)
-    prof = load_profile(png.with_name(png.stem + ".profile.toml"))
-    img = load_capture(png, prof).grey()
-    geom = prepare_geometry(prof, load_calibration(cal_path), img.shape)
-    regions, noise = lr.capture_regions(prof, geom, img, float(prof.sensor.white_level
-                                                               - prof.sensor.black_level))
+    prof, geom, img, regions, noise, _ = ms.scene_regions(args.scene, args.workdir)
     near = dict(zip([r.region_id for r in regions], nearby_regions(regions), strict=True))
     by_id = {r.region_id: r for r in regions}
     missing = [k for k in wanted if k not in by_id]
