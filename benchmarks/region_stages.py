@@ -1,7 +1,7 @@
 """Where a lenslet region's model rays go: each evaluation tagged by the stage that made it.
 
 Run: ``python benchmarks/region_stages.py --scene a|b --regions ID,ID,... [--workdir DIR]
-[--ab NAME=VALUE,...]``
+[--ab NAME=VALUE,...] [--tolerance PCT]``
 
 Renders (or reuses) ``many_sources.py``'s scene, finds its regions as ``lfcam distance``
 does, and fits each named region's ``lenslet`` measurement once to warm up and once counted:
@@ -10,12 +10,14 @@ belongs to (``point``, ``line``) and the model's role there, read from the calli
 names (``scan``, ``coarse``, ``fine``, ``turned``, ``polish``, ``summary_model``;
 ``scan_model``, ``coarse``, ``fine``, the settled test's ``turned`` and the refit's
 ``refined``), and with the helper that called it (``_match_summary``, ``_polish_floor``,
-``_settled``, a Jacobian ``jac`` …). Prints one table a region: the model rays (points ×
+``_settled``, a Jacobian ``jac``, the solver's ``gauss_newton_fixed`` or
+``levenberg_marquardt`` …). Prints one table a region: the model rays (points ×
 pupil samples, as :func:`lfcam.measure.fastfit.counting_rays` counts them) and the wall time
 of those evaluations, by stage, largest first; the rest of the region's CPU is the fit's own
 arithmetic. The roles come from the fits' local names, not their line numbers, so the table
 survives edits of the fit (docs/distance.md, "A large line's coarse stage on super-cells
-(stop 76)"). ``--ab`` sets fastfit constants for the counted fit (as ``many_sources.py``).
+(stop 76)"). ``--ab`` sets fastfit constants for the counted fit (as ``many_sources.py``);
+``--tolerance PCT`` fits as ``lfcam distance --method lenslet --tolerance PCT`` does.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,11 +42,13 @@ import many_sources as ms  # noqa: E402
 
 from lfcam.measure import fastfit as ff  # noqa: E402
 from lfcam.measure.regions import nearby_regions  # noqa: E402
+from lfcam.models import auto  # noqa: E402
 
 FITS = {"point_fit_stages": "point", "fit_lenslet_line": "line"}
 HELPERS = ("_starts", "_match_summary", "_recentre", "_recentre_coarse", "first_look",
            "_polish_floor", "_settled", "_profile_sigma", "scanned_starts", "oriented",
-           "settled_early", "_refit_start", "jac", "pixel_polish")
+           "settled_early", "_refit_start", "jac", "pixel_polish", "gauss_newton_fixed",
+           "levenberg_marquardt")
 
 
 def _role(model, names: dict) -> str:
@@ -78,7 +83,12 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / ".cache")
     ap.add_argument("--ab", default="", metavar="NAME=VALUE,...",
                     help="fastfit constants set for the fits")
+    ap.add_argument("--tolerance", type=float, default=None, metavar="PCT",
+                    help="each fit with this tolerance (as lfcam distance --method lenslet "
+                         "--tolerance PCT)")
     args = ap.parse_args()
+    accept = (None if args.tolerance is None
+              else partial(auto.lenslet_answer_meets, tolerance_pct=args.tolerance))
     wanted = [int(v) for v in args.regions.split(",") if v.strip()]
     settings = {}
     for item in filter(None, args.ab.split(",")):
@@ -111,13 +121,14 @@ def main() -> None:
 
     for rid in wanted:
         reg = by_id[rid]
-        ff.measure_lenslet(prof, geom, img, reg, noise, others=near[rid])  # warm up
+        ff.measure_lenslet(prof, geom, img, reg, noise, others=near[rid], accept=accept)  # warm up
         rays.clear()
         spent.clear()
         ff.LensletModel._simulate = counted
         try:
             cpu = time.process_time()
-            m = ff.measure_lenslet(prof, geom, img, reg, noise, others=near[rid])
+            m = ff.measure_lenslet(prof, geom, img, reg, noise, others=near[rid],
+                                      accept=accept)
             cpu = time.process_time() - cpu
         finally:
             ff.LensletModel._simulate = simulate
