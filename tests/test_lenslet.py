@@ -977,3 +977,48 @@ def test_a_lines_coarse_stage_on_super_cells_lands_on_the_truth(name, system, mo
     err = d - truth["distance_mm"]
     assert abs(err) < 3.0 * fit.sigma_distance_mm
     assert abs(err) < 5e-4 * truth["distance_mm"]
+
+
+@pytest.mark.parametrize(("name", "system"), [("line_system1_300mm", "system1"),
+                                              ("line_double_gauss_1500mm", "double_gauss")])
+def test_a_line_on_super_cells_ends_where_the_tolerance_accepts_it(name, system, monkeypatch):
+    # fastfit.LINE_FINE_BY_TOLERANCE: with a tolerance, a line on super-cells ends after its
+    # fine Gauss–Newton steps where the answer there (the linear step to the fine and the
+    # turned samples' mean minimum), with half the two samples' shift in its σ, meets it:
+    # no Levenberg–Marquardt, settled test or refit. Forced onto the seed's small
+    # ray-sampled lines (LINE_BIN_MIN_LIT 0, as the super-cells' own test): at 1 % each
+    # ends there, within 3σ of the rendered truth and of the full fit's answer, its σ under
+    # a fifth of 1 % (auto.LENSLET_ACCEPT_SIGMAS); a tolerance that accepts nothing leaves
+    # the full fit's answer bit for bit
+    from functools import partial
+
+    from lfcam.measure import fastfit as ff
+    from lfcam.models import auto
+
+    img, prof, cal, geom, truth = _capture(name, system)
+    reg = _region(img, geom)
+    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    monkeypatch.setattr(ff, "LINE_BIN_MIN_LIT", 0)
+    full = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
+    refused = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom, accept=lambda d, s: False)
+    assert np.array_equal(refused.source_mm, full.source_mm)
+    assert refused.sigma_distance_mm == full.sigma_distance_mm
+    # (the check costs at most the turned sample's one evaluation: its Jacobian is the
+    # Levenberg–Marquardt's first)
+    assert refused.evaluations <= full.evaluations + 1
+    with ff.counting_rays() as rays:
+        quick = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom,
+                                    accept=partial(auto.lenslet_answer_meets,
+                                                   tolerance_pct=1.0))
+    with ff.counting_rays() as rays_full:
+        ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
+    # (no more rays: on these small blurs the full fit's Levenberg–Marquardt settles at its
+    # first step, so both read the same evaluations; scene (b)'s large lines save 8-54 %,
+    # docs/distance.md, "A line on super-cells that ends where the tolerance accepts it")
+    assert quick.ok and rays[0] <= rays_full[0]
+    z = ff.SourceFrame(prof).z_front
+    d, d_full = z - quick.source_mm[2], z - full.source_mm[2]
+    assert quick.sigma_distance_mm <= 0.01 * 1.0 * d / auto.LENSLET_ACCEPT_SIGMAS
+    assert quick.sigma_distance_mm > full.sigma_distance_mm  # (the spared shift's share)
+    assert abs(d - truth["distance_mm"]) < 3.0 * quick.sigma_distance_mm
+    assert abs(d - d_full) < 3.0 * quick.sigma_distance_mm

@@ -305,6 +305,11 @@ LINE_BIN = 2  # a ray-sampled line blur lighting LINE_BIN_MIN_LIT lenslets or mo
 #                lenslet (docs/distance.md, "A large line's coarse stage on super-cells (stop
 #                76)"); 1: no super-cells
 LINE_BIN_MIN_LIT = 200
+LINE_FINE_BY_TOLERANCE = True  # with a tolerance, a line on super-cells ends after its fine
+#                                Gauss–Newton steps where the caller accepts its answer there
+#                                (scene (b)'s 10 lines at 1 %: 12.4 -> 10.1 M rays; docs/
+#                                distance.md, "A line on super-cells that ends where the
+#                                tolerance accepts it (stop 77)")
 LINE_BIN_RAYS = 4.0
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
@@ -2041,6 +2046,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     the same region (a refit on its moments less a neighbour's light,
     :func:`measure_lenslet`'s ``start``): no distance scan and no summary matching; the
     stages from the coarse one on are the same.
+
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -2289,6 +2295,12 @@ def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) ->
     return np.column_stack([xy, np.full(count, z)])
 
 
+def _known_jacobian(q_known: np.ndarray, jac_known: np.ndarray, jac_of: Callable,
+                    q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``jac_of(q, r)``, or ``jac_known`` (already taken) where ``q`` is ``q_known``."""
+    return jac_known if np.array_equal(q, q_known) else jac_of(q, r)
+
+
 def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray):
     """The line model of ``count`` points (:func:`_line_points`): its residual function
     ``fun(q, bins=None)`` and its Jacobian ``jac(q, r, bins=None)`` (``r = fun(q, bins)``),
@@ -2447,7 +2459,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     is enough for the caller (its ``--tolerance``). A line whose settled test asks for the
     refit with more rays is not refitted when its σ, with the measured sampling shift and the
     line σ floor added in quadrature, is accepted; that σ is then the one it reports
-    (docs/distance.md, "A line's refit only where the tolerance needs it").
+    (docs/distance.md, "A line's refit only where the tolerance needs it"). A line on
+    super-cells (below) ends after its fine Gauss–Newton steps where the answer there (the
+    linear step to the fine and turned samples' mean minimum), with half the two samples'
+    shift in its σ, is accepted (:data:`LINE_FINE_BY_TOLERANCE`).
 
     A ray-sampled blur lighting :data:`LINE_BIN_MIN_LIT` lenslets or more runs its race, its
     coarse stage and the fine model's Gauss–Newton steps on 2 × 2 super-cells
@@ -2742,6 +2757,20 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
                           RegionStatus.POOR_FIT)
 
+    def line_fit_at(q: np.ndarray, r: np.ndarray, f: float, sigma_log: float,
+                    spared_log: float) -> LensletFit:
+        # the answer at q (residual r, cost f), its σ: the statistical ``sigma_log`` and a
+        # shift the fit was spared, in quadrature (log distance)
+        z = _line_points(frame, q, 2)[0, 2]
+        along = frame.z_rim - z
+        ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
+        sigma_d = math.exp(_log_distance(q)) * math.hypot(sigma_log, spared_log)
+        mid = 0.5 * (ends[0] + ends[1])
+        if _at_far_bound(q):
+            return LensletFit(mid, math.sqrt(f), sigma_d, evaluations(), False,
+                              RegionStatus.NO_SOLUTION, ends_mm=ends)
+        return LensletFit(mid, math.sqrt(f), sigma_d, evaluations(), True, ends_mm=ends)
+
     # the coarse model's own ray noise lowers its misfit too: it stops only well above it
     # (on super-cells, the misfit over every lenslet: the same moments)
     f_stop = f if bins is None else sq(fun_every(q))
@@ -2776,6 +2805,30 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             settling.append(turned)
             probe.append(line_model(turned, frame, n_pts, steps)[0])
         return probe[0]
+
+    jac_gn = None  # the fine model's Jacobian where its steps on the super-cells ended
+    if (bins is not None and accept is not None and LINE_FINE_BY_TOLERANCE
+            and math.sqrt(f) < useful_below):
+        # With a tolerance, the fit may end where the fine model's Gauss–Newton steps on the
+        # super-cells ended. The answer there: the linear step (the fine model's Jacobian) to
+        # the minimum of the fine and turned samples' mean, a model of twice the rays; its σ:
+        # the statistical one with half the two samples' shift in quadrature (the error of a
+        # two-sample mean is half their difference's, as a lone sample's is the whole
+        # difference's: the settled test's rule). Ends there where the caller accepts it
+        # (with the line σ floor); else the Jacobian is the Levenberg–Marquardt's first
+        # (docs/distance.md, "A line on super-cells that ends where the tolerance accepts it
+        # (stop 77)").
+        jac_gn = jac_f(q, r)
+        r_t = fun_turned()(q)
+        mean_step = linear_step(jac_gn, 0.5 * (r + r_t))
+        shift = linear_step(jac_gn, r_t - r)
+        if mean_step is not None and shift is not None:
+            q_mean = q - mean_step[0]
+            s_log = log_distance_sigma(jac_gn, r)
+            spared = 0.5 * abs(float(shift[0][0]))
+            if (math.isfinite(spared) and math.isfinite(s_log)
+                    and _accepted(accept, q_mean, s_log, spared, LINE_SIGMA_FLOOR_REL)):
+                return line_fit_at(q_mean, r, f, s_log, spared)
 
     early: list = []  # the settled test's shift, the log distance it was read at and the
     #                   refit's start, when read before the fine fit's last iteration
@@ -2813,7 +2866,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     if not fine.cells:
         q, r, f, jac_fine = levenberg_marquardt(
-            fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r, jac_of=jac_f,
+            fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r,
+            jac_of=jac_f if jac_gn is None else partial(_known_jacobian, q, jac_gn, jac_f),
             settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None,
             min_trial=LINE_REFIT_MIN_TRIAL_LOG if LINE_FINE_TRIAL_LATERAL > 0.0 else 0.0,
             trial_gain=1.0, trial_lateral=LINE_FINE_TRIAL_LATERAL)
@@ -2868,20 +2922,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             q, r, f = gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
                                          min_trial=LINE_REFIT_MIN_TRIAL_LOG)
             sigma_log = None
-    pts = _line_points(frame, q, 2)
-    z = pts[0, 2]
-    along = frame.z_rim - z
-    ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
-    dist = math.exp(_log_distance(q))
     if sigma_log is None:
         sigma_log = log_distance_sigma(jac, r)
-    sigma_d = dist * math.hypot(sigma_log, sampling_log)
-    total = evaluations()
-    mid = 0.5 * (ends[0] + ends[1])
-    if _at_far_bound(q):
-        return LensletFit(mid, math.sqrt(f), sigma_d, total, False, RegionStatus.NO_SOLUTION,
-                          ends_mm=ends)
-    return LensletFit(mid, math.sqrt(f), sigma_d, total, True, ends_mm=ends)
+    return line_fit_at(q, r, f, sigma_log, sampling_log)
 
 
 def _pixel_model(profile: CameraProfile, geom: Geometry, mom: LensletMoments, lit: np.ndarray,
