@@ -946,6 +946,20 @@ def test_fastfit_overrides_take_each_constants_type():
             focus_grid.fastfit_overrides(bad)
 
 
+def _small_line_on_super_cells(name, system, monkeypatch):
+    """A seed line capture (its image, profile, geometry, truth, region and the region's
+    moments) with the super-cells forced onto its small ray-sampled blur
+    (``fastfit.LINE_BIN_MIN_LIT`` 0)."""
+    from lfcam.measure import fastfit as ff
+
+    img, prof, cal, geom, truth = _capture(name, system)
+    reg = _region(img, geom)
+    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
+    assert ff.lit_lenslets(mom) < ff.LINE_BIN_MIN_LIT  # (not binned unless forced)
+    monkeypatch.setattr(ff, "LINE_BIN_MIN_LIT", 0)
+    return img, prof, geom, truth, reg, mom
+
+
 @pytest.mark.parametrize(("name", "system"), [("line_system1_300mm", "system1"),
                                               ("line_double_gauss_1500mm", "double_gauss")])
 def test_a_lines_coarse_stage_on_super_cells_lands_on_the_truth(name, system, monkeypatch):
@@ -957,10 +971,7 @@ def test_a_lines_coarse_stage_on_super_cells_lands_on_the_truth(name, system, mo
     # without super-cells −0.0051 % and −0.0011 %)
     from lfcam.measure import fastfit as ff
 
-    img, prof, cal, geom, truth = _capture(name, system)
-    reg = _region(img, geom)
-    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
-    assert ff.lit_lenslets(mom) < ff.LINE_BIN_MIN_LIT  # (not binned unless forced)
+    img, prof, geom, truth, reg, mom = _small_line_on_super_cells(name, system, monkeypatch)
     made = []
     of = ff.CellBins.of.__func__
 
@@ -968,7 +979,6 @@ def test_a_lines_coarse_stage_on_super_cells_lands_on_the_truth(name, system, mo
         made.append(of(cls, *args))
         return made[-1]
 
-    monkeypatch.setattr(ff, "LINE_BIN_MIN_LIT", 0)
     monkeypatch.setattr(ff.CellBins, "of", classmethod(spy))
     fit = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
     assert len(made) == 1 and made[0].count < 0.5 * len(mom.ids)
@@ -995,10 +1005,7 @@ def test_a_line_on_super_cells_ends_where_the_tolerance_accepts_it(name, system,
     from lfcam.measure import fastfit as ff
     from lfcam.models import auto
 
-    img, prof, cal, geom, truth = _capture(name, system)
-    reg = _region(img, geom)
-    mom = ff.data_moments(geom, img, ff._region_box(geom, reg, img.shape))
-    monkeypatch.setattr(ff, "LINE_BIN_MIN_LIT", 0)
+    img, prof, geom, truth, reg, mom = _small_line_on_super_cells(name, system, monkeypatch)
     full = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
     refused = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom, accept=lambda d, s: False)
     assert np.array_equal(refused.source_mm, full.source_mm)
@@ -1013,7 +1020,7 @@ def test_a_line_on_super_cells_ends_where_the_tolerance_accepts_it(name, system,
     with ff.counting_rays() as rays_full:
         ff.fit_lenslet_line(prof, geom, img, reg, mom=mom)
     # (no more rays: on these small blurs the full fit's Levenberg–Marquardt settles at its
-    # first step, so both read the same evaluations; scene (b)'s large lines save 8-54 %,
+    # first step, so both read the same evaluations; scene (b)'s large lines save 10-49 %,
     # docs/distance.md, "A line on super-cells that ends where the tolerance accepts it")
     assert quick.ok and rays[0] <= rays_full[0]
     z = ff.SourceFrame(prof).z_front
