@@ -305,12 +305,12 @@ LINE_BIN = 2  # a ray-sampled line blur lighting LINE_BIN_MIN_LIT lenslets or mo
 #                lenslet (docs/distance.md, "A large line's coarse stage on super-cells (stop
 #                76)"); 1: no super-cells
 LINE_BIN_MIN_LIT = 200
+LINE_BIN_RAYS = 4.0
 LINE_FINE_BY_TOLERANCE = True  # with a tolerance, a line on super-cells ends after its fine
 #                                Gauss–Newton steps where the caller accepts its answer there
 #                                (scene (b)'s 10 lines at 1 %: 12.4 -> 10.1 M rays; docs/
 #                                distance.md, "A line on super-cells that ends where the
 #                                tolerance accepts it (stop 77)")
-LINE_BIN_RAYS = 4.0
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
 LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log distances from
@@ -2046,7 +2046,6 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     the same region (a refit on its moments less a neighbour's light,
     :func:`measure_lenslet`'s ``start``): no distance scan and no summary matching; the
     stages from the coarse one on are the same.
-
     """
     if mom is None:
         mom = data_moments(geom, image, _region_box(geom, region, image.shape))
@@ -2814,8 +2813,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # the minimum of the fine and turned samples' mean, a model of twice the rays; its σ:
         # the statistical one with half the two samples' shift in quadrature (the error of a
         # two-sample mean is half their difference's, as a lone sample's is the whole
-        # difference's: the settled test's rule). Ends there where the caller accepts it
-        # (with the line σ floor); else the Jacobian is the Levenberg–Marquardt's first
+        # difference's: the settled test's rule); its misfit (and the residual of its σ) the
+        # fine model's where the steps ended. Ends there where the caller accepts it (with
+        # the line σ floor); else the Jacobian is the Levenberg–Marquardt's first
         # (docs/distance.md, "A line on super-cells that ends where the tolerance accepts it
         # (stop 77)").
         jac_gn = jac_f(q, r)
