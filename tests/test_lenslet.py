@@ -998,8 +998,8 @@ def test_a_line_on_super_cells_ends_where_the_tolerance_accepts_it(name, system,
     # no Levenberg–Marquardt, settled test or refit. Forced onto the seed's small
     # ray-sampled lines (LINE_BIN_MIN_LIT 0, as the super-cells' own test): at 1 % each
     # ends there, within 3σ of the rendered truth and of the full fit's answer, its σ under
-    # a fifth of 1 % (auto.LENSLET_ACCEPT_SIGMAS); a tolerance that accepts nothing leaves
-    # the full fit's answer bit for bit
+    # a fifth of 1 % (auto.LENSLET_ACCEPT_SIGMAS); a tolerance that accepts nothing, or a
+    # step to that minimum over LINE_EXIT_STEP_LOG, leaves the full fit's answer bit for bit
     from functools import partial
 
     from lfcam.measure import fastfit as ff
@@ -1029,3 +1029,9 @@ def test_a_line_on_super_cells_ends_where_the_tolerance_accepts_it(name, system,
     assert quick.sigma_distance_mm > full.sigma_distance_mm  # (the spared shift's share)
     assert abs(d - truth["distance_mm"]) < 3.0 * quick.sigma_distance_mm
     assert abs(d - d_full) < 3.0 * quick.sigma_distance_mm
+    # a linear step longer than LINE_EXIT_STEP_LOG is not taken: the fit goes on as without
+    # the exit (these lines' refit is not asked for, so as without a tolerance)
+    monkeypatch.setattr(ff, "LINE_EXIT_STEP_LOG", 0.0)
+    guarded = ff.fit_lenslet_line(prof, geom, img, reg, mom=mom,
+                                  accept=partial(auto.lenslet_answer_meets, tolerance_pct=1.0))
+    assert np.array_equal(guarded.source_mm, full.source_mm)

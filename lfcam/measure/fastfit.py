@@ -310,7 +310,10 @@ LINE_FINE_BY_TOLERANCE = True  # with a tolerance, a line on super-cells ends af
 #                                Gauss–Newton steps where the caller accepts its answer there
 #                                (scene (b)'s 10 lines at 1 %: 12.4 -> 10.1 M rays; docs/
 #                                distance.md, "A line on super-cells that ends where the
-#                                tolerance accepts it (stop 77)")
+#                                tolerance accepts it (stop 77)") ...
+LINE_EXIT_STEP_LOG = 0.01  # ... where its linear step to the two samples' mean minimum moves
+#                            the log distance by no more than this (scene (b): ≤ 0.0012; a
+#                            longer step is the linear model's to judge no more)
 LINE_CELLS_MIN_LIT = 100  # a line blur lighting this many lenslets or more is modelled with
 #                           samples fixed on the lenslet cells (LensletModel(cells=n)):
 LINE_CELLS_PROBE_LOG = (-0.12, 0.0, 0.22)  # ... where they apply at these log distances from
@@ -2822,7 +2825,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         r_t = fun_turned()(q)
         mean_step = linear_step(jac_gn, 0.5 * (r + r_t))
         shift = linear_step(jac_gn, r_t - r)
-        if mean_step is not None and shift is not None:
+        if (mean_step is not None and shift is not None
+                and abs(float(mean_step[0][0])) <= LINE_EXIT_STEP_LOG):
             q_mean = q - mean_step[0]
             s_log = log_distance_sigma(jac_gn, r)
             spared = 0.5 * abs(float(shift[0][0]))
