@@ -102,8 +102,9 @@ def add_tolerance(p: argparse.ArgumentParser) -> None:
     """``--tolerance PCT`` of the distance pipeline (``lfcam distance``, ``lfcam batch``)."""
     p.add_argument("--tolerance", type=positive_float, metavar="PCT",
                    help="allowed distance error in percent: --model auto and --method auto "
-                   "pick the cheapest that meets it; with --method lenslet or auto a line is "
-                   "refitted with more rays only where its σ would not (default: best)")
+                   "pick the cheapest that meets it; with --method lenslet or auto a fit "
+                   "stops where its answer's σ meets it (a point's polish, a line's refit, a "
+                   "large line's last iterations are skipped there) (default: best)")
 
 
 def add_no_verify(p: argparse.ArgumentParser) -> None:
