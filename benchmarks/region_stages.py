@@ -9,7 +9,7 @@ every :class:`lfcam.measure.fastfit.LensletModel` evaluation is tagged with the 
 belongs to (``point``, ``line``) and the model's role there, read from the calling fit's own
 names (``scan``, ``coarse``, ``fine``, ``turned``, ``polish``, ``summary_model``;
 ``scan_model``, ``coarse``, ``fine``, the settled test's ``turned`` and the refit's
-``refined``), and with the helper that called it (``_match_summary``, ``_polish_floor``,
+``refined``), and with the helper that called it (``_match_summary``, ``first_look``,
 ``_settled``, a Jacobian ``jac``, the solver's ``gauss_newton_fixed`` or
 ``levenberg_marquardt`` …). Prints one table a region: the model rays (points ×
 pupil samples, as :func:`lfcam.measure.fastfit.counting_rays` counts them) and the wall time
@@ -46,7 +46,7 @@ from lfcam.models import auto  # noqa: E402
 
 FITS = {"point_fit_stages": "point", "fit_lenslet_line": "line"}
 HELPERS = ("_starts", "_match_summary", "_recentre", "_recentre_coarse", "first_look",
-           "_polish_floor", "_settled", "_profile_sigma", "scanned_starts", "oriented",
+           "_settled", "_profile_sigma", "scanned_starts", "oriented",
            "settled_early", "_refit_start", "jac", "pixel_polish", "gauss_newton_fixed",
            "levenberg_marquardt")
 

@@ -195,7 +195,6 @@ def test_polish_floor_is_zero_where_a_linear_step_removes_most_of_the_misfit():
     def fun(q):
         return a @ q - b
 
-    steps = np.array([1e-3, 1e-3, 1e-3])
     for dq, unsettled in ((np.array([0.3, 0.0, 0.0]), True),
                           (np.array([0.003, 0.0, 0.0]), False)):
         q = q_min + dq
@@ -203,7 +202,7 @@ def test_polish_floor_is_zero_where_a_linear_step_removes_most_of_the_misfit():
         f = float(r @ r)
         gain = f - f_min  # what the step removes (exact: the model is linear)
         assert (gain > fastfit.POLISH_UNSETTLED * f) == unsettled
-        floor = fastfit._polish_floor(fun, None, q, r, r, 0.0, steps, jac=a)
+        floor = fastfit._polish_floor(r, 0.0, a)
         old = max(0.1 * math.sqrt(f), math.sqrt(max(f - max(5.0 * gain, 0.1 * f), 0.0)))
         assert floor == (0.0 if unsettled else pytest.approx(old, rel=1e-9))
 

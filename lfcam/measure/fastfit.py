@@ -661,9 +661,9 @@ class CellBins:
         """The super-cells of ``k`` × ``k`` cells of ``lattice`` over ``mom``'s lenslets."""
         c = geom.lens_centres_mm[mom.ids]
         ij = np.column_stack(lattice.cell_indices(c[:, 0], c[:, 1]))
-        _, index = np.unique(np.floor_divide(ij, k), axis=0, return_inverse=True)
+        blocks, index = np.unique(np.floor_divide(ij, k), axis=0, return_inverse=True)
         index = index.ravel()
-        count = int(index.max()) + 1 if index.size else 0
+        count = len(blocks)
         data = _bin_sums(mom.data, index, count)
         return cls(index, count, data, float(np.sqrt((data * data).sum())))
 
@@ -1843,27 +1843,24 @@ def point_steps(profile: CameraProfile, geom: Geometry, n_lit: int) -> np.ndarra
     return np.array([COARSE_STEPS[0], lateral, lateral])
 
 
-def _polish_floor(fun, fun_many, q: np.ndarray, r: np.ndarray, r_check: np.ndarray,
-                  bound_above: float, steps: np.ndarray, jac: np.ndarray | None = None
-                  ) -> float:
-    """The least misfit a polish of the fine fit ``q`` (residual ``r`` of ``fun``; ``r_check``
-    of the polishing model) can reach, bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
-    ``steps``: the fit's difference steps (:func:`point_steps`).
+def _polish_floor(r_check: np.ndarray, bound_above: float, jac: np.ndarray | None) -> float:
+    """The least misfit a polish of the fine fit can reach (``r_check``: the polishing model's
+    residual there), bounded below by ``(1 − POLISH_MAX_GAIN)`` × its misfit.
 
     Over ``bound_above`` the bound is raised by the Gauss–Newton step on ``r_check`` with the
-    fine model's own Jacobian at ``q`` (``jac``, when the caller has it; else by
-    differences): the polish removes at most ``POLISH_GAIN_SAFETY`` × the misfit² that linear
-    step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md, "The polish's reach").
-    Where that step removes over ``POLISH_UNSETTLED`` of the misfit² (1: never), the fit is
-    far from its own minimum and the bound is 0: the point is polished before a line is tried
-    (docs/distance.md, "An unsettled point is polished before a line (stop 60)").
+    fine model's own Jacobian at the fit (``jac``, which the caller takes there; read only
+    over ``bound_above``, None below it): the polish removes at most ``POLISH_GAIN_SAFETY`` ×
+    the misfit² that linear step predicts, or ``POLISH_GAIN_MIN`` of it (docs/distance.md,
+    "The polish's reach"). Where that step removes over ``POLISH_UNSETTLED`` of the misfit²
+    (1: never), the fit is far from its own minimum and the bound is 0: the point is polished
+    before a line is tried (docs/distance.md, "An unsettled point is polished before a line
+    (stop 60)").
     """
     f = sq(r_check)
     floor = (1.0 - POLISH_MAX_GAIN) * math.sqrt(f)
     if not math.sqrt(f) > bound_above:
         return floor
-    step_gain = linear_step(fd_jacobian(fun, fun_many, q, r, steps) if jac is None else jac,
-                            r_check)
+    step_gain = linear_step(jac, r_check)
     if step_gain is None:
         return floor
     gain = step_gain[1]
@@ -2180,8 +2177,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             jac_q = fine_jacobian(q, r)  # (the floor reads it only over bound_above)
         return LensletFit(frame.source(q), math.sqrt(sq(r_p)), math.nan, evaluations(),
                           not far, RegionStatus.NO_SOLUTION if far else "",
-                          polish_floor=_polish_floor(fun, many_of(fine), q, r, r_p,
-                                                     bound_above, steps, jac_q),
+                          polish_floor=_polish_floor(r_p, bound_above, jac_q),
                           model_misfit=model_misfit, coarse=coarse_stage), r_p
 
     if early and on_cells:
@@ -2297,17 +2293,12 @@ def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) ->
     return np.column_stack([xy, np.full(count, z)])
 
 
-def _known_jacobian(q_known: np.ndarray, jac_known: np.ndarray, jac_of: Callable,
-                    q: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """``jac_of(q, r)``, or ``jac_known`` (already taken) where ``q`` is ``q_known``."""
-    return jac_known if np.array_equal(q, q_known) else jac_of(q, r)
-
-
 def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray):
     """The line model of ``count`` points (:func:`_line_points`): its residual function
     ``fun(q, bins=None)`` and its Jacobian ``jac(q, r, bins=None)`` (``r = fun(q, bins)``),
     steps ``steps``; with ``bins`` (:class:`CellBins`) both on its super-cells, from the same
-    moments (the last few kept: a residual read both ways costs one evaluation).
+    moments (the last few kept: a residual read both ways costs one evaluation). The last
+    Jacobian is kept too: asked again at the same ``q`` and ``bins`` it costs nothing.
 
     The Jacobian is built from the points' own moments: every point shifted at once along x
     (then y) by the lateral step, each point's change weighted by its share of either
@@ -2385,7 +2376,12 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
         moves = [lateral(m[k], mt[k], m0, t0) for k in (0, 1)]
         return m[2], [[m0 + moves[k][end] for k in (0, 1)] for end in (0, 1)]
 
+    last_jac: list = []  # (q's bytes, bins, the Jacobian) of the last call
+
     def jac(q: np.ndarray, r: np.ndarray, bins: CellBins | None = None) -> np.ndarray:
+        key = q.tobytes()
+        if last_jac and last_jac[0] == key and last_jac[1] is bins:
+            return last_jac[2]
         pts = _line_points(frame, q, count)
         shift = steps[1] * (frame.z_rim - pts[0, 2])
         qd = q.copy()
@@ -2397,9 +2393,11 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
         got = (traced_ends(q, pts, shift, qd, m0, t0)
                if LINE_JACOBIAN_ENDS and model.cells and not model.folded else None)
         far, moved = got if got is not None else traced_points(pts, shift, qd, m0, t0)
-        return np.column_stack([(model.residual_of(far, bins) - r0) / steps[0],
-                                *[(model.residual_of(mk, bins) - r0) / steps[1]
-                                  for end in moved for mk in end]])
+        out = np.column_stack([(model.residual_of(far, bins) - r0) / steps[0],
+                               *[(model.residual_of(mk, bins) - r0) / steps[1]
+                                 for end in moved for mk in end]])
+        last_jac[:] = [key, bins, out]
+        return out
 
     def fun(q: np.ndarray, bins: CellBins | None = None) -> np.ndarray:
         return model.residual_of(moments(q)[0], bins)
@@ -2808,7 +2806,6 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             probe.append(line_model(turned, frame, n_pts, steps)[0])
         return probe[0]
 
-    jac_gn = None  # the fine model's Jacobian where its steps on the super-cells ended
     if (bins is not None and accept is not None and LINE_FINE_BY_TOLERANCE
             and math.sqrt(f) < useful_below):
         # With a tolerance, the fit may end where the fine model's Gauss–Newton steps on the
@@ -2818,9 +2815,9 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # two-sample mean is half their difference's, as a lone sample's is the whole
         # difference's: the settled test's rule); its misfit (and the residual of its σ) the
         # fine model's where the steps ended. Ends there where the caller accepts it (with
-        # the line σ floor); else the Jacobian is the Levenberg–Marquardt's first
-        # (docs/distance.md, "A line on super-cells that ends where the tolerance accepts it
-        # (stop 77)").
+        # the line σ floor); else the Jacobian (line_model keeps it) is the
+        # Levenberg–Marquardt's first (docs/distance.md, "A line on super-cells that ends
+        # where the tolerance accepts it (stop 77)").
         jac_gn = jac_f(q, r)
         r_t = fun_turned()(q)
         mean_step = linear_step(jac_gn, 0.5 * (r + r_t))
@@ -2870,8 +2867,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
 
     if not fine.cells:
         q, r, f, jac_fine = levenberg_marquardt(
-            fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r,
-            jac_of=jac_f if jac_gn is None else partial(_known_jacobian, q, jac_gn, jac_f),
+            fun, q, steps, LINE_FINE_LM_ITERATIONS, 1e-3, r0=r, jac_of=jac_f,
             settle_log=LINE_SETTLE_LOG, pause=settled_early if LINE_REFIT_EARLY else None,
             min_trial=LINE_REFIT_MIN_TRIAL_LOG if LINE_FINE_TRIAL_LATERAL > 0.0 else 0.0,
             trial_gain=1.0, trial_lateral=LINE_FINE_TRIAL_LATERAL)
