@@ -182,6 +182,28 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
     out[n, 3] += w * (dx * dx + dy * dy)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, col, row, w):
+    """:func:`_pixel` with no branch: a pixel outside the box or dark (label −1) adds its
+    share to the row ``spare`` instead (a row of ``out`` no caller reads), every other's
+    sums the same, bit for bit. ``labels`` not empty. A landing's four pixels are added this
+    way where they are not one lenslet's: the branches of four :func:`_pixel` calls, each a
+    coin toss, cost ~85 ns a landing (docs/distance.md, "A landing across a label border
+    without branches (stop 78)")."""
+    h, wd = labels.shape
+    inside = (col >= 0) & (col < wd) & (row >= 0) & (row < h)
+    k = labels[min(max(row, 0), h - 1), min(max(col, 0), wd - 1)]
+    valid = inside & (k >= 0)
+    kk = k if valid else 0
+    dx = (col + x0 - centres_px[kk, 0]) * inv_pitch
+    dy = (row + y0 - centres_px[kk, 1]) * inv_pitch
+    n = base + kk if valid else spare
+    out[n, 0] += w
+    out[n, 1] += w * dx
+    out[n, 2] += w * dy
+    out[n, 3] += w * (dx * dx + dy * dy)
+
+
 DEPOSIT_BLOCK = 256  # rays a block of deposit_moments' passes (its scratch stays in cache)
 # (a ray's share across a cell border: lfcam.measure.sampling.ray_share, RICHARDSON_*)
 
@@ -275,7 +297,7 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
     (:func:`_block_cells`, :func:`_block_landings`); the second adds them to the moments in
     the rays' order, as one pass did (the same sums, bit for bit)."""
     n_k = centres_px.shape[0]
-    out = np.zeros((groups * n_k, 4))
+    out = np.zeros((groups * n_k + 1, 4))  # (and _deposit_block's spare row)
     inv_pitch = 1.0 / pitch_px
     inv_pp = 1.0 / pp
     seps = _separations(basis)
@@ -298,7 +320,7 @@ def deposit_moments(x, y, sx, sy, wt, rows, spacing, group, groups, origin, basi
             bases[b] = group[rows[r]] * n_k
         _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect, la, lb,
                        seps, richardson, inv_pp, ax, ay, x0, y0, labels, centres_px, inv_pitch)
-    return out
+    return out[:-1]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -307,12 +329,16 @@ def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect,
     """The first ``k`` rays of a block (``ray`` rows as :func:`deposit_moments` fills them;
     ray ``b``'s moments at rows ``bases[b]`` + lenslet of ``out``) added to the moments: the
     passes with no branch on the ray (:func:`_block_cells`, :func:`_block_landings`), then
-    the sums in the rays' order."""
+    the sums in the rays' order. ``out``'s last row is a spare that takes the shares of
+    pixels outside the box or dark (:func:`_pixel_or_spare`): its callers do not return it."""
+    h, wd = labels.shape
+    if h == 0 or wd == 0:
+        return  # (nothing lands in an empty box)
+    spare = out.shape[0] - 1
     _block_cells(ray, cell, k, origin, inverse, basis, rect, la, lb, seps, richardson)
     for c in range(2):
         _block_landings(ray, cell, land[c], k, c, origin, basis, inv_pp, ax, ay, float(x0),
                         float(y0))
-    h, wd = labels.shape
     for b in range(k):
         base = bases[b]
         # the ray's share in its cell, then (share ≠ 0) in the neighbour's
@@ -360,17 +386,16 @@ def _deposit_block(out, ray, cell, land, bases, k, origin, basis, inverse, rect,
             # scan's and 11 % of a 380 mm line's: the early exits above, 80 -> 29 and
             # 40 -> 28 ns a ray: docs/distance.md, "Landings with nothing to add (stop
             # 52)")
-            _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, ir,
-                   w * (1 - ex) * (1 - ey))
-            if ex > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, ir,
-                       w * ex * (1 - ey))
-            if ey > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, ic, iny,
-                       w * (1 - ex) * ey)
-            if ex > 0 and ey > 0:
-                _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, inx, iny,
-                       w * ex * ey)
+            # (the four pixels, a share of 0 where the box does not reach over: the same
+            # sums; those outside the box or dark to the spare row)
+            _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, ic, ir,
+                            w * (1 - ex) * (1 - ey))
+            _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, inx, ir,
+                            w * ex * (1 - ey))
+            _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, ic, iny,
+                            w * (1 - ex) * ey)
+            _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, inx, iny,
+                            w * ex * ey)
 
 
 # glibc's mallopt parameters (malloc.h) and the values keep_large_buffers sets
@@ -965,7 +990,7 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
     m = points.shape[0]
     n_k = centres_px.shape[0]
     weighted = second.size > 0
-    out = np.zeros(((2 if weighted else 1) * groups * n_k, 4))
+    out = np.zeros(((2 if weighted else 1) * groups * n_k + 1, 4))  # (and a spare row)
     block = min(TRACE_BLOCK, max(rx.size, 1))
     scratch = np.empty((7, block))
     ok = np.empty(block, dtype=np.uint8)
@@ -1010,7 +1035,7 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
             if p + 1 < m and group[p + 1] == g:
                 c -= second[p + 1]
             _add_scaled(out, (groups + g) * n_k, g * n_k, n_k, c)
-    return out
+    return out[:-1]
 
 
 @njit(cache=True, nogil=True, inline="always")
