@@ -51,6 +51,10 @@ def load_baseline(path: Path):
     return module
 
 
+KERNELS = ("trace_deposit_moments", "deposit_moments", "trace_model_rays", "trace_sample_rays",
+           "cell_samples", "cell_centres", "cell_landings", "deposit_cells")
+
+
 def load_kernels(path: Path):
     """A ``measure_lenslet`` that runs this ``fastfit`` with the other file's compiled trace
     and deposit (``fastfit`` looks them up in ``lfcam.measure.kernels`` at each call)."""
@@ -68,8 +72,13 @@ def load_kernels(path: Path):
     other = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = other  # numba's on-disk cache finds the module by its name
     spec.loader.exec_module(other)
-    swap = {"deposit_moments": other.deposit_moments,
-            "trace_model_rays": other.trace_model_rays}
+    # every kernel fastfit calls that the other file has (its signatures must be this one's)
+    swap = {k: getattr(other, k) for k in KERNELS if hasattr(other, k)}
+    # every signature of both sides loaded (or compiled) before any region is timed: a line's
+    # first weighted evaluation compiled in its region took ~1-30 s of its time
+    kernels.warm_up()
+    if hasattr(other, "warm_up"):
+        other.warm_up()
 
     def measure(*args):
         mine = {k: getattr(kernels, k) for k in swap}
