@@ -982,11 +982,10 @@ def trace_deposit_moments(points, maps, turns, rx, ry, table, coef, front_z, rim
     in runs, a run's first point taking off its weight times the sums before it): one pass
     over the group's rows a point, ~3 % of a fine line model's deposit instead of ~30 %
     (docs/distance.md, "A line's weighted sums by parts (stop 78)"). The same sums as the
-    two calls, bit for bit; a
-    point's traced rays land straight in the deposit's blocks and are deposited while they
-    are still in cache, and no ray-sized array of the whole call is made (the two calls wrote
-    and read back ~56 bytes a ray: 44 → 35 ns a ray on system 1's far lines,
-    docs/distance.md, "The trace and the deposit in one pass (stop 59)")."""
+    two calls, bit for bit; a point's traced rays land straight in the deposit's blocks and
+    are deposited while they are still in cache, and no ray-sized array of the whole call is
+    made (the two calls wrote and read back ~56 bytes a ray: 44 → 35 ns a ray on system 1's
+    far lines, docs/distance.md, "The trace and the deposit in one pass (stop 59)")."""
     m = points.shape[0]
     n_k = centres_px.shape[0]
     weighted = second.size > 0
