@@ -183,6 +183,23 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _pixel_in_box(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
+    """:func:`_pixel` for a pixel of the box, with no branch: a dark one (label −1) adds 0
+    to the lenslet at ``base`` (the same sums, bit for bit: x + 0 = x)."""
+    k = labels[row, col]
+    dark = k < 0
+    kk = 0 if dark else k
+    ww = 0.0 if dark else w
+    dx = (col + x0 - centres_px[kk, 0]) * inv_pitch
+    dy = (row + y0 - centres_px[kk, 1]) * inv_pitch
+    n = base + kk
+    out[n, 0] += ww
+    out[n, 1] += ww * dx
+    out[n, 2] += ww * dy
+    out[n, 3] += ww * (dx * dx + dy * dy)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, col, row, w):
     """:func:`_pixel` with no branch: a pixel outside the box or dark (label −1) adds its
     share to the row ``spare`` instead (a row of ``out`` no caller reads), every other's
@@ -2295,6 +2312,6 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
                     _pixel_shares(qy, sya, syb, s_lo, s_hi, wys)
                     for row in range(max(s_lo, 0), min(s_hi + 1, h)):
                         for col in range(max(q_lo, 0), min(q_hi + 1, wd)):
-                            _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row,
-                                   ws * wxs[col - q_lo] * wys[row - s_lo])
+                            _pixel_in_box(out, labels, centres_px, inv_pitch, x0, y0, base,
+                                          col, row, ws * wxs[col - q_lo] * wys[row - s_lo])
     return out
