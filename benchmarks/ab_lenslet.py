@@ -12,7 +12,8 @@ model), so the ratio is that module's alone, free of the machine's drift between
 ``--kernels OTHER/lfcam/measure/kernels.py`` instead: both sides run this ``fastfit``, the
 baseline with the other file's ray trace and moment deposit (the compiled kernels).
 ``--scene a|b``: the regions of ``benchmarks/many_sources.py``'s scene (rendered into
-``--workdir`` on first use) instead of the seed grid; per region kind the CPU ms of both sides,
+``--workdir`` on first use; each fitted with its neighbours' lenslets left out, as ``lfcam
+distance`` fits it) instead of the seed grid; per region kind the CPU ms of both sides,
 and the largest change of a distance between them (the scene's errors: ``many_sources.py``).
 """
 
@@ -39,7 +40,7 @@ from lfcam.distance import _apply_model  # noqa: E402
 from lfcam.measure import fastfit, noise_sigma, prepare_geometry  # noqa: E402
 from lfcam.measure.lenslets import lenslet_stats  # noqa: E402
 from lfcam.measure.noise import capture_noise  # noqa: E402
-from lfcam.measure.regions import find_regions  # noqa: E402
+from lfcam.measure.regions import find_regions, nearby_regions  # noqa: E402
 
 
 def load_baseline(path: Path):
@@ -80,12 +81,12 @@ def load_kernels(path: Path):
     if hasattr(other, "warm_up"):
         other.warm_up()
 
-    def measure(*args):
+    def measure(*args, **kwargs):
         mine = {k: getattr(kernels, k) for k in swap}
         for k, v in swap.items():
             setattr(kernels, k, v)
         try:
-            return fastfit.measure_lenslet(*args)
+            return fastfit.measure_lenslet(*args, **kwargs)
         finally:
             for k, v in mine.items():
                 setattr(kernels, k, v)
@@ -109,15 +110,19 @@ def run_scene(name: str, workdir: Path, sides: dict) -> None:
     capture_noise(img, geom.lmap, geom.pitch_px, stats)  # the gates' noise model (cached)
     noise = noise_sigma(img)
     regions = find_regions(stats, geom.lmap, geom.pitch_px)
+    # each region with its neighbours' lenslets left out, as lfcam distance fits it (and
+    # many_sources.py --per-region); without them a box holding a neighbour's light tried two
+    # sources for ~0.8 s
+    near = nearby_regions(regions)
     for measure in sides.values():  # load the compiled code on both sides
-        measure(prof, geom, img, regions[0], noise)
+        measure(prof, geom, img, regions[0], noise, others=near[0])
     times = {k: [] for k in sides}
     dist = {k: [] for k in sides}
     kinds = []
-    for reg in regions:
+    for reg, others in zip(regions, near, strict=True):
         for side, measure in sides.items():
             t0 = time.process_time()
-            m = measure(prof, geom, img, reg, noise)
+            m = measure(prof, geom, img, reg, noise, others=others)
             times[side].append(1e3 * (time.process_time() - t0))
             _, ed, _, _, _ = _apply_model(prof, m, "exact", None)
             dist[side].append(ed if m.status == "ok" else np.nan)
