@@ -297,6 +297,11 @@ LINE_REFINE = 4.0  # ... it is refitted with this × the fine model's rays a poi
 #                      without the box's variance (stop 53)") ...
 LINE_REFINE_MAX_RAYS = 40000  # ... at most this many (docs/distance.md, "A line's settled test",
 #                               "A line's points, each with its own turn of the pupil sample")
+LINE_REFIT_ENDS = True  # ... and takes its Jacobian along the line from the line's two end
+#                          points (line_model's ``traced_ends``: two traces of the line and two
+#                          points, not three traces; system 1's 24 far lines −5 % CPU, mean |error|
+#                          0.187 % either way: docs/distance.md, "The refit's Jacobian from the
+#                          line's ends (stop 78)")
 LINE_BIN = 2  # a ray-sampled line blur lighting LINE_BIN_MIN_LIT lenslets or more: its coarse
 #                stage (race and leader) fits the moments summed over super-cells of this ×
 #                this lattice cells (:class:`CellBins`) on LINE_BIN_RAYS × fewer rays, and the
@@ -2293,7 +2298,8 @@ def _line_points(frame: SourceFrame, q: np.ndarray, count: int = LINE_POINTS) ->
     return np.column_stack([xy, np.full(count, z)])
 
 
-def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray):
+def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.ndarray,
+               ends_on_rays: bool = False):
     """The line model of ``count`` points (:func:`_line_points`): its residual function
     ``fun(q, bins=None)`` and its Jacobian ``jac(q, r, bins=None)`` (``r = fun(q, bins)``),
     steps ``steps``; with ``bins`` (:class:`CellBins`) both on its super-cells, from the same
@@ -2308,7 +2314,7 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
     (docs/distance.md, "A line's Jacobian from its points"). On the cells
     (:data:`LINE_JACOBIAN_ENDS`) the points are shifted across the line only, and the
     columns along it come from the line's two end points: two traces of the line and two
-    points.
+    points; on the rays too with ``ends_on_rays`` (a refit's model: :data:`LINE_REFIT_ENDS`).
     """
     t = (np.arange(count) + 0.5) / count  # each point's place along the line
     kept: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
@@ -2391,7 +2397,8 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
         # the moments at the distance step, and with either end moved along x and y (from
         # the ends on the cells only: a cells model that folded samples rays from then on)
         got = (traced_ends(q, pts, shift, qd, m0, t0)
-               if LINE_JACOBIAN_ENDS and model.cells and not model.folded else None)
+               if LINE_JACOBIAN_ENDS and ((model.cells and not model.folded) or ends_on_rays)
+               else None)
         far, moved = got if got is not None else traced_points(pts, shift, qd, m0, t0)
         out = np.column_stack([(model.residual_of(far, bins) - r0) / steps[0],
                                *[(model.residual_of(mk, bins) - r0) / steps[1]
@@ -2915,7 +2922,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             refined = model(min(int(LINE_REFINE * fine.rx.size), LINE_REFINE_MAX_RAYS), 1.0,
                             cells=LINE_CELLS_REFIT)
             settling.append(refined)
-            fun_r, jac_r = line_model(refined, frame, n_pts, steps)
+            fun_r, jac_r = line_model(refined, frame, n_pts, steps,
+                                      ends_on_rays=LINE_REFIT_ENDS)
             q, r = _refit_start(fun_r, q, f, early[2] if early else None)
             jac = jac_r(q, r)
             # (LINE_REFIT_MIN_TRIAL_LOG ≥ LINE_REFIT_STEP_LOG: no step under the latter either)
