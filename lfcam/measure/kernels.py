@@ -165,17 +165,11 @@ def _separations(b):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
-    """Add a pixel share ``w`` at (col, row) of the box to its lenslet's moments."""
-    h, wd = labels.shape
-    if col < 0 or col >= wd or row < 0 or row >= h:
-        return
-    k = labels[row, col]
-    if k < 0:
-        return
+def _add_pixel(out, n, k, centres_px, inv_pitch, x0, y0, col, row, w):
+    """Add a pixel share ``w`` at (col, row) of the box to row ``n`` of the moments, its
+    offsets about lenslet ``k``'s centre."""
     dx = (col + x0 - centres_px[k, 0]) * inv_pitch
     dy = (row + y0 - centres_px[k, 1]) * inv_pitch
-    n = base + k
     out[n, 0] += w
     out[n, 1] += w * dx
     out[n, 2] += w * dy
@@ -184,41 +178,33 @@ def _pixel(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_in_box(out, labels, centres_px, inv_pitch, x0, y0, base, col, row, w):
-    """:func:`_pixel` for a pixel of the box, with no branch: a dark one (label −1) adds 0
-    to the lenslet at ``base`` (the same sums, bit for bit: x + 0 = x)."""
+    """Add a pixel share ``w`` at (col, row), a pixel of the box, to its lenslet's moments
+    (rows ``base`` + lenslet), with no branch: a dark one (label −1) adds 0 to the lenslet
+    at ``base`` (the same sums, bit for bit: x + 0 = x). A cut cell's piece across a label
+    border is added this way (docs/distance.md, "A landing across a label border without
+    branches (stop 78)")."""
     k = labels[row, col]
     dark = k < 0
     kk = 0 if dark else k
-    ww = 0.0 if dark else w
-    dx = (col + x0 - centres_px[kk, 0]) * inv_pitch
-    dy = (row + y0 - centres_px[kk, 1]) * inv_pitch
-    n = base + kk
-    out[n, 0] += ww
-    out[n, 1] += ww * dx
-    out[n, 2] += ww * dy
-    out[n, 3] += ww * (dx * dx + dy * dy)
+    _add_pixel(out, base + kk, kk, centres_px, inv_pitch, x0, y0, col, row,
+               0.0 if dark else w)
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_or_spare(out, labels, centres_px, inv_pitch, x0, y0, base, spare, col, row, w):
-    """:func:`_pixel` with no branch: a pixel outside the box or dark (label −1) adds its
-    share to the row ``spare`` instead (a row of ``out`` no caller reads), every other's
+    """:func:`_pixel_in_box` for any pixel, in the box or not: one outside it or dark adds
+    its share to the row ``spare`` instead (a row of ``out`` no caller reads), every other's
     sums the same, bit for bit. ``labels`` not empty. A landing's four pixels are added this
-    way where they are not one lenslet's: the branches of four :func:`_pixel` calls, each a
-    coin toss, cost ~85 ns a landing (docs/distance.md, "A landing across a label border
-    without branches (stop 78)")."""
+    way where they are not one lenslet's: four calls that each branched on the box's bounds
+    and the label, coin tosses, cost ~85 ns a landing (docs/distance.md, "A landing across a
+    label border without branches (stop 78)")."""
     h, wd = labels.shape
     inside = (col >= 0) & (col < wd) & (row >= 0) & (row < h)
     k = labels[min(max(row, 0), h - 1), min(max(col, 0), wd - 1)]
     valid = inside & (k >= 0)
     kk = k if valid else 0
-    dx = (col + x0 - centres_px[kk, 0]) * inv_pitch
-    dy = (row + y0 - centres_px[kk, 1]) * inv_pitch
-    n = base + kk if valid else spare
-    out[n, 0] += w
-    out[n, 1] += w * dx
-    out[n, 2] += w * dy
-    out[n, 3] += w * (dx * dx + dy * dy)
+    _add_pixel(out, base + kk if valid else spare, kk, centres_px, inv_pitch, x0, y0, col,
+               row, w)
 
 
 DEPOSIT_BLOCK = 256  # rays a block of deposit_moments' passes (its scratch stays in cache)
