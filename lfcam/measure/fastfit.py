@@ -2395,7 +2395,8 @@ def line_model(model: LensletModel, frame: SourceFrame, count: int, steps: np.nd
         m0, t0 = moments(q)
         r0 = model.residual_of(m0, bins)  # = r
         # the moments at the distance step, and with either end moved along x and y (from
-        # the ends on the cells only: a cells model that folded samples rays from then on)
+        # the ends on the cells, where a cells model that folded samples rays from then on,
+        # and on the rays with ends_on_rays)
         got = (traced_ends(q, pts, shift, qd, m0, t0)
                if LINE_JACOBIAN_ENDS and ((model.cells and not model.folded) or ends_on_rays)
                else None)
@@ -2764,10 +2765,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         return LensletFit(nan3, stage_misfit, np.nan, evaluations(), False,
                           RegionStatus.POOR_FIT)
 
-    def line_fit_at(q: np.ndarray, r: np.ndarray, f: float, sigma_log: float,
+    def line_fit_at(q: np.ndarray, f: float, sigma_log: float,
                     spared_log: float) -> LensletFit:
-        # the answer at q (residual r, cost f), its σ: the statistical ``sigma_log`` and a
-        # shift the fit was spared, in quadrature (log distance)
+        # the answer at q (cost f), its σ: the statistical ``sigma_log`` and a shift the fit
+        # was spared, in quadrature (log distance)
         z = _line_points(frame, q, 2)[0, 2]
         along = frame.z_rim - z
         ends = (np.r_[q[1:3] * along, z], np.r_[q[3:5] * along, z])
@@ -2836,7 +2837,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             spared = 0.5 * abs(float(shift[0][0]))
             if (math.isfinite(spared) and math.isfinite(s_log)
                     and _accepted(accept, q_mean, s_log, spared, LINE_SIGMA_FLOOR_REL)):
-                return line_fit_at(q_mean, r, f, s_log, spared)
+                return line_fit_at(q_mean, f, s_log, spared)
 
     early: list = []  # the settled test's shift, the log distance it was read at and the
     #                   refit's start, when read before the fine fit's last iteration
@@ -2932,7 +2933,7 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
             sigma_log = None
     if sigma_log is None:
         sigma_log = log_distance_sigma(jac, r)
-    return line_fit_at(q, r, f, sigma_log, sampling_log)
+    return line_fit_at(q, f, sigma_log, sampling_log)
 
 
 def _pixel_model(profile: CameraProfile, geom: Geometry, mom: LensletMoments, lit: np.ndarray,
