@@ -592,6 +592,50 @@ def test_polish_ends_when_its_step_is_nothing():
     assert runs[0.0][1] >= runs[1e-6][1] + 5 + 3  # (measured 12; 16 with every repeat tried)
 
 
+def test_a_short_failed_trial_ends_the_fit():
+    # solve.levenberg_marquardt's ``fail_stop`` (the ray-sampled line's fine fit:
+    # fastfit.LINE_FINE_FAIL_STOP_LOG) on a linear residual with a rough term of 2e-3 that
+    # changes every 1e-4 in q (a model's own ray sample near its minimum): from the smooth
+    # part's minimum the first trial (a step under 1e-3) fails, and its damped repeats fail
+    # too (or one lands on a luckier rough cell: a move under 1e-3); with the rule the fit
+    # ends there after one trial, where it began. From a start 5 % away its steps are long:
+    # they reach the same minimum, and there the rule spares the damped repeat that failed
+    from lfcam.measure.solve import levenberg_marquardt
+
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(60, 3))
+    truth = np.array([0.3, -0.2, 0.1])
+    b = a @ truth + 1e-3 * rng.normal(size=60)
+    best = np.linalg.lstsq(a, b, rcond=None)[0]
+    rough = rng.normal(size=(97, 60))
+
+    def counted(log):
+        def fun(q):
+            log.append(q.copy())
+            cell = int(abs(np.floor(q / 1e-4)).sum()) % 97
+            return a @ q - b + 2e-3 * rough[cell]
+        return fun
+
+    def run(q0, fail_stop):
+        log: list = []
+        fun = counted(log)
+        q, r, f, _ = levenberg_marquardt(fun, q0, np.full(3, 1e-5), 6, 1e-9, r0=fun(q0),
+                                         jac_of=lambda q, r: a, fail_stop=fail_stop)
+        return q, f, len(log) - 1  # (the trials: the start's evaluation not counted)
+
+    start = best + np.array([3e-4, 0.0, 0.0])  # a few rough cells from the smooth minimum
+    q_stop, f_stop, n_stop = run(start, 1e-3)
+    q_all, f_all, n_all = run(start, 0.0)
+    assert n_stop == 1 and np.array_equal(q_stop, start)  # one trial, failed: at the start
+    assert n_all >= 3  # its damped repeats tried (measured 4)
+    assert abs(q_all[0] - start[0]) < 1e-3 and f_stop > 0  # ... which move it under 1e-3
+    far = best + np.array([0.05, -0.03, 0.02])
+    q1, f1, n1 = run(far, 1e-3)
+    q0, f0, n0 = run(far, 0.0)
+    assert np.array_equal(q1, q0) and f1 == f0 and n1 < n0  # (measured 3 and 4 trials)
+    assert np.linalg.norm(q1 - best) < 1e-3  # (the long steps reach the rough minimum)
+
+
 def _cube_with_floor_lm(max_iter, **rules):
     """solve.levenberg_marquardt on r(q) = (10 (q − 1)³, 5) from q = 0 (analytic Jacobian):
     (q, cost, the q of every evaluation)."""

@@ -290,6 +290,16 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     err_points, sigma_points = line_error()
     monkeypatch.setattr(ff, "LINE_REFIT_ENDS", True)
     assert abs(err_points) < 3.0 * sigma_points and abs(err - err_points) < 0.5 * sigma
+    # the refit's first step by its own Jacobian taken unevaluated (LINE_REFIT_TRUSTED)
+    # against its steps evaluated, as before stop 79: here, noise-free, the evaluated path
+    # takes a second step (0.062 % in distance) that the linear model of the first does not
+    # ask for: +0.085 % (σ 0.190 %) against +0.147 % (σ 0.190 %), within half a σ
+    # (docs/distance.md, "The refit's step by its own Jacobian, not evaluated (stop 79)")
+    monkeypatch.setattr(ff, "LINE_REFIT_TRUSTED", False)
+    err_evaluated, sigma_evaluated = line_error()
+    monkeypatch.setattr(ff, "LINE_REFIT_TRUSTED", True)
+    assert abs(err_evaluated) < 3.0 * sigma_evaluated and abs(err - err_evaluated) < 0.5 * sigma
+    assert abs(sigma / sigma_evaluated - 1.0) < 0.05
     monkeypatch.setattr(ff, "LINE_REFIT_EARLY", False)
     err_old, sigma_old = line_error()
     monkeypatch.setattr(ff, "LINE_REFIT_EARLY", True)
@@ -336,3 +346,27 @@ def test_line_whose_point_fit_runs_to_the_far_bound_is_still_tried(tmp_path):
     region = max(regions, key=lambda r: len(r.lenslets))
     first = next(ff.point_fit_stages(cam.used, cam.geom, img, region))
     assert not first.ok and first.reason == "no-solution" and first.misfit > 0.3
+
+
+def test_a_trusted_refit_step_ends_at_the_least_squares_minimum():
+    """:func:`lfcam.measure.fastfit._trusted_step` on a linear residual ``r(q) = A·q − b``:
+    its unevaluated step lands on the least-squares solution (numpy's ``lstsq``, an SVD) and
+    its predicted residual is the one evaluated there; a step longer than the trust bound, or
+    one under the refit's least trial, is not taken."""
+    import lfcam.measure.fastfit as ff
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(400, 5))
+    b = rng.normal(size=400)
+    q_min = np.linalg.lstsq(a, b, rcond=None)[0]
+    start = q_min + np.array([0.004, 0.01, -0.02, 0.003, 0.0])  # 0.4 % in log distance
+    r0 = a @ start - b
+    q, r, f = ff._trusted_step(start, r0, a)
+    assert np.allclose(q, q_min, rtol=0, atol=1e-9)
+    assert np.allclose(r, a @ q - b, rtol=0, atol=1e-9)
+    assert abs(f - float((a @ q_min - b) @ (a @ q_min - b))) < 1e-9
+    far = q_min + np.array([2.0 * ff.LINE_REFIT_TRUST_LOG, 0.0, 0.0, 0.0, 0.0])
+    assert ff._trusted_step(far, a @ far - b, a) is None  # (evaluated steps instead)
+    near = q_min + np.array([0.5 * ff.LINE_REFIT_MIN_TRIAL_LOG, 0.0, 0.0, 0.0, 0.0])
+    q_n, r_n, f_n = ff._trusted_step(near, a @ near - b, a)
+    assert np.array_equal(q_n, near) and abs(f_n - float(r_n @ r_n)) < 1e-9 * f_n

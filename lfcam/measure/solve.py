@@ -39,7 +39,8 @@ def levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_m
                         r0=None, jac0=None, broyden=False, jac_of=None, settle_log=0.0,
                         ftol=0.0, min_trial=0.0, trial_gain=0.0, stop_above=math.inf,
                         first_or_stop=False, pause=None, trial_lateral=0.0,
-                        confirm_above=math.inf, confirm_below=math.inf, confirm_jac=None):
+                        confirm_above=math.inf, confirm_below=math.inf, confirm_jac=None,
+                        fail_stop=0.0):
     """Levenberg–Marquardt on ``fun`` with forward differences of size ``steps``.
 
     ``fun_many`` (optional) evaluates a list of parameter vectors at once, as ``fun`` would
@@ -79,6 +80,10 @@ def levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_m
     the log distance (the last Jacobian taken by differences, the residual where it stands)
     is under this. ``confirm_jac`` (optional): ``confirm_jac(q)``, that Jacobian by the
     caller's rule.
+    ``fail_stop``: a trial that does not lower the cost while its step moves the log distance
+    by less than this (and, with ``trial_lateral``, each other parameter by less than that
+    share of its difference step) ends the fit where it stands: a step that short failing
+    is the model's own ray noise, and its damped repeats fail as well (0: never).
     ``pause`` (optional): ``pause(it, q, r, jac)``, called after iteration ``it`` (from 0)
     when another would follow (``jac``: the Jacobian that iteration stepped with); the fit
     ends there when it returns true.
@@ -140,6 +145,10 @@ def levenberg_marquardt(fun, q0, steps, max_iter=MAX_ITERATIONS, tol=1e-6, fun_m
                 break
             if first_or_stop and it == 0 and jac0 is not None:
                 settled = True  # (jac0's own first step failed: the fit ends where it began)
+                break
+            if abs(dq[0]) < fail_stop and (trial_lateral <= 0.0 or float(
+                    np.max(np.abs(dq[1:] / steps[1:]))) < trial_lateral):
+                settled = True
                 break
             failed = dq / steps
             lam *= 10
