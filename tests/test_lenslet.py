@@ -636,6 +636,50 @@ def test_a_short_failed_trial_ends_the_fit():
     assert np.linalg.norm(q1 - best) < 1e-3  # (the long steps reach the rough minimum)
 
 
+def test_a_points_settled_test_reads_the_turned_shift_from_linear_steps():
+    # fastfit._settled on linear residuals: the fine model r(q) = A·q − b and a turned sample
+    # whose minimum lies δ away (r_b = r − A·δ). Both Gauss–Newton fits land in one step, so
+    # the shift read from the two linear steps from the start (SETTLED_TURNED_LINEAR) is the
+    # distance between their landings: the same verdicts either side of SETTLED_LOG, with one
+    # evaluation of the turned sample instead of two (its start and its step)
+    import lfcam.measure.fastfit as ff
+
+    rng = np.random.default_rng(11)
+    a = 10.0 * rng.normal(size=(200, 3))
+    b = a @ np.array([0.2, 0.1, -0.1]) + 1e-4 * rng.normal(size=200)
+    q = np.linalg.lstsq(a, b, rcond=None)[0]
+    q_start = q + np.array([0.01, -0.002, 0.003])
+
+    def fun(x):
+        return a @ x - b
+
+    def fun_many(xs):
+        return [fun(x) for x in xs]
+
+    verdicts = {}
+    for shift in (0.4 * ff.SETTLED_LOG, 1.6 * ff.SETTLED_LOG):
+        delta = np.array([shift, 0.0, 0.0])
+        calls: list = []
+
+        def fun_b(x, delta=delta, calls=calls):
+            calls.append(1)
+            return a @ (x - delta) - b
+
+        for linear in (True, False):
+            calls.clear()
+            ff.SETTLED_TURNED_LINEAR = linear
+            try:
+                settled, _ = ff._settled(fun, fun_many, fun_b, q_start, q, fun(q), fun(q), a,
+                                         np.full(3, 1e-4), fun(q_start))
+            finally:
+                ff.SETTLED_TURNED_LINEAR = True
+            verdicts[shift, linear] = (settled, len(calls))
+    small, large = 0.4 * ff.SETTLED_LOG, 1.6 * ff.SETTLED_LOG
+    assert verdicts[small, True][0] and verdicts[small, False][0]
+    assert not verdicts[large, True][0] and not verdicts[large, False][0]
+    assert verdicts[small, True][1] == 1 and verdicts[small, False][1] == 2
+
+
 def _cube_with_floor_lm(max_iter, **rules):
     """solve.levenberg_marquardt on r(q) = (10 (q − 1)³, 5) from q = 0 (analytic Jacobian):
     (q, cost, the q of every evaluation)."""

@@ -424,6 +424,34 @@ def test_compiled_lenslet_sums_equal_bincount(monkeypatch):
     assert ref.pixels.sum() == int((labels >= 0).sum())
 
 
+def test_compiled_least_squares_sums_equal_numpy(monkeypatch):
+    # the fit's reductions (lfcam.measure.solve.sq, gram, jt; LensletModel.residual_of's
+    # scaled residual) by the compiled kernels against numpy's matrix products and the
+    # einsum path they replace: lengths not a multiple of their four partial sums, one to six
+    # parameters, a strided Jacobian (a column slice) and a model of zeros (scale 0)
+    from lfcam.measure import kernels, solve
+
+    rng = np.random.default_rng(12)
+    for n, p in ((1, 1), (7, 2), (4003, 5), (18_372, 3), (402, 6)):
+        jac = rng.normal(size=(n, p + 1))[:, 1:]  # (not contiguous)
+        r = rng.normal(size=n)
+        scale = np.abs(jac).max() ** 2 * n
+        np.testing.assert_allclose(solve.gram(jac), jac.T @ jac, rtol=0, atol=1e-13 * scale)
+        np.testing.assert_allclose(solve.jt(jac, r), jac.T @ r, rtol=0,
+                                   atol=1e-13 * np.abs(jac).max() * np.abs(r).max() * n)
+        assert solve.sq(r) == pytest.approx(float(r @ r), rel=1e-13)
+        monkeypatch.setattr(solve, "COMPILED_SUMS", False)
+        np.testing.assert_allclose(solve.gram(jac), jac.T @ jac, rtol=0, atol=1e-13 * scale)
+        monkeypatch.setattr(solve, "COMPILED_SUMS", True)
+    m = rng.normal(size=(500, 4))
+    data = 0.7 * m + 0.01 * rng.normal(size=(500, 4))
+    a = float((m * data).sum() / (m * m).sum())
+    np.testing.assert_allclose(kernels.scaled_residual(m, data, 2.5),
+                               ((data - a * m) / 2.5).ravel(), rtol=0, atol=1e-15)
+    assert np.array_equal(kernels.scaled_residual(np.zeros((3, 4)), data[:3], 2.0),
+                          (data[:3] / 2.0).ravel())
+
+
 def test_compiled_box_moments_equal_the_numpy_chain():
     # a region's data moments and noise sums in one compiled pass against the numpy chain
     # (nonzero, bincount): random labels with holes (−1) and a lenslet without pixels, a box

@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 
 from lfcam.camera import CameraProfile
+from lfcam.measure import solve as least_squares
 from lfcam.measure.base import (
     LINE_SIGMA_FLOOR_REL,
     Measurement,
@@ -213,6 +214,14 @@ SETTLED_LOG = 5e-4  # the fine fit has settled: two pupil phases agree on the di
 # move it by less than half of it
 SETTLED_GAIN = 0.05  # ... and lower the misfit² by less than this share, on a minimum whose
 SETTLED_SIGMA = 1e-3  # statistical σ (log distance) is under this: a shallower one is polished
+SETTLED_TURNED_LINEAR = True  # the turned sample's landing read from the two samples' linear
+#                                steps from the fine fit's start with its Jacobian (the shift
+#                                between their minima, as a line's settled test reads it), not
+#                                from its own evaluated Gauss–Newton steps: on scene (b)'s 55
+#                                points that reach it the same verdicts, the shift equal to the
+#                                landing's to 5e-16 (median; 1.9e-4 at most), one evaluation
+#                                fewer (docs/distance.md, "A point's settled test from the
+#                                linear steps (stop 79)")
 POLISH_NEAR_GATE = 1.0  # settled point fits are polished all the same when their misfit is
 # over this share of the line trigger or the poor-fit limit (the gates that read it; the
 # two-source try's, lfcam.distance, lies over the trigger on a capture with noise): the
@@ -1211,6 +1220,11 @@ class LensletModel:
         data, norm = self.mom.data, self.mom.norm
         if bins is not None:
             m, data, norm = _bin_sums(m, bins.index, bins.count), bins.data, bins.norm
+        if least_squares.COMPILED_SUMS:
+            from lfcam.measure.kernels import scaled_residual  # numba
+
+            return scaled_residual(np.ascontiguousarray(m, dtype=np.float64),
+                                   np.ascontiguousarray(data, dtype=np.float64), float(norm))
         mm = float((m * m).sum())
         a = float((m * data).sum()) / mm if mm > 0 else 0.0
         return ((data - a * m) / norm).ravel()
@@ -1914,7 +1928,8 @@ def _polish_floor(r_check: np.ndarray, bound_above: float, jac: np.ndarray | Non
 
 
 def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.ndarray,
-             r_check: np.ndarray, jac: np.ndarray, steps: np.ndarray) -> tuple[bool, np.ndarray]:
+             r_check: np.ndarray, jac: np.ndarray, steps: np.ndarray,
+             r_start: np.ndarray | None = None) -> tuple[bool, np.ndarray]:
     """Has the fine fit ``q`` (residual ``r`` of ``fun``) settled?
 
     Gauss–Newton with a fixed coarse Jacobian ``jac`` stops where that Jacobian, not the
@@ -1925,7 +1940,10 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
     misfit², the minimum must be sharp (statistical σ under :data:`SETTLED_SIGMA`: along the
     shallow valley of a dim or far source the 80 000-ray minimum was found 1.6 % from the
     fine one with both tests passed); and the same Gauss–Newton from ``q_start`` through the
-    turned pupil sample ``fun_b`` must land within :data:`SETTLED_LOG` of ``q``.
+    turned pupil sample ``fun_b`` must land within :data:`SETTLED_LOG` of ``q``. With
+    ``r_start`` (the fine model's residual at ``q_start``) and :data:`SETTLED_TURNED_LINEAR`
+    that landing is read from the two samples' linear steps from ``q_start`` with ``jac``: the
+    step on ``fun_b(q_start) − r_start`` (no step of the turned sample evaluated).
 
     Returns (settled, the fine model's Jacobian at ``q``).
     """
@@ -1945,6 +1963,9 @@ def _settled(fun, fun_many, fun_b, q_start: np.ndarray, q: np.ndarray, r: np.nda
         return False, jac_q
     if not math.sqrt(max(var, 0.0)) < SETTLED_SIGMA:
         return False, jac_q
+    if SETTLED_TURNED_LINEAR and r_start is not None:
+        shift = linear_step(jac, fun_b(q_start) - r_start)
+        return bool(shift is not None and abs(float(shift[0][0])) < SETTLED_LOG), jac_q
     q_b, _, _ = gauss_newton_fixed(fun_b, q_start, fun_b(q_start), jac, FINE_ITERATIONS,
                                    min_trial=FINE_MIN_TRIAL_LOG)
     return bool(abs(q_b[0] - q[0]) < SETTLED_LOG), jac_q
@@ -2170,7 +2191,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         q, r, f = _recentre_coarse(profile, geom, mom, frame, coarse, q, r, f)
     fun = fun_of(fine)
     q_c = q
-    r = fun(q_c)
+    r = r_c = fun(q_c)  # (r_c: the fine model's residual where its steps start)
     if on_cells and not coarse.cell_shape[2]:
         # a hexagonal lattice's borders cut n = 2's sub-cells, and its Jacobian is not fit
         # for the steps (as the line fit's): the fine model's own, for them and the rays'
@@ -2242,7 +2263,8 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         counted += [fine, polish]
         fun, fun_p = fun_of(fine), fun_of(polish)
         q_c = q
-        q, r, f = gauss_newton_fixed(fun, q_c, fun(q_c), jac, FINE_ITERATIONS,
+        r_c = fun(q_c)
+        q, r, f = gauss_newton_fixed(fun, q_c, r_c, jac, FINE_ITERATIONS,
                                      min_trial=FINE_MIN_TRIAL_LOG)
         r_fine = r
         r_p = fun_p(q)
@@ -2261,7 +2283,7 @@ def point_fit_stages(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         settled, jac_q = False, fine_jacobian(q, r) if from_fine else None
     else:
         settled, jac_q = _settled(fun, many_of(fine), fun_of(turned), q_c, q, r, r_p, jac,
-                                  steps)
+                                  steps, r_c)
     polished = not settled
     to_go = 0.0  # the linear step still to go to the polishing model's minimum (log distance),
     #              kept in σ where the caller accepts the fine fit with it

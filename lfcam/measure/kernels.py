@@ -483,6 +483,10 @@ def warm_up() -> None:
     cell_landings(np.zeros(4, dtype=np.int64), np.ones(4), np.zeros(4), np.zeros(4),
                   np.ones(4), 1, np.zeros((4, 2)))
     moments_summary(np.ones((1, 4)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64), 1.0)
+    gram_of(np.zeros((4, 2)))
+    jt_of(np.zeros((4, 2)), np.zeros(4))
+    sq_of(np.zeros(4))
+    scaled_residual(np.ones((1, 4)), np.ones((1, 4)), 1.0)
 
 
 def warm_up_frame() -> None:
@@ -2300,4 +2304,107 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
                         for col in range(max(q_lo, 0), min(q_hi + 1, wd)):
                             _pixel_in_box(out, labels, centres_px, inv_pitch, x0, y0, base,
                                           col, row, ws * wxs[col - q_lo] * wys[row - s_lo])
+    return out
+
+
+# ----------------------------------------------------------------------- least-squares sums
+# A fit's reductions over its residuals (~10⁴: four moments a lenslet of a region's box) in
+# four interleaved partial sums, added in a fixed order: einsum's generic loop for JᵀJ of a
+# tall, thin Jacobian cost 105-420 µs a call (5-8 × these), and BLAS is not used for them
+# (its threads woke for each: docs/distance.md, "Threaded BLAS"; "The fit's sums compiled
+# (stop 79)").
+
+
+@njit(cache=True, nogil=True)
+def gram_of(a):
+    """``aᵀa`` of a tall ``(n, p)`` array."""
+    n, p = a.shape
+    out = np.empty((p, p))
+    m = n - n % 4
+    for i in range(p):
+        for j in range(i, p):
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for k in range(0, m, 4):
+                s0 += a[k, i] * a[k, j]
+                s1 += a[k + 1, i] * a[k + 1, j]
+                s2 += a[k + 2, i] * a[k + 2, j]
+                s3 += a[k + 3, i] * a[k + 3, j]
+            for k in range(m, n):
+                s0 += a[k, i] * a[k, j]
+            s = (s0 + s1) + (s2 + s3)
+            out[i, j] = s
+            out[j, i] = s
+    return out
+
+
+@njit(cache=True, nogil=True)
+def jt_of(a, r):
+    """``aᵀr`` of a tall ``(n, p)`` array and ``(n,)`` vector."""
+    n, p = a.shape
+    out = np.empty(p)
+    m = n - n % 4
+    for i in range(p):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        for k in range(0, m, 4):
+            s0 += a[k, i] * r[k]
+            s1 += a[k + 1, i] * r[k + 1]
+            s2 += a[k + 2, i] * r[k + 2]
+            s3 += a[k + 3, i] * r[k + 3]
+        for k in range(m, n):
+            s0 += a[k, i] * r[k]
+        out[i] = (s0 + s1) + (s2 + s3)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def sq_of(r):
+    """``Σ r²`` of a vector."""
+    n = r.size
+    m = n - n % 4
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    for k in range(0, m, 4):
+        s0 += r[k] * r[k]
+        s1 += r[k + 1] * r[k + 1]
+        s2 += r[k + 2] * r[k + 2]
+        s3 += r[k + 3] * r[k + 3]
+    for k in range(m, n):
+        s0 += r[k] * r[k]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(cache=True, nogil=True)
+def scaled_residual(m, data, norm):
+    """``(data − a·m) / norm`` raveled (``(K, 4)`` C-ordered moments each), ``a = Σ m·data /
+    Σ m²`` the best scale of the model (0 where ``Σ m² = 0``):
+    :meth:`lfcam.measure.fastfit.LensletModel.residual_of`."""
+    mv = m.reshape(m.size)
+    dv = data.reshape(data.size)
+    n = mv.size
+    top = n - n % 2
+    mm0 = 0.0
+    mm1 = 0.0
+    md0 = 0.0
+    md1 = 0.0
+    for k in range(0, top, 2):
+        mm0 += mv[k] * mv[k]
+        md0 += mv[k] * dv[k]
+        mm1 += mv[k + 1] * mv[k + 1]
+        md1 += mv[k + 1] * dv[k + 1]
+    for k in range(top, n):
+        mm0 += mv[k] * mv[k]
+        md0 += mv[k] * dv[k]
+    s_mm = mm0 + mm1
+    a = (md0 + md1) / s_mm if s_mm > 0 else 0.0
+    out = np.empty(n)
+    for k in range(n):
+        out[k] = (dv[k] - a * mv[k]) / norm
     return out

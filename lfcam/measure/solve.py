@@ -14,18 +14,36 @@ import numpy as np
 MAX_ITERATIONS = 12  # Levenberg–Marquardt's iterations, unless the caller says
 
 
+COMPILED_SUMS = True  # the fit's sums by lfcam.measure.kernels (gram_of, jt_of, sq_of), not
+#                       einsum (5-8 × slower on JᵀJ; docs/distance.md, "The fit's sums compiled
+#                       (stop 79)")
+
+
 def sq(r: np.ndarray) -> float:
     """Σ r² of a vector."""
+    if COMPILED_SUMS:
+        from lfcam.measure.kernels import sq_of  # numba
+
+        return float(sq_of(np.ascontiguousarray(r, dtype=np.float64)))
     return float(np.einsum("i,i->", r, r))
 
 
 def gram(jac: np.ndarray) -> np.ndarray:
     """JᵀJ of a tall Jacobian."""
+    if COMPILED_SUMS:
+        from lfcam.measure.kernels import gram_of  # numba
+
+        return gram_of(np.ascontiguousarray(jac, dtype=np.float64))
     return np.einsum("ki,kj->ij", jac, jac)
 
 
 def jt(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Jᵀr."""
+    if COMPILED_SUMS:
+        from lfcam.measure.kernels import jt_of  # numba
+
+        return jt_of(np.ascontiguousarray(jac, dtype=np.float64),
+                     np.ascontiguousarray(r, dtype=np.float64))
     return np.einsum("ki,k->i", jac, r)
 
 
