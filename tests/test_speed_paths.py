@@ -548,14 +548,17 @@ def test_robust_sigma_matches_the_true_spread_of_a_heteroscedastic_fit():
     assert np.mean(classical) < 0.75 * true_sigma  # what the classical σ states (0.67×)
 
 
-def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets(compiled, monkeypatch):
     # the same shape, but the distance fixed by a few of 40 lenslets (Jacobian rows 0.02-3,
     # geometric) that are also the noisiest: the fit follows their noise, their residuals
     # show only part of it, and the sandwich Σ g_k g_kᵀ averages to 0.76× the analytic σ.
     # The delete-one-lenslet jackknife must average to it within 10 % (it states 1.04×), and
     # equal the parameter change of refits that leave each lenslet out (its definition)
+    from lfcam.measure import solve
     from lfcam.measure.solve import jackknife_variance, log_distance_sigma
 
+    monkeypatch.setattr(solve, "COMPILED_SUMS", compiled)  # (kernels.jackknife_deltas, or numpy)
     rng = np.random.default_rng(7)
     k, p = 40, 3
     jac = rng.normal(size=(4 * k, p)) * np.repeat(np.geomspace(0.02, 3.0, k), 4)[:, None]
@@ -583,12 +586,15 @@ def test_jackknife_sigma_covers_a_fit_fixed_by_a_few_bright_lenslets():
     np.testing.assert_allclose(jackknife_variance(jac, r, inv), ref, rtol=1e-8)
 
 
-def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_jackknife_caps_only_a_lenslet_that_fixes_a_parameter_alone(compiled, monkeypatch):
     # one lenslet of 12 carries most of the first parameter (leverage over LEVERAGE_CAP): its
     # term is the capped one (eigenvalues of H_k cut to the cap); every other lenslet's term
     # is still its exact leave-one-out refit (the plain solve, no eigen-decomposition)
+    from lfcam.measure import solve
     from lfcam.measure.solve import LEVERAGE_CAP, gram, jackknife_variance
 
+    monkeypatch.setattr(solve, "COMPILED_SUMS", compiled)  # (kernels.jackknife_deltas, or numpy)
     rng = np.random.default_rng(11)
     k, p = 12, 3
     jac = rng.normal(size=(4 * k, p))

@@ -487,6 +487,7 @@ def warm_up() -> None:
     jt_of(np.zeros((4, 2)), np.zeros(4))
     sq_of(np.zeros(4))
     scaled_residual(np.ones((1, 4)), np.ones((1, 4)), 1.0)
+    jackknife_deltas(np.ones((4, 1)), np.zeros(4), np.ones((1, 1)), 0.95)
 
 
 def warm_up_frame() -> None:
@@ -2408,3 +2409,70 @@ def scaled_residual(m, data, norm):
     for k in range(n):
         out[k] = (dv[k] - a * mv[k]) / norm
     return out
+
+
+@njit(cache=True, nogil=True)
+def jackknife_deltas(jac, r, inv, cap):
+    """:func:`lfcam.measure.solve.jackknife_variance`'s parameter changes ``δ_k`` of the
+    lenslets whose leverage ``H_k`` has a trace under ``cap`` (``(I − H_k)⁻¹ r_k`` by a 4 × 4
+    Cholesky solve: ``I − H_k`` is positive definite there), as rows of ``(K, p)``; and a flag
+    for each lenslet left to the caller (its row 0): those whose eigenvalues may need the cap.
+    ``jac`` ``(4K, p)``, ``r`` ``(4K,)``, ``inv`` ``(JᵀJ)⁻¹``."""
+    n, p = jac.shape
+    k_n = n // 4
+    d = np.zeros((k_n, p))
+    capped = np.zeros(k_n, dtype=np.bool_)
+    a = np.empty((4, p))
+    m = np.empty((4, 4))
+    x = np.empty(4)
+    t = np.empty(p)
+    for k in range(k_n):
+        o = 4 * k
+        for i in range(4):  # A = J_k (JᵀJ)⁻¹
+            for j in range(p):
+                s = 0.0
+                for q in range(p):
+                    s += jac[o + i, q] * inv[q, j]
+                a[i, j] = s
+        trace = 0.0
+        for i in range(4):  # I − H_k, H_k = A J_kᵀ (lower triangle)
+            for j in range(i + 1):
+                s = 0.0
+                for q in range(p):
+                    s += a[i, q] * jac[o + j, q]
+                m[i, j] = (1.0 if i == j else 0.0) - s
+            trace += 1.0 - m[i, i]
+        if not trace < cap:
+            capped[k] = True
+            continue
+        for j in range(4):  # Cholesky, in place (lower)
+            s = m[j, j]
+            for q in range(j):
+                s -= m[j, q] * m[j, q]
+            m[j, j] = math.sqrt(s)
+            for i in range(j + 1, 4):
+                s = m[i, j]
+                for q in range(j):
+                    s -= m[i, q] * m[j, q]
+                m[i, j] = s / m[j, j]
+        for i in range(4):  # forward, then back substitution
+            s = r[o + i]
+            for q in range(i):
+                s -= m[i, q] * x[q]
+            x[i] = s / m[i, i]
+        for i in range(3, -1, -1):
+            s = x[i]
+            for q in range(i + 1, 4):
+                s -= m[q, i] * x[q]
+            x[i] = s / m[i, i]
+        for j in range(p):  # δ_k = (J_kᵀ x) (JᵀJ)⁻¹
+            s = 0.0
+            for i in range(4):
+                s += jac[o + i, j] * x[i]
+            t[j] = s
+        for j in range(p):
+            s = 0.0
+            for q in range(p):
+                s += t[q] * inv[q, j]
+            d[k, j] = s
+    return d, capped

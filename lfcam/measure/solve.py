@@ -240,6 +240,23 @@ def jackknife_variance(jac: np.ndarray, r: np.ndarray, inv: np.ndarray) -> np.nd
     parameter does not make the variance infinite."""
     n, p = jac.shape
     k = n // 4
+    if COMPILED_SUMS:
+        # the lenslets under the cap by a compiled 4 × 4 solve each; the others below
+        from lfcam.measure.kernels import gram_of, jackknife_deltas  # numba
+
+        jac_c = np.ascontiguousarray(jac, dtype=np.float64)
+        d, capped = jackknife_deltas(jac_c, np.ascontiguousarray(r, dtype=np.float64),
+                                     np.ascontiguousarray(inv, dtype=np.float64),
+                                     LEVERAGE_CAP)
+        if capped.any():
+            jk = jac_c.reshape(k, 4, p)[capped]
+            h = (jk @ inv) @ jk.transpose(0, 2, 1)
+            lam, vec = np.linalg.eigh(h)
+            shrink = 1.0 / (1.0 - np.minimum(lam, LEVERAGE_CAP))
+            x = np.einsum("kab,kb->ka", vec,
+                          shrink * np.einsum("kcb,kc->kb", vec, r.reshape(k, 4)[capped]))
+            d[capped] = np.einsum("kaq,ka->kq", jk, x) @ inv
+        return (k - 1) / k * gram_of(d)
     jk = jac.reshape(k, 4, p)
     rk = r.reshape(k, 4)
     h = (jk @ inv) @ jk.transpose(0, 2, 1)
