@@ -370,3 +370,9 @@ def test_a_trusted_refit_step_ends_at_the_least_squares_minimum():
     near = q_min + np.array([0.5 * ff.LINE_REFIT_MIN_TRIAL_LOG, 0.0, 0.0, 0.0, 0.0])
     q_n, r_n, f_n = ff._trusted_step(near, a @ near - b, a)
     assert np.array_equal(q_n, near) and abs(f_n - float(r_n @ r_n)) < 1e-9 * f_n
+    # the cells' fine step (LINE_CELLS_TRUSTED) with its own shortest step: taken over it
+    cells = q_min + np.array([2.0 * ff.LINE_CELLS_FINE_STEP_LOG, 0.0, 0.0, 0.0, 0.0])
+    q_c, _, _ = ff._trusted_step(cells, a @ cells - b, a, ff.LINE_CELLS_FINE_STEP_LOG)
+    assert np.allclose(q_c, q_min, rtol=0, atol=1e-9)
+    q_s, _, _ = ff._trusted_step(cells, a @ cells - b, a, 3.0 * ff.LINE_CELLS_FINE_STEP_LOG)
+    assert np.array_equal(q_s, cells)

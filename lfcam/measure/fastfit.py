@@ -389,6 +389,11 @@ LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where 
 #                             (docs/distance.md, "The refit's step by its own Jacobian, not
 #                             evaluated (stop 79)")
 LINE_REFIT_TRUST_LOG = 0.01  # (those first steps: 0.03-0.69 % in distance)
+LINE_CELLS_TRUSTED = True  # the cells' fine Gauss–Newton step (the fine model's own Jacobian)
+#                             is not evaluated either where under LINE_REFIT_TRUST_LOG: the
+#                             line regions' eight cells lines each took one step and no second
+#                             (docs/distance.md, "The refit's step by its own Jacobian, not
+#                             evaluated (stop 79)")
 LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line has this share
 #                                of the points (LINE_POINTS at least): the settled test's
 #                                model keeps them all, and the answer goes to its minimum (the
@@ -1845,11 +1850,14 @@ def _refit_start(fun_r, q: np.ndarray, f: float, guess: np.ndarray | None
     return q, fun_r(q)
 
 
-def _trusted_step(q: np.ndarray, r: np.ndarray, jac: np.ndarray
+def _trusted_step(q: np.ndarray, r: np.ndarray, jac: np.ndarray,
+                  shortest: float | None = None
                   ) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """A refit's Gauss–Newton step by its own Jacobian ``jac`` from ``q`` (residual ``r``),
+    """A Gauss–Newton step by the model's own Jacobian ``jac`` from ``q`` (residual ``r``),
     not evaluated: ``(q − δ, r − J·δ, its misfit²)``; ``(q, r, Σr²)`` where the step is under
-    :data:`LINE_REFIT_MIN_TRIAL_LOG` (not tried, as :func:`gauss_newton_fixed` does not);
+    ``shortest`` in log distance (not taken, as :func:`gauss_newton_fixed` would not: a
+    refit's :data:`LINE_REFIT_MIN_TRIAL_LOG`, the default; the cells'
+    :data:`LINE_CELLS_FINE_STEP_LOG`);
     None where the step is longer than :data:`LINE_REFIT_TRUST_LOG` in log distance, would
     not lower the misfit by its own linear model, or ``JᵀJ`` is singular (the caller's
     evaluated steps then)."""
@@ -1859,7 +1867,7 @@ def _trusted_step(q: np.ndarray, r: np.ndarray, jac: np.ndarray
     delta, gain = step
     if not abs(float(delta[0])) <= LINE_REFIT_TRUST_LOG or not gain > 0.0:
         return None
-    if abs(float(delta[0])) < LINE_REFIT_MIN_TRIAL_LOG:
+    if abs(float(delta[0])) < (LINE_REFIT_MIN_TRIAL_LOG if shortest is None else shortest):
         return q, r, sq(r)
     r_new = r - np.einsum("ki,i->k", jac, delta)
     return q - delta, r_new, sq(r_new)
@@ -2852,7 +2860,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    if bins is None:
+    trusted = (_trusted_step(q, r, jac, LINE_CELLS_FINE_STEP_LOG)
+               if bins is None and fine.cells and LINE_CELLS_TRUSTED else None)
+    if trusted is not None:
+        q, r, f = trusted
+    elif bins is None:
         q, r, f = gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
                                      skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
     else:
