@@ -381,11 +381,12 @@ LINE_REFIT_MIN_TRIAL_LOG = LINE_SIGMA_FLOOR_REL / 3  # ... and trying no step (n
 #                       (docs/distance.md, "The refit's steps under the line σ floor (stop 51)")
 LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where it moves the log
 #                             distance by under LINE_REFIT_TRUST_LOG, is not evaluated: the
-#                             answer's residual is the linear model's (r + J·δ). Of 20 refits
-#                             (system 1's 24 far lines, scene (b)'s ten) every first step
-#                             lowered the misfit at its first try and every second one was
-#                             under LINE_REFIT_MIN_TRIAL_LOG (not tried); the linear model's
-#                             misfit was within 1.1 % of the evaluated one, its σ within 3.6 %
+#                             answer's residual is the linear model's (r − J·δ, the step −δ).
+#                             Of 20 refits (system 1's 24 far lines, scene (b)'s ten) every
+#                             first step lowered the misfit at its first try and every second
+#                             one was under LINE_REFIT_MIN_TRIAL_LOG (not tried); the linear
+#                             model's misfit was within 1.1 % of the evaluated one, its σ within
+#                             3.6 %
 #                             (docs/distance.md, "The refit's step by its own Jacobian, not
 #                             evaluated (stop 79)")
 LINE_REFIT_TRUST_LOG = 0.01  # (those first steps: 0.03-0.69 % in distance)

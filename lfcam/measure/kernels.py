@@ -2316,70 +2316,51 @@ def deposit_cells(out, rows, ci, cj, sx, sy, wt, e, group, origin, basis, pp, ax
 # (stop 79)").
 
 
-@njit(cache=True, nogil=True)
-def gram_of(a):
-    """``aᵀa`` of a tall ``(n, p)`` array."""
-    n, p = a.shape
-    out = np.empty((p, p))
-    m = n - n % 4
-    for i in range(p):
-        for j in range(i, p):
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            s3 = 0.0
-            for k in range(0, m, 4):
-                s0 += a[k, i] * a[k, j]
-                s1 += a[k + 1, i] * a[k + 1, j]
-                s2 += a[k + 2, i] * a[k + 2, j]
-                s3 += a[k + 3, i] * a[k + 3, j]
-            for k in range(m, n):
-                s0 += a[k, i] * a[k, j]
-            s = (s0 + s1) + (s2 + s3)
-            out[i, j] = s
-            out[j, i] = s
-    return out
-
-
-@njit(cache=True, nogil=True)
-def jt_of(a, r):
-    """``aᵀr`` of a tall ``(n, p)`` array and ``(n,)`` vector."""
-    n, p = a.shape
-    out = np.empty(p)
-    m = n - n % 4
-    for i in range(p):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        s3 = 0.0
-        for k in range(0, m, 4):
-            s0 += a[k, i] * r[k]
-            s1 += a[k + 1, i] * r[k + 1]
-            s2 += a[k + 2, i] * r[k + 2]
-            s3 += a[k + 3, i] * r[k + 3]
-        for k in range(m, n):
-            s0 += a[k, i] * r[k]
-        out[i] = (s0 + s1) + (s2 + s3)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def sq_of(r):
-    """``Σ r²`` of a vector."""
-    n = r.size
+@njit(cache=True, nogil=True, inline="always")
+def _dot4(x, y):
+    """``Σ x·y`` of two vectors (any stride) in four interleaved partial sums, added in a
+    fixed order."""
+    n = x.size
     m = n - n % 4
     s0 = 0.0
     s1 = 0.0
     s2 = 0.0
     s3 = 0.0
     for k in range(0, m, 4):
-        s0 += r[k] * r[k]
-        s1 += r[k + 1] * r[k + 1]
-        s2 += r[k + 2] * r[k + 2]
-        s3 += r[k + 3] * r[k + 3]
+        s0 += x[k] * y[k]
+        s1 += x[k + 1] * y[k + 1]
+        s2 += x[k + 2] * y[k + 2]
+        s3 += x[k + 3] * y[k + 3]
     for k in range(m, n):
-        s0 += r[k] * r[k]
+        s0 += x[k] * y[k]
     return (s0 + s1) + (s2 + s3)
+
+
+@njit(cache=True, nogil=True)
+def gram_of(a):
+    """``aᵀa`` of a tall ``(n, p)`` array."""
+    p = a.shape[1]
+    out = np.empty((p, p))
+    for i in range(p):
+        for j in range(i, p):
+            out[i, j] = out[j, i] = _dot4(a[:, i], a[:, j])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def jt_of(a, r):
+    """``aᵀr`` of a tall ``(n, p)`` array and ``(n,)`` vector."""
+    p = a.shape[1]
+    out = np.empty(p)
+    for i in range(p):
+        out[i] = _dot4(a[:, i], r)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def sq_of(r):
+    """``Σ r²`` of a vector."""
+    return _dot4(r, r)
 
 
 @njit(cache=True, nogil=True)
@@ -2389,24 +2370,10 @@ def scaled_residual(m, data, norm):
     :meth:`lfcam.measure.fastfit.LensletModel.residual_of`."""
     mv = m.reshape(m.size)
     dv = data.reshape(data.size)
-    n = mv.size
-    top = n - n % 2
-    mm0 = 0.0
-    mm1 = 0.0
-    md0 = 0.0
-    md1 = 0.0
-    for k in range(0, top, 2):
-        mm0 += mv[k] * mv[k]
-        md0 += mv[k] * dv[k]
-        mm1 += mv[k + 1] * mv[k + 1]
-        md1 += mv[k + 1] * dv[k + 1]
-    for k in range(top, n):
-        mm0 += mv[k] * mv[k]
-        md0 += mv[k] * dv[k]
-    s_mm = mm0 + mm1
-    a = (md0 + md1) / s_mm if s_mm > 0 else 0.0
-    out = np.empty(n)
-    for k in range(n):
+    s_mm = _dot4(mv, mv)
+    a = _dot4(mv, dv) / s_mm if s_mm > 0 else 0.0
+    out = np.empty(mv.size)
+    for k in range(mv.size):
         out[k] = (dv[k] - a * mv[k]) / norm
     return out
 
