@@ -382,7 +382,7 @@ LINE_REFIT_MIN_TRIAL_LOG = LINE_SIGMA_FLOOR_REL / 3  # ... and trying no step (n
 LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where it moves the log
 #                             distance by under LINE_REFIT_TRUST_LOG, is not evaluated: the
 #                             answer's residual is the linear model's (r − J·δ, the step −δ).
-#                             Of 20 refits (system 1's 24 far lines, scene (b)'s ten) every
+#                             Of 17 refits (system 1's 24 far lines, scene (b)'s ten) every
 #                             first step lowered the misfit at its first try and every second
 #                             one was under LINE_REFIT_MIN_TRIAL_LOG (not tried); the linear
 #                             model's misfit was within 1.1 % of the evaluated one, its σ within
@@ -392,7 +392,7 @@ LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where 
 LINE_REFIT_TRUST_LOG = 0.01  # (those first steps: 0.03-0.69 % in distance)
 LINE_CELLS_TRUSTED = True  # the cells' fine Gauss–Newton step (the fine model's own Jacobian)
 #                             is not evaluated either where under LINE_REFIT_TRUST_LOG: the
-#                             line regions' eight cells lines each took one step and no second
+#                             line regions' seven cells lines each took one step and no second
 #                             (docs/distance.md, "The refit's step by its own Jacobian, not
 #                             evaluated (stop 79)")
 LINE_CELLS_POINTS_SHARE = 0.5  # on the cells, the coarse and fine models' line has this share
