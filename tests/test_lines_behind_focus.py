@@ -349,30 +349,46 @@ def test_line_whose_point_fit_runs_to_the_far_bound_is_still_tried(tmp_path):
 
 
 def test_a_trusted_refit_step_ends_at_the_least_squares_minimum():
-    """:func:`lfcam.measure.fastfit._trusted_step` on a linear residual ``r(q) = A·q − b``:
-    its unevaluated step lands on the least-squares solution (numpy's ``lstsq``, an SVD) and
-    its predicted residual is the one evaluated there; a step longer than the trust bound, or
-    one under the refit's least trial, is not taken."""
+    """:func:`lfcam.measure.solve.gauss_newton_fixed` with ``trusted`` (a refit's, a cells
+    line's fine step) on a linear residual ``r(q) = A·q − b``: its unevaluated step lands on
+    the least-squares solution (numpy's ``lstsq``, an SVD) and its predicted residual is the
+    one evaluated there; a step longer than the trust bound is evaluated, and one under the
+    refit's least trial (or the cells' shortest step) is not taken."""
     import lfcam.measure.fastfit as ff
+    from lfcam.measure.solve import gauss_newton_fixed
 
     rng = np.random.default_rng(5)
     a = rng.normal(size=(400, 5))
     b = rng.normal(size=400)
     q_min = np.linalg.lstsq(a, b, rcond=None)[0]
+    calls: list = []
+
+    def fun(q):
+        calls.append(1)
+        return a @ q - b
+
+    def refit(start, **rule):
+        calls.clear()
+        rule = rule or {"min_trial": ff.LINE_REFIT_MIN_TRIAL_LOG}
+        return gauss_newton_fixed(fun, start, a @ start - b, a, ff.LINE_REFIT_STEPS,
+                                  trusted=ff.LINE_REFIT_TRUST_LOG, **rule)
+
     start = q_min + np.array([0.004, 0.01, -0.02, 0.003, 0.0])  # 0.4 % in log distance
-    r0 = a @ start - b
-    q, r, f = ff._trusted_step(start, r0, a)
+    q, r, f = refit(start)
+    assert not calls  # (not evaluated)
     assert np.allclose(q, q_min, rtol=0, atol=1e-9)
     assert np.allclose(r, a @ q - b, rtol=0, atol=1e-9)
     assert abs(f - float((a @ q_min - b) @ (a @ q_min - b))) < 1e-9
     far = q_min + np.array([2.0 * ff.LINE_REFIT_TRUST_LOG, 0.0, 0.0, 0.0, 0.0])
-    assert ff._trusted_step(far, a @ far - b, a) is None  # (evaluated steps instead)
+    q_f, _, _ = refit(far)
+    assert calls and np.allclose(q_f, q_min, rtol=0, atol=1e-9)  # (evaluated steps instead)
     near = q_min + np.array([0.5 * ff.LINE_REFIT_MIN_TRIAL_LOG, 0.0, 0.0, 0.0, 0.0])
-    q_n, r_n, f_n = ff._trusted_step(near, a @ near - b, a)
-    assert np.array_equal(q_n, near) and abs(f_n - float(r_n @ r_n)) < 1e-9 * f_n
+    q_n, r_n, f_n = refit(near)
+    assert not calls and np.array_equal(q_n, near)
+    assert abs(f_n - float(r_n @ r_n)) < 1e-9 * f_n
     # the cells' fine step (LINE_CELLS_TRUSTED) with its own shortest step: taken over it
     cells = q_min + np.array([2.0 * ff.LINE_CELLS_FINE_STEP_LOG, 0.0, 0.0, 0.0, 0.0])
-    q_c, _, _ = ff._trusted_step(cells, a @ cells - b, a, ff.LINE_CELLS_FINE_STEP_LOG)
-    assert np.allclose(q_c, q_min, rtol=0, atol=1e-9)
-    q_s, _, _ = ff._trusted_step(cells, a @ cells - b, a, 3.0 * ff.LINE_CELLS_FINE_STEP_LOG)
-    assert np.array_equal(q_s, cells)
+    q_c, _, _ = refit(cells, skip_below=ff.LINE_CELLS_FINE_STEP_LOG)
+    assert not calls and np.allclose(q_c, q_min, rtol=0, atol=1e-9)
+    q_s, _, _ = refit(cells, skip_below=3.0 * ff.LINE_CELLS_FINE_STEP_LOG)
+    assert not calls and np.array_equal(q_s, cells)

@@ -381,7 +381,7 @@ LINE_REFIT_MIN_TRIAL_LOG = LINE_SIGMA_FLOOR_REL / 3  # ... and trying no step (n
 #                       (docs/distance.md, "The refit's steps under the line σ floor (stop 51)")
 LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where it moves the log
 #                             distance by under LINE_REFIT_TRUST_LOG, is not evaluated: the
-#                             answer's residual is the linear model's (r − J·δ, the step −δ).
+#                             answer's residual is the linear model's (r + J·dq, the step dq).
 #                             Of 17 refits (system 1's 24 far lines, scene (b)'s ten) every
 #                             first step lowered the misfit at its first try and every second
 #                             one was under LINE_REFIT_MIN_TRIAL_LOG (not tried); the linear
@@ -1851,29 +1851,6 @@ def _refit_start(fun_r, q: np.ndarray, f: float, guess: np.ndarray | None
     return q, fun_r(q)
 
 
-def _trusted_step(q: np.ndarray, r: np.ndarray, jac: np.ndarray,
-                  shortest: float | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """A Gauss–Newton step by the model's own Jacobian ``jac`` from ``q`` (residual ``r``),
-    not evaluated: ``(q − δ, r − J·δ, its misfit²)``; ``(q, r, Σr²)`` where the step is under
-    ``shortest`` in log distance (not taken, as :func:`gauss_newton_fixed` would not: a
-    refit's :data:`LINE_REFIT_MIN_TRIAL_LOG`, the default; the cells'
-    :data:`LINE_CELLS_FINE_STEP_LOG`);
-    None where the step is longer than :data:`LINE_REFIT_TRUST_LOG` in log distance, would
-    not lower the misfit by its own linear model, or ``JᵀJ`` is singular (the caller's
-    evaluated steps then)."""
-    step = linear_step(jac, r)
-    if step is None:
-        return None
-    delta, gain = step
-    if not abs(float(delta[0])) <= LINE_REFIT_TRUST_LOG or not gain > 0.0:
-        return None
-    if abs(float(delta[0])) < (LINE_REFIT_MIN_TRIAL_LOG if shortest is None else shortest):
-        return q, r, sq(r)
-    r_new = r - np.einsum("ki,i->k", jac, delta)
-    return q - delta, r_new, sq(r_new)
-
-
 def _accepted(accept: Callable[[float, float], bool], q: np.ndarray, sigma_log: float,
               shift_log: float, floor_rel: float) -> bool:
     """Whether ``accept(distance_mm, sigma_mm)`` takes the fit at ``q`` with its σ: the
@@ -2861,13 +2838,11 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    trusted = (_trusted_step(q, r, jac, LINE_CELLS_FINE_STEP_LOG)
-               if bins is None and fine.cells and LINE_CELLS_TRUSTED else None)
-    if trusted is not None:
-        q, r, f = trusted
-    elif bins is None:
-        q, r, f = gauss_newton_fixed(fun, q, r, jac, FINE_ITERATIONS,
-                                     skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0)
+    if bins is None:
+        q, r, f = gauss_newton_fixed(
+            fun, q, r, jac, FINE_ITERATIONS,
+            skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0,
+            trusted=LINE_REFIT_TRUST_LOG if fine.cells and LINE_CELLS_TRUSTED else 0.0)
     else:
         # the coarse Jacobian is the super-cells': the fine model's steps read them too (a
         # Jacobian over every lenslet taken again on the coarse rays: refits in 3 of scene
@@ -3001,13 +2976,10 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
                                       ends_on_rays=LINE_REFIT_ENDS)
             q, r = _refit_start(fun_r, q, f, early[2] if early else None)
             jac = jac_r(q, r)
-            trusted = _trusted_step(q, r, jac) if LINE_REFIT_TRUSTED else None
-            if trusted is not None:
-                q, r, f = trusted
-            else:
-                # (LINE_REFIT_MIN_TRIAL_LOG ≥ LINE_REFIT_STEP_LOG: no step under the latter)
-                q, r, f = gauss_newton_fixed(fun_r, q, r, jac, LINE_REFIT_STEPS,
-                                             min_trial=LINE_REFIT_MIN_TRIAL_LOG)
+            # (LINE_REFIT_MIN_TRIAL_LOG ≥ LINE_REFIT_STEP_LOG: no step under the latter either)
+            q, r, f = gauss_newton_fixed(
+                fun_r, q, r, jac, LINE_REFIT_STEPS, min_trial=LINE_REFIT_MIN_TRIAL_LOG,
+                trusted=LINE_REFIT_TRUST_LOG if LINE_REFIT_TRUSTED else 0.0)
             sigma_log = None
     if sigma_log is None:
         sigma_log = log_distance_sigma(jac, r)

@@ -279,22 +279,31 @@ def _capped_deltas(jk: np.ndarray, rk: np.ndarray, inv: np.ndarray) -> np.ndarra
     return np.einsum("kaq,ka->kq", jk, x) @ inv
 
 
-def gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0, min_trial=0.0):
+def gauss_newton_fixed(fun, q, r, jac, iterations, skip_below=0.0, min_trial=0.0,
+                       trusted=0.0):
     """Gauss–Newton with a fixed Jacobian (from the coarse model): one evaluation a step.
     ``skip_below``: a step whose log distance is under this is not taken (nor evaluated): at
     the minimum the misfit no longer falls by a step that small, and such a step was
     evaluated and halved twice: three evaluations for nothing. ``min_trial``: no step, nor a
-    halving of one that failed, is evaluated under this log distance: the fit ends there."""
+    halving of one that failed, is evaluated under this log distance: the fit ends there.
+    ``trusted``: a first step (not under those) that moves the log distance by no more than
+    this is taken without an evaluation and ends the fit, its residual the linear model's
+    ``r + J·dq``: with the model's own Jacobian (a line's refit, its fine fit on the cells)
+    such a step lowered the misfit at its first try and left none to take (docs/distance.md,
+    "The refit's step by its own Jacobian, not evaluated (stop 79)")."""
     f = sq(r)
     jtj = gram(jac)
     try:
         solve = np.linalg.inv(jtj + 1e-9 * np.diag(np.diag(jtj)))
     except np.linalg.LinAlgError:
         return q, r, f
-    for _ in range(iterations):
+    for it in range(iterations):
         dq = -(solve @ jt(jac, r))
         if abs(dq[0]) < skip_below:
             break
+        if it == 0 and min_trial <= abs(dq[0]) <= trusted:
+            r = r + np.einsum("ki,i->k", jac, dq)
+            return q + dq, r, sq(r)
         lower = False
         for _ in range(3):
             if abs(dq[0]) < min_trial:
