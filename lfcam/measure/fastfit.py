@@ -390,6 +390,13 @@ LINE_REFIT_TRUSTED = True  # ... whose first step, taken by that Jacobian where 
 #                             (docs/distance.md, "The refit's step by its own Jacobian, not
 #                             evaluated (stop 79)")
 LINE_REFIT_TRUST_LOG = 0.01  # (those first steps: 0.03-0.69 % in distance)
+LINE_RAYS_FINE_GN = False  # a ray-sampled line's fine stage (not on super-cells) takes no
+#                            Gauss–Newton steps on the coarse Jacobian before its
+#                            Levenberg–Marquardt: on system 1's 24 far lines those four steps
+#                            (0.08-4.5 % in all) fell short of where the fine model's own
+#                            Jacobian then went (up to 9.8 % on, in 16 of them): the same
+#                            accuracy, 8 % less CPU (docs/distance.md, "A ray-sampled line's
+#                            fine stage without the coarse Jacobian's steps (stop 80)")
 LINE_CELLS_TRUSTED = True  # the cells' fine Gauss–Newton step (the fine model's own Jacobian)
 #                             is not evaluated either where under LINE_REFIT_TRUST_LOG: the
 #                             line regions' seven cells lines each took one step and no second
@@ -2838,7 +2845,12 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         # lattice, whose borders cut its sub-cells (its distance column 10 % off n = 6's,
         # 0.4 % on the rectangular; the answers 0.26 % from n = 6's minimum on a 3400 mm line)
         jac = jac_f(q, r)
-    if bins is None:
+    if bins is None and not fine.cells and not LINE_RAYS_FINE_GN:
+        # on the rays the Levenberg–Marquardt below, on the fine model's own Jacobian, starts
+        # where the coarse stage ended: the coarse Jacobian's steps crept toward a minimum
+        # the fine Jacobian's first step then reached (LINE_RAYS_FINE_GN)
+        f = sq(r)
+    elif bins is None:
         q, r, f = gauss_newton_fixed(
             fun, q, r, jac, FINE_ITERATIONS,
             skip_below=LINE_CELLS_FINE_STEP_LOG if fine.cells else 0.0,
