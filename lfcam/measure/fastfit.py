@@ -397,6 +397,12 @@ LINE_RAYS_FINE_GN = False  # a ray-sampled line's fine stage (not on super-cells
 #                            Jacobian then went (up to 9.8 % on, in 16 of them): the same
 #                            accuracy, 8 % less CPU (docs/distance.md, "A ray-sampled line's
 #                            fine stage without the coarse Jacobian's steps (stop 80)")
+LINE_FINE_ENDS = True  # a ray-sampled line's fine Jacobian (not on super-cells) takes its
+#                        columns along the line from the line's two end points, as the refit's
+#                        (LINE_REFIT_ENDS): 5.8 % fewer rays on system 1's 24 far lines, 0.95-0.97
+#                        × their CPU, the same accuracy (on super-cells it moved scene (b)'s
+#                        lines: docs/distance.md, "Two more line paths tried (stop 79, not
+#                        kept)", "The fine Jacobian from the line's ends off super-cells (stop 80)")
 LINE_CELLS_TRUSTED = True  # the cells' fine Gauss–Newton step (the fine model's own Jacobian)
 #                             is not evaluated either where under LINE_REFIT_TRUST_LOG: the
 #                             line regions' seven cells lines each took one step and no second
@@ -2837,7 +2843,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
     f_stop = f if bins is None else sq(fun_every(q))
     if math.sqrt(f_stop) > LINE_STOP_COARSE * max(useful_below, LINE_STOP_FLOOR):
         return stopped(math.sqrt(f_stop))
-    fun, jac_f = line_model(fine, frame, n_fine, steps)
+    fun, jac_f = line_model(fine, frame, n_fine, steps,
+                            ends_on_rays=LINE_FINE_ENDS and bins is None)  # (LINE_FINE_ENDS)
     r = fun(q)
     if fine.cells:
         # the fine model's own Jacobian (on the cells the fine model makes the steps too) for
