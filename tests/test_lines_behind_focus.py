@@ -262,6 +262,15 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
         assert best.kind == "line" and best.status == "ok"
         return best.distance_mm / 3400.0 - 1.0, best.uncertainty_mm / 3400.0
 
+    def line_error_with(name: str, value) -> tuple[float, float]:
+        # line_error() with one fastfit constant set to value, then restored
+        kept = getattr(ff, name)
+        monkeypatch.setattr(ff, name, value)
+        try:
+            return line_error()
+        finally:
+            monkeypatch.setattr(ff, name, kept)
+
     paused = []
     lm = ff.levenberg_marquardt
 
@@ -286,25 +295,19 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     # Levenberg–Marquardt, as before stop 80 (LINE_RAYS_FINE_GN): within half a σ (measured
     # −0.018 %, σ 0.174 %; docs/distance.md, "A ray-sampled line's fine stage without the
     # coarse Jacobian's steps (stop 80)")
-    monkeypatch.setattr(ff, "LINE_RAYS_FINE_GN", True)
-    err_gn, sigma_gn = line_error()
-    monkeypatch.setattr(ff, "LINE_RAYS_FINE_GN", False)
+    err_gn, sigma_gn = line_error_with("LINE_RAYS_FINE_GN", True)
     assert abs(err_gn) < 3.0 * sigma_gn and abs(err - err_gn) < 0.5 * sigma
     # the fine Jacobian's columns along the line from every point shifted, as before stop 80
     # (LINE_FINE_ENDS): +0.189 %, σ 0.184 %, 1.0σ from this one's answer, both within 3σ of
     # the truth (docs/distance.md, "The fine Jacobian from the line's ends off super-cells
     # (stop 80)")
-    monkeypatch.setattr(ff, "LINE_FINE_ENDS", False)
-    err_fine_points, sigma_fine_points = line_error()
-    monkeypatch.setattr(ff, "LINE_FINE_ENDS", True)
+    err_fine_points, sigma_fine_points = line_error_with("LINE_FINE_ENDS", False)
     assert abs(err_fine_points) < 3.0 * sigma_fine_points
     # the refit's Jacobian along the line from its two ends (LINE_REFIT_ENDS) against every
     # point shifted, the three traces it replaces: within half a σ (docs/distance.md, "The
     # refit's Jacobian from the line's ends (stop 78)": measured +0.085 %, σ 0.19 %, against
     # +0.150 %, σ 0.18 %; since stop 80 +0.021 %, σ 0.175 %, against +0.025 %, σ 0.170 %)
-    monkeypatch.setattr(ff, "LINE_REFIT_ENDS", False)
-    err_points, sigma_points = line_error()
-    monkeypatch.setattr(ff, "LINE_REFIT_ENDS", True)
+    err_points, sigma_points = line_error_with("LINE_REFIT_ENDS", False)
     assert abs(err_points) < 3.0 * sigma_points and abs(err - err_points) < 0.5 * sigma
     # the refit's first step by its own Jacobian taken unevaluated (LINE_REFIT_TRUSTED)
     # against its steps evaluated, as before stop 79: here, noise-free, the evaluated path
@@ -312,14 +315,10 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     # ask for: +0.085 % (σ 0.190 %) against +0.147 % (σ 0.190 %), within half a σ
     # (docs/distance.md, "The refit's step by its own Jacobian, not evaluated (stop 79)";
     # since stop 80 −0.029 %, σ 0.175 %, against +0.021 %, σ 0.175 %)
-    monkeypatch.setattr(ff, "LINE_REFIT_TRUSTED", False)
-    err_evaluated, sigma_evaluated = line_error()
-    monkeypatch.setattr(ff, "LINE_REFIT_TRUSTED", True)
+    err_evaluated, sigma_evaluated = line_error_with("LINE_REFIT_TRUSTED", False)
     assert abs(err_evaluated) < 3.0 * sigma_evaluated and abs(err - err_evaluated) < 0.5 * sigma
     assert abs(sigma / sigma_evaluated - 1.0) < 0.05
-    monkeypatch.setattr(ff, "LINE_REFIT_EARLY", False)
-    err_old, sigma_old = line_error()
-    monkeypatch.setattr(ff, "LINE_REFIT_EARLY", True)
+    err_old, sigma_old = line_error_with("LINE_REFIT_EARLY", False)
     assert abs(err_old) < 3.0 * sigma_old and abs(err - err_old) < 0.5 * sigma
     # A tolerance the fine fit cannot meet with the shift in its σ keeps the refit; one it
     # meets skips it and reports that σ (docs/distance.md, "A line's refit only where the
