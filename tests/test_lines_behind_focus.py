@@ -330,12 +330,12 @@ def test_line_refitted_where_its_ray_sample_moves_it(tmp_path, monkeypatch):
     # the points' turned samples alone: within 3σ. Without the settled test the answer is
     # the fine sample's own minimum, where the fit's path leaves it: +0.50 % (1.6σ) at stop
     # 58, +0.286 % (1.1σ) at stop 79, +0.340 % (1.3σ) since stop 80 (+0.623 %, 2.3σ, with
-    # stop 80's first change alone: LINE_RAYS_FINE_GN)
+    # stop 80's first change alone, no fine steps on the coarse Jacobian)
     assert abs(err_turned) < 3.0 * sigma_turned
     # the unrefitted answer with the shift in its σ: within 2σ (+0.286 % at σ 0.430 % at stop
-    # 79, 0.67σ; +0.340 % at σ 0.435 % since stop 80, 0.78σ; 1.37σ with LINE_RAYS_FINE_GN
-    # alone, whose three Levenberg–Marquardt iterations from a start 9.4 % long ended 0.13 %
-    # beyond the fine model's minimum)
+    # 79, 0.67σ; +0.340 % at σ 0.435 % since stop 80, 0.78σ; 1.37σ with stop 80's first
+    # change alone, whose three Levenberg–Marquardt iterations from a start 9.4 % long ended
+    # 0.13 % beyond the fine model's minimum)
     assert err_quick == err_turned and abs(err_quick) < 2.0 * sigma_quick
     # the shift is in it (the difference of the two samples' steps, read before the last
     # iteration: 0.0033 in log distance; 0.015 read after it, with the last step still to go

@@ -2854,8 +2854,8 @@ def fit_lenslet_line(profile: CameraProfile, geom: Geometry, image: np.ndarray,
         jac = jac_f(q, r)
     if bins is None and not fine.cells and not LINE_RAYS_FINE_GN:
         # on the rays the Levenberg–Marquardt below, on the fine model's own Jacobian, starts
-        # where the coarse stage ended: the coarse Jacobian's steps crept toward a minimum
-        # the fine Jacobian's first step then reached (LINE_RAYS_FINE_GN)
+        # where the coarse stage ended: the coarse Jacobian's four steps crept toward a
+        # minimum the fine Jacobian's steps then went on to (LINE_RAYS_FINE_GN)
         f = sq(r)
     elif bins is None:
         q, r, f = gauss_newton_fixed(
