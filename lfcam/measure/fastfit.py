@@ -450,7 +450,9 @@ LINE_GAIN = 0.5  # ... a line only when it cuts the point's misfit below this ×
 LINE_STOP_COARSE = 4.0  # a line fit stops after its coarse stage when the misfit is over this
 LINE_STOP_FINE = 3.0  # ... or after the fine Gauss–Newton steps over this × the misfit it must
 #                       reach to matter (coarse → final measured ≤ 2.7×, fine GN → final ≤ 2.0×
-#                       on noisy captures, ≤ 2.7× on the noise-free seed lines) ...
+#                       on noisy captures, ≤ 2.7× on the noise-free seed lines; a ray-sampled
+#                       line off super-cells, which takes no such steps since stop 80
+#                       (LINE_RAYS_FINE_GN), is read where the coarse stage ended) ...
 LINE_STOP_FLOOR = 0.02  # ... the coarse stage's limit at least this × LINE_STOP_COARSE: on
 #                         noise-free data the coarse model's own ray noise dominates its misfit
 #                         (0.01-0.03), not the data's (the fine model is the final one)
